@@ -1,0 +1,1 @@
+"""Shipped data: the default work cell and the predictor weights."""

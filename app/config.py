@@ -1,0 +1,239 @@
+"""Settings (environment, prefix ``HRC_``) and the work-cell description (TOML, validated by pydantic).
+
+Frames: the world frame has z up and its origin at the robot base on the table top; lengths in metres,
+angles in radians, times in seconds.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from functools import cached_property
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
+PositiveVec3 = Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=3, max_length=3)]
+
+
+class WorkCellError(ValueError):
+    """A work-cell file could not be read or is invalid; the message names the field and the reason."""
+
+
+def rpy_to_matrix(rpy: list[float] | np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) from roll, pitch, yaw (rad), applied as Rz(yaw) @ Ry(pitch) @ Rx(roll)."""
+    r, p, y = (float(v) for v in rpy)
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def pose_matrix(xyz: list[float] | np.ndarray, rpy: list[float] | np.ndarray) -> np.ndarray:
+    """Homogeneous transform (4, 4) from a translation (m) and roll-pitch-yaw (rad)."""
+    T = np.eye(4)
+    T[:3, :3] = rpy_to_matrix(rpy)
+    T[:3, 3] = np.asarray(xyz, dtype=float)
+    return T
+
+
+# The tool points straight down: TCP z axis = -world z, TCP x axis = world x.
+R_WORLD_TOOL_DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Box(_Strict):
+    """An axis-aligned box in the world frame (optionally rotated about z)."""
+
+    name: str = "box"
+    center: Vec3
+    size: PositiveVec3
+    yaw: float = 0.0
+
+    def transform(self) -> np.ndarray:
+        """``T_world_box`` (4, 4)."""
+        return pose_matrix(self.center, [0.0, 0.0, self.yaw])
+
+
+class RobotMount(_Strict):
+    """Pose of the robot base in the world frame."""
+
+    base_xyz: Vec3 = [0.0, 0.0, 0.0]
+    base_rpy: Vec3 = [0.0, 0.0, 0.0]
+    home_q: Annotated[list[float], Field(min_length=6, max_length=6)] = [
+        0.0,
+        -1.5708,
+        1.5708,
+        -1.5708,
+        -1.5708,
+        0.0,
+    ]
+
+    def T_world_base(self) -> np.ndarray:
+        return pose_matrix(self.base_xyz, self.base_rpy)
+
+
+class Tool(_Strict):
+    """Tool geometry: the flange -> TCP transform and a capsule that encloses the gripper."""
+
+    tcp_xyz: Vec3 = [0.0, 0.0, 0.15]
+    tcp_rpy: Vec3 = [0.0, 0.0, 0.0]
+    radius_m: float = Field(0.045, gt=0, le=0.3)
+
+    def T_flange_tcp(self) -> np.ndarray:
+        return pose_matrix(self.tcp_xyz, self.tcp_rpy)
+
+
+class Station(_Strict):
+    """A task pose: where the TCP goes (tool pointing down) to pick or drop a block."""
+
+    name: str
+    xyz: Vec3
+
+
+class Conveyor(_Strict):
+    body: Box
+    pickup: Station
+
+
+class OperatorArea(_Strict):
+    """Where the person stands: a rectangle on the floor across the table, and the way they face."""
+
+    center_xy: Vec2
+    size_xy: Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=2, max_length=2)]
+    floor_z: float = Field(-0.75, description="floor height in the world frame (m)")
+    facing_yaw: float = Field(math.pi, description="yaw of the person's forward direction (rad)")
+    work_spot: Vec3 = Field(description="where the person assembles blocks (their own area on the table)")
+
+
+class WorkCell(_Strict):
+    """The whole cell. Load it with :func:`load_workcell`."""
+
+    name: str = "default"
+    robot: RobotMount = RobotMount()
+    tool: Tool = Tool()
+    table: Box
+    conveyor: Conveyor
+    drop_stations: Annotated[list[Station], Field(min_length=1)]
+    home: Station
+    approach_height_m: float = Field(0.12, ge=0.0, le=0.5)
+    operator: OperatorArea
+    obstacles: list[Box] = []
+
+    @field_validator("drop_stations")
+    @classmethod
+    def _unique_station_names(cls, v: list[Station]) -> list[Station]:
+        names = [s.name for s in v]
+        if len(set(names)) != len(names):
+            raise ValueError(f"station names must be unique, got {names}")
+        return v
+
+    @model_validator(mode="after")
+    def _stations_above_table(self) -> WorkCell:
+        top = self.table.center[2] + self.table.size[2] / 2
+        for s in [*self.drop_stations, self.home, self.conveyor.pickup]:
+            if s.xyz[2] <= top:
+                raise ValueError(f"station {s.name!r} at z={s.xyz[2]} is not above the table top z={top}")
+        return self
+
+    @cached_property
+    def static_boxes(self) -> tuple[Box, ...]:
+        """Every static obstacle of the scene: table, conveyor and the extra boxes."""
+        return (self.table, self.conveyor.body, *self.obstacles)
+
+    def task_stations(self) -> list[Station]:
+        """Home, conveyor pickup and the drop stations, in that order."""
+        return [self.home, self.conveyor.pickup, *self.drop_stations]
+
+    def fingerprint(self) -> str:
+        """A stable hash of the cell's content (used to key caches)."""
+        import hashlib
+
+        return hashlib.sha256(self.model_dump_json().encode()).hexdigest()[:16]
+
+
+def _format_validation_error(source: str, err: ValidationError) -> str:
+    lines = [f"invalid work cell {source}:"]
+    for e in err.errors():
+        path = ".".join(str(p) for p in e["loc"]) or "<root>"
+        lines.append(f"  {path}: {e['msg']}")
+    return "\n".join(lines)
+
+
+DEFAULT_WORKCELL = "workcell.toml"
+
+
+def load_workcell(path: str | Path | None = None) -> WorkCell:
+    """Read and validate a work-cell TOML file (the shipped default when ``path`` is None).
+
+    Raises:
+        WorkCellError: the file is missing, is not TOML, or a field is invalid (the message gives the
+            dotted field path and the reason).
+    """
+    if path is None:
+        text = resources.files("app.assets").joinpath(DEFAULT_WORKCELL).read_text(encoding="utf-8")
+        source = f"<app.assets/{DEFAULT_WORKCELL}>"
+    else:
+        p = Path(path)
+        source = str(p)
+        try:
+            text = p.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise WorkCellError(f"cannot read work cell {source}: {exc.strerror}") from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise WorkCellError(f"work cell {source} is not valid TOML: {exc}") from exc
+    try:
+        return WorkCell.model_validate(data)
+    except ValidationError as exc:
+        raise WorkCellError(_format_validation_error(source, exc)) from None
+
+
+class Settings(BaseSettings):
+    """Application settings, from the environment (``HRC_*``) and an optional ``.env`` file."""
+
+    model_config = SettingsConfigDict(env_prefix="HRC_", env_file=".env", extra="ignore")
+
+    # server
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=1, le=65535)
+    viser_port: int = Field(8080, ge=1, le=65535)
+    api_token: str | None = None
+    read_only_open: bool = Field(False, description="open the read-only routes without a token")
+    data_dir: Path = Path("var")
+    database_url: str | None = Field(None, description="SQLAlchemy URL; default: SQLite in data_dir")
+
+    # cell
+    workcell: Path | None = Field(None, description="work-cell TOML; default: the shipped cell")
+    robot: Literal["sim", "rtde"] = "sim"
+    robot_host: str = "192.168.1.10"
+    human_source: Literal["sim", "replay", "stream"] = "sim"
+    replay_clip: Path | None = None
+
+    # planning and supervision (paper section II)
+    deadline_s: float = Field(0.1, gt=0, le=2.0, description="D: backup-plan deadline")
+    frame_period_s: float = Field(1 / 30, gt=0, le=1.0, description="F: camera frame period")
+    planner_workers: int = Field(2, ge=1, le=64)
+    method: Literal["proactive", "reactive"] = "proactive"
+
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'hrc.db').as_posix()}"
+
+    def load_workcell(self) -> WorkCell:
+        return load_workcell(self.workcell)

@@ -1,0 +1,98 @@
+"""Per-trial metrics and timestamped events: the contract between the runtime and the study records.
+
+The runtime fills a :class:`TrialMetrics` as a trial runs and emits :class:`TrialEvent` records; the study
+database stores both (one metrics row per trial, one row per event) and the analysis reads them back.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Literal
+
+Method = Literal["proactive", "reactive"]
+METHODS: tuple[Method, ...] = ("proactive", "reactive")
+
+#: Kinds of events the runtime emits (payload keys in brackets).
+EVENT_KINDS: tuple[str, ...] = (
+    "trial_started",  # [method, seed]
+    "trial_ended",  # [status, reason]
+    "task_completed",  # [station, index]
+    "state_changed",  # [from, to]
+    "online_replan",  # [t_switch, violation_t]
+    "stop_replan",  # [violation_t, reason]
+    "deadline_miss",  # [elapsed_s, deadline_s]
+    "plan_failed",  # [reason]
+    "stale_stream",  # [age_s]
+    "stream_resumed",  # []
+    "estop",  # [source]
+    "robot_fault",  # [message]
+    "violation",  # [separation_m, required_m, speed_mps]
+)
+
+
+@dataclass(frozen=True, slots=True)
+class TrialEvent:
+    """One timestamped event of a trial.
+
+    Attributes:
+        t: Seconds since the trial started (runtime clock: simulated in headless runs).
+        kind: One of :data:`EVENT_KINDS`.
+        payload: JSON-serialisable details.
+    """
+
+    t: float
+    kind: str
+    payload: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.kind not in EVENT_KINDS:
+            raise ValueError(f"unknown event kind {self.kind!r}; expected one of {EVENT_KINDS}")
+        if not math.isfinite(self.t):
+            raise ValueError(f"event time must be finite, got {self.t}")
+
+
+@dataclass(slots=True)
+class TrialMetrics:
+    """Everything measured in one trial. Counts are totals; ``*_per_task`` divide by completed tasks
+    (by 1 when no task was completed, so that a trial without tasks still reports its counts)."""
+
+    method: Method = "proactive"
+    duration_s: float = 0.0
+    completed_tasks: int = 0
+    plans_computed: int = 0
+    avg_planning_time_s: float = 0.0
+    p95_planning_time_s: float = 0.0
+    stop_replans: int = 0
+    online_replans: int = 0
+    deadline_misses: int = 0
+    emergency_plans: int = 0
+    plan_failures: int = 0
+    min_separation_m: float = math.inf
+    violations: int = 0
+    time_stopped_s: float = 0.0
+    time_nominal_s: float = 0.0
+    time_collision_avoidance_s: float = 0.0
+    stale_stops: int = 0
+    frames_received: int = 0
+    frames_rejected: int = 0
+
+    @property
+    def stop_replans_per_task(self) -> float:
+        return self.stop_replans / max(self.completed_tasks, 1)
+
+    @property
+    def online_replans_per_task(self) -> float:
+        return self.online_replans / max(self.completed_tasks, 1)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Flat, JSON-friendly dict including the derived per-task rates (inf becomes None)."""
+        d = asdict(self)
+        d["stop_replans_per_task"] = self.stop_replans_per_task
+        d["online_replans_per_task"] = self.online_replans_per_task
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+
+    @classmethod
+    def field_names(cls) -> tuple[str, ...]:
+        """Stored fields (the derived per-task rates are not stored)."""
+        return tuple(f.name for f in fields(cls))

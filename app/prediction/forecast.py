@@ -1,0 +1,109 @@
+"""The forecast of a person's motion that the planner checks plans against."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+
+
+@dataclass(frozen=True, slots=True)
+class HumanForecast:
+    """A person's predicted skeleton over a horizon, with a margin that grows with the horizon.
+
+    Index 0 is the latest observed pose at ``t0``; the following entries are predictions.
+
+    Attributes:
+        t0: Time of the latest observed frame (s, runtime clock).
+        times: Strictly increasing sample times (H,) in seconds; ``times[0] == t0``.
+        joints: Poses (H, J, 3) in metres, world frame.
+        margins: Extra clearance (H,) in metres that covers the forecast's error at each sample
+            (e.g. a per-horizon error quantile measured on validation data); ``margins[0]`` covers tracking.
+        growth_mps: Beyond the last sample the last pose is held and the margin grows at this speed (m/s).
+        max_margin_m: Upper bound of the grown margin (m).
+    """
+
+    t0: float
+    times: np.ndarray
+    joints: np.ndarray
+    margins: np.ndarray
+    growth_mps: float = 0.0
+    max_margin_m: float = 1.0
+
+    def __post_init__(self) -> None:
+        times = np.asarray(self.times, dtype=np.float64)
+        joints = np.asarray(self.joints, dtype=np.float64)
+        margins = np.asarray(self.margins, dtype=np.float64)
+        H = times.shape[0]
+        if times.ndim != 1 or H < 1:
+            raise ValueError(f"HumanForecast.times must have shape (H,), H >= 1, got {times.shape}")
+        if joints.shape != (H, NUM_JOINTS, 3):
+            raise ValueError(
+                f"HumanForecast.joints must have shape ({H}, {NUM_JOINTS}, 3), got {joints.shape}"
+            )
+        if margins.shape != (H,):
+            raise ValueError(f"HumanForecast.margins must have shape ({H},), got {margins.shape}")
+        if H > 1 and np.any(np.diff(times) <= 0):
+            raise ValueError("HumanForecast.times must be strictly increasing")
+        if not (np.all(np.isfinite(joints)) and np.all(np.isfinite(margins))):
+            raise ValueError("HumanForecast contains NaN or infinite values")
+        for a in (times, joints, margins):
+            a.setflags(write=False)
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "joints", joints)
+        object.__setattr__(self, "margins", margins)
+
+    @classmethod
+    def hold(
+        cls,
+        frame: HumanFrame,
+        *,
+        margin_m: float = 0.0,
+        growth_mps: float = 0.0,
+        max_margin_m: float = 1.0,
+    ) -> HumanForecast:
+        """The person held still at ``frame``'s pose (the reactive baseline and the emergency plan)."""
+        return cls(
+            t0=frame.t,
+            times=np.array([frame.t]),
+            joints=frame.joints[None],
+            margins=np.array([margin_m]),
+            growth_mps=growth_mps,
+            max_margin_m=max_margin_m,
+        )
+
+    @property
+    def horizon_end(self) -> float:
+        return float(self.times[-1])
+
+    def poses_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Interpolated poses and margins at times ``t`` (K,).
+
+        Returns:
+            ``(joints (K, J, 3), margins (K,))``. Before ``t0`` the first pose is used; beyond the
+            horizon the last pose is held and the margin grows by ``growth_mps`` per second, up to
+            ``max_margin_m``.
+        """
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        times = self.times
+        if times.shape[0] == 1:
+            idx0 = np.zeros(t.shape, dtype=np.int64)
+            idx1 = idx0
+            w = np.zeros(t.shape)
+        else:
+            tc = np.clip(t, times[0], times[-1])
+            idx1 = np.clip(np.searchsorted(times, tc, side="right"), 1, times.shape[0] - 1)
+            idx0 = idx1 - 1
+            w = (tc - times[idx0]) / (times[idx1] - times[idx0])
+        joints = self.joints[idx0] * (1.0 - w)[:, None, None] + self.joints[idx1] * w[:, None, None]
+        margins = self.margins[idx0] * (1.0 - w) + self.margins[idx1] * w
+        beyond = np.maximum(t - times[-1], 0.0)
+        margins = np.minimum(margins + self.growth_mps * beyond, max(self.max_margin_m, self.margins.max()))
+        return joints, margins
+
+    def pose_at(self, t: float) -> tuple[np.ndarray, float]:
+        """Pose (J, 3) and margin (m) at time ``t``."""
+        joints, margins = self.poses_at(np.array([t]))
+        return joints[0], float(margins[0])
