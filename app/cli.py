@@ -21,6 +21,11 @@ app = typer.Typer(
 )
 
 
+@app.callback()
+def _root() -> None:
+    """Proactive human-aware motion planning for a UR5e working beside a person."""
+
+
 def _bench_names() -> list[str]:
     import app.bench as bench_pkg
 
