@@ -1,0 +1,168 @@
+"""Pydantic models of the study records: ``*Create`` (input), ``*Update`` (partial input), ``*Read`` (output).
+
+The repository returns ``*Read`` models (never ORM objects), so that the API can return them directly and no
+database session escapes the repository.
+"""
+
+from __future__ import annotations
+
+import math
+from datetime import datetime
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, computed_field, field_validator
+
+Method = Literal["proactive", "reactive"]
+TrialStatus = Literal["running", "completed", "aborted"]
+FinalStatus = Literal["completed", "aborted"]
+
+ParticipantCode = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")]
+
+
+class _In(BaseModel):
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+
+# --- participants -------------------------------------------------------------------------------------
+
+
+class ParticipantCreate(_In):
+    """A new participant. ``code`` is a pseudonym (letters, digits, ``.``, ``_``, ``-``), unique."""
+
+    code: ParticipantCode
+    age: int | None = Field(None, ge=0, lt=150)
+    sex: str | None = Field(None, max_length=32)
+    experience: str | None = Field(None, max_length=200, description="experience with robots, free text")
+    notes: str = Field("", max_length=10_000)
+
+
+class ParticipantUpdate(_In):
+    """A partial update: only the fields that are set are changed."""
+
+    code: ParticipantCode | None = None
+    age: int | None = Field(None, ge=0, lt=150)
+    sex: str | None = Field(None, max_length=32)
+    experience: str | None = Field(None, max_length=200)
+    notes: str | None = Field(None, max_length=10_000)
+
+
+class ParticipantRead(_Out):
+    id: int
+    code: str
+    age: int | None
+    sex: str | None
+    experience: str | None
+    notes: str
+    created: datetime
+
+
+# --- study sessions -----------------------------------------------------------------------------------
+
+
+class StudySessionCreate(_In):
+    name: str = Field(min_length=1, max_length=200)
+    notes: str = Field("", max_length=10_000)
+
+
+class StudySessionUpdate(_In):
+    name: str | None = Field(None, min_length=1, max_length=200)
+    notes: str | None = Field(None, max_length=10_000)
+
+
+class StudySessionRead(_Out):
+    id: int
+    name: str
+    notes: str
+    created: datetime
+
+
+# --- trials -------------------------------------------------------------------------------------------
+
+
+class TrialCreate(_In):
+    """A trial about to start (status ``running``). ``order_index`` None: the next free position of the
+    participant within the session. ``settings``: a JSON snapshot of the settings it runs with."""
+
+    participant_id: int
+    method: Method
+    session_id: int | None = None
+    order_index: int | None = Field(None, ge=0)
+    seed: int = Field(0, ge=0, lt=2**63)
+    duration_s: float | None = Field(None, gt=0)
+    settings: dict[str, Any] = Field(default_factory=dict)
+
+
+class TrialMetricsRead(_Out):
+    """Stored metrics of one trial (see :class:`app.control.metrics.TrialMetrics`) plus the per-task rates.
+    ``min_separation_m`` is None when no person was seen during the trial."""
+
+    trial_id: int
+    duration_s: float
+    completed_tasks: int
+    plans_computed: int
+    avg_planning_time_s: float
+    p95_planning_time_s: float
+    stop_replans: int
+    online_replans: int
+    deadline_misses: int
+    emergency_plans: int
+    plan_failures: int
+    min_separation_m: float | None
+    violations: int
+    time_stopped_s: float
+    time_nominal_s: float
+    time_collision_avoidance_s: float
+    stale_stops: int
+    frames_received: int
+    frames_rejected: int
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def stop_replans_per_task(self) -> float:
+        return self.stop_replans / max(self.completed_tasks, 1)
+
+    @computed_field  # type: ignore[prop-decorator]
+    @property
+    def online_replans_per_task(self) -> float:
+        return self.online_replans / max(self.completed_tasks, 1)
+
+    @field_validator("min_separation_m")
+    @classmethod
+    def _finite_or_none(cls, v: float | None) -> float | None:
+        return v if v is not None and math.isfinite(v) else None
+
+
+class TrialRead(_Out):
+    id: int
+    participant_id: int
+    participant_code: str
+    session_id: int | None
+    method: Method
+    order_index: int
+    seed: int
+    duration_s: float | None
+    settings: dict[str, Any]
+    started_at: datetime
+    ended_at: datetime | None
+    status: TrialStatus
+    abort_reason: str | None
+    metrics: TrialMetricsRead | None = None
+
+
+class TrialFinish(_In):
+    """How a trial ended (the API's ``POST /trials/{id}/finish`` body, if it offers one)."""
+
+    status: FinalStatus
+    reason: str | None = Field(None, max_length=2_000)
+
+
+class TrialEventRead(_Out):
+    id: int
+    trial_id: int
+    t: float
+    kind: str
+    payload: dict[str, Any]
