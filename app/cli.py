@@ -9,9 +9,13 @@ from __future__ import annotations
 import importlib
 import json
 import pkgutil
-from typing import Annotated
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
 
 import typer
+
+if TYPE_CHECKING:
+    from app.study.repository import StudyRepository
 
 app = typer.Typer(
     name="hrc",
@@ -49,6 +53,153 @@ def bench(
     module = importlib.import_module(f"app.bench.{name}")
     result = module.run(quick=quick, progress=not as_json)
     typer.echo(json.dumps(result, indent=None if as_json else 2, sort_keys=False))
+
+
+# --- study records (app.study) --------------------------------------------------------------------------
+
+db_app = typer.Typer(help="Study database: migrations.", no_args_is_help=True)
+app.add_typer(db_app, name="db")
+
+_DbUrl = Annotated[
+    str | None,
+    typer.Option("--url", help="SQLAlchemy URL (default: HRC_DATABASE_URL, else SQLite in HRC_DATA_DIR)."),
+]
+_SessionSpec = Annotated[
+    str, typer.Option("--session", help="Study session: 'latest' (newest), 'all', or a session id.")
+]
+
+
+def _open_study(url: str | None) -> StudyRepository:
+    from app.study.db import DatabaseError
+    from app.study.repository import open_repository
+
+    try:
+        return open_repository(url)
+    except DatabaseError as exc:
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(1) from exc
+
+
+def _session_id(repo: StudyRepository, spec: str) -> int | None:
+    from app.study.repository import NotFoundError
+
+    try:
+        chosen = repo.resolve_session(spec)
+    except (NotFoundError, ValueError) as exc:
+        raise typer.BadParameter(str(exc), param_hint="--session") from exc
+    return None if chosen is None else chosen.id
+
+
+@db_app.command("upgrade")
+def db_upgrade(url: _DbUrl = None) -> None:
+    """Migrate the study database to the newest schema revision (the app does this at start too)."""
+    from sqlalchemy.engine import make_url
+
+    from app.study.db import DatabaseError, default_database_url, upgrade_to_head
+
+    url = url or default_database_url()
+    try:
+        upgrade_to_head(url)
+    except DatabaseError as exc:
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(1) from exc
+    typer.echo(f"study database at head: {make_url(url).render_as_string(hide_password=True)}")
+
+
+@app.command()
+def report(
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
+    out: Annotated[
+        Path | None, typer.Option("--out", help="Directory for table.md/.csv, summary.json, boxplots.png.")
+    ] = None,
+    session: _SessionSpec = "latest",
+    url: _DbUrl = None,
+) -> None:
+    """Study report: Table I per method, paired tests with p-values and effect sizes, tables and box plots.
+
+    Tests: Wilcoxon signed-rank, or repeated-measures ANOVA where the paired differences pass Shapiro-Wilk.
+    Files (table.md, table.csv, summary.json, boxplots.png) go to --out (default: HRC_DATA_DIR/report).
+    """
+    from app.config import Settings
+    from app.study.stats import markdown_table, summarize, write_report
+
+    settings = Settings()
+    repo = _open_study(url or settings.resolved_database_url())
+    try:
+        session_id = _session_id(repo, session)
+        rows = repo.metrics_rows(session_id=session_id, status="completed")
+        summary = summarize(rows)
+        summary["session_id"] = session_id
+        if out is None and not as_json:
+            out = settings.data_dir / "report"
+        paths = write_report(rows, out, summary=summary) if out is not None else {}
+    finally:
+        repo.close()
+    if as_json:
+        typer.echo(json.dumps(summary, allow_nan=False))
+        return
+    typer.echo(markdown_table(summary))
+    for kind, path in paths.items():
+        typer.echo(f"{kind}: {path}")
+
+
+@app.command("export")
+def export_(
+    out: Annotated[Path, typer.Option("--out", help="Directory for the CSV files.")],
+    session: Annotated[
+        str, typer.Option("--session", help="Study session: 'all' (default), 'latest', or a session id.")
+    ] = "all",
+    url: _DbUrl = None,
+) -> None:
+    """Export participants, trials, metrics (one row per trial) and events as CSV (UTF-8, ISO 8601 times)."""
+    from app.study.export import export_all
+
+    repo = _open_study(url)
+    try:
+        paths = export_all(repo, out, session_id=_session_id(repo, session))
+    finally:
+        repo.close()
+    for table, path in paths.items():
+        typer.echo(f"{table}: {path}")
+
+
+@app.command()
+def study(
+    participants: Annotated[int, typer.Option("--participants", min=1, help="Simulated participants.")] = 10,
+    duration: Annotated[
+        float, typer.Option("--duration", min=0.1, help="Trial duration (simulated s).")
+    ] = 300.0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Study seed (participants, trials).")] = 7,
+    workers: Annotated[
+        int | None, typer.Option("--workers", min=0, help="Processes (default: one per core; 0: inline).")
+    ] = None,
+    frames: Annotated[bool, typer.Option("--frames/--no-frames", help="Record frames for replay.")] = True,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar.")] = True,
+    url: _DbUrl = None,
+) -> None:
+    """Headless study: simulated participants x both methods, in parallel processes, into the database.
+
+    Each participant runs both methods in counterbalanced order with the same participant parameters, on
+    the simulated clock; the trials are stored under one new study session.
+    """
+    from app.study.runner import run_study
+
+    repo = _open_study(url)
+    try:
+        result = run_study(
+            participants=participants,
+            duration_s=duration,
+            seed=seed,
+            repo=repo,
+            max_workers=workers,
+            progress=progress,
+            record_frames=frames,
+        )
+    finally:
+        repo.close()
+    typer.echo(json.dumps(result.to_json()))
+    if result.aborted:
+        typer.echo(f"{result.aborted} trials aborted; see `hrc export` (trials.csv, abort_reason)", err=True)
 
 
 def main() -> None:

@@ -326,6 +326,23 @@ class StudyRepository:
             rows = s.scalars(select(StudySession).order_by(StudySession.id).offset(offset).limit(limit))
             return [StudySessionRead.model_validate(r) for r in rows]
 
+    def resolve_session(self, spec: str | int | None) -> StudySessionRead | None:
+        """A session selector as the command line takes it: ``"latest"`` (the newest session, None if there
+        is none), ``"all"`` or None (None: no restriction), or a session id.
+
+        Raises:
+            NotFoundError: no session with that id. ValueError: ``spec`` is none of these.
+        """
+        if spec is None or spec == "all":
+            return None
+        if spec == "latest":
+            return self.latest_session()
+        try:
+            session_id = int(spec)
+        except ValueError:
+            raise ValueError(f"session must be 'latest', 'all' or a session id, got {spec!r}") from None
+        return self.get_session(session_id)
+
     def latest_session(self) -> StudySessionRead | None:
         """The most recently created study session, or None when there is none."""
         with self._sessions() as s:
@@ -418,9 +435,12 @@ class StudyRepository:
         ended_at: datetime | None = None,
         events: Iterable[TrialEvent] = (),
         frames: RecordedFrames | None = None,
+        started_at: datetime | None = None,
     ) -> TrialRead:
         """End a running trial, in one transaction with its metrics and (optionally) remaining events and
         recorded frames. Close the trial's :class:`EventWriter` first so that its events are in.
+        ``started_at`` corrects the start time (the headless runner creates trials before they leave the
+        queue).
 
         Raises:
             NotFoundError: no such trial.
@@ -442,6 +462,8 @@ class StudyRepository:
             if frames is not None:
                 self._insert_frames(s, trial_id, frames, DEFAULT_CHUNK_FRAMES)
             t.status = status
+            if started_at is not None:
+                t.started_at = started_at
             t.ended_at = ended_at or utcnow()
             t.abort_reason = reason if status == "aborted" else None
             s.commit()
@@ -683,6 +705,27 @@ class StudyRepository:
         if rows:
             s.execute(insert(RecordedFrame), rows)
         return len(rows)
+
+
+def open_repository(
+    url: str | None = None, *, upgrade: bool = True, abort_interrupted: bool = False
+) -> StudyRepository:
+    """Open the study database at ``url`` (default: the settings' URL).
+
+    Args:
+        upgrade: Migrate the schema to head first (:func:`app.study.db.upgrade_to_head`).
+        abort_interrupted: Mark trials left ``running`` by a killed process as ``aborted`` (what the app
+            does once at start; not for tools that may run beside a live server).
+    """
+    from app.study.db import default_database_url, make_engine, upgrade_to_head
+
+    url = url or default_database_url()
+    if upgrade:
+        upgrade_to_head(url)
+    repo = StudyRepository(make_engine(url))
+    if abort_interrupted:
+        repo.abort_interrupted_trials()
+    return repo
 
 
 class EventWriter:
