@@ -302,7 +302,7 @@ def run_study(
     progress: bool = True,
     record_frames: bool = True,
     session_name: str | None = None,
-    trial_fn: Callable[[TrialJob], TrialOutcome] = run_trial_job,
+    trial_fn: Callable[[TrialJob], TrialOutcome] | None = None,
 ) -> StudyRunResult:
     """Run a whole headless study and store it under one new study session.
 
@@ -315,7 +315,8 @@ def run_study(
         max_workers: Worker processes (default ``os.cpu_count()``); 0 runs every trial in this process.
         progress: Show a tqdm progress bar on stderr.
         record_frames: Store the trials' frames (robot q and skeleton at 30 Hz) for replay.
-        trial_fn: Runs one job (a picklable top-level function when ``max_workers`` > 0).
+        trial_fn: Runs one job (a picklable top-level function when ``max_workers`` > 0); default
+            :func:`run_trial_job`.
 
     Returns:
         The session id, participant and trial ids, how many trials completed and aborted, the wall time.
@@ -326,6 +327,7 @@ def run_study(
         from app.config import Settings
 
         settings = Settings()
+    trial_fn = trial_fn or run_trial_job
     t0 = time.perf_counter()
     session_id, participant_ids, jobs = plan_study(
         repo,
