@@ -1,0 +1,254 @@
+"""The FastAPI application factory and its lifespan.
+
+``create_app(settings)`` builds the app; nothing starts until the lifespan runs (uvicorn, or
+``TestClient`` used as a context manager). At start the lifespan
+
+1. resolves the operator token (environment, token file, or a new one written with mode 0600),
+2. migrates the study database to head and marks trials left ``running`` by a killed process as aborted,
+3. starts the trial recorder thread, the runtime's threads, the live-snapshot broadcaster and, when the UI
+   package provides it, the viser scene on ``HRC_VISER_PORT``;
+
+and at shutdown it stops them in the safe order: the runtime (and with it the robot) first, then the recorder
+drains and the database is flushed and closed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI, Request, status
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, RedirectResponse
+
+from app.api.auth import ensure_api_token
+from app.api.deps import ApiContext
+from app.api.live import LiveHub, LiveLimits
+from app.api.recorder import TrialRecorder
+from app.config import Settings
+
+logger = logging.getLogger(__name__)
+
+API_PREFIX = "/api"
+UI_STATIC_DIR = Path(__file__).resolve().parents[1] / "ui" / "static"
+
+OPENAPI_TAGS = [
+    {"name": "health", "description": "Liveness (no token needed)."},
+    {"name": "participants", "description": "Study participants (pseudonymous codes)."},
+    {"name": "sessions", "description": "Study sessions that group trials."},
+    {"name": "trials", "description": "Start, stop and read trials; one trial runs at a time."},
+    {"name": "robot", "description": "Robot and supervisor state, E-stop and reset."},
+    {"name": "summary", "description": "The study's Table I and paired tests."},
+    {"name": "export", "description": "CSV export of every record."},
+]
+
+
+def _open_repository(settings: Settings) -> tuple[Any, Any]:
+    """Migrate the database to head and open a repository on it; returns ``(repo, engine)``."""
+    from app.study.db import make_engine, upgrade_to_head
+    from app.study.repository import StudyRepository
+
+    url = settings.resolved_database_url()
+    upgrade_to_head(url)
+    engine = make_engine(url)
+    return StudyRepository(engine), engine
+
+
+def _make_runtime(settings: Settings) -> Any:
+    from app.control.runtime import Runtime
+
+    return Runtime(settings)
+
+
+def _start_scene(settings: Settings, runtime: Any) -> Any:
+    """Start the viser 3D view when the UI package provides it; None (logged) when it cannot start."""
+    try:
+        from app.ui.scene import CellScene
+    except ImportError as exc:
+        logger.info("no 3D view: app.ui.scene is not available (%s)", exc)
+        return None
+    try:
+        scene = CellScene(runtime, settings.load_workcell(), port=settings.viser_port)
+        scene.start()
+    except Exception:
+        logger.exception(
+            "the 3D view (viser) could not start on port %d; continuing without it", settings.viser_port
+        )
+        return None
+    logger.info("3D view (viser) on port %d", settings.viser_port)
+    return scene
+
+
+def create_app(
+    settings: Settings,
+    *,
+    runtime: Any = None,
+    repo: Any = None,
+    limits: LiveLimits | None = None,
+    scene: bool = True,
+) -> FastAPI:
+    """Build the operator API.
+
+    Args:
+        settings: Application settings (``HRC_*``).
+        runtime: The live runtime; None builds ``app.control.runtime.Runtime(settings)``. Either way the
+            lifespan starts it and stops it.
+        repo: The study repository; None migrates ``settings.resolved_database_url()`` to head and opens a
+            ``StudyRepository`` on it (its engine is disposed at shutdown; an injected one is left to its
+            owner).
+        limits: Bounds of the live WebSockets (rates, queue sizes, message size).
+        scene: Start the viser 3D view (when ``app.ui.scene`` exists). Tests pass False.
+
+    Returns:
+        The app; serve it with uvicorn (one worker) or use ``TestClient(app)`` as a context manager.
+    """
+    limits = limits or LiveLimits()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        token = ensure_api_token(settings)
+        engine = None
+        repository = repo
+        if repository is None:
+            repository, engine = _open_repository(settings)
+        with contextlib.suppress(AttributeError):
+            n = repository.abort_interrupted_trials()
+            if n:
+                logger.warning("marked %s trial(s) left running by an earlier process as aborted", n)
+        rt = runtime if runtime is not None else _make_runtime(settings)
+        recorder = TrialRecorder(repository)
+        recorder.start()
+        rt.add_event_listener(recorder.on_event)
+        rt.add_trial_listener(recorder.on_trial_end)
+        hub = LiveHub(rt, limits=limits)
+        view = None
+        try:
+            rt.start()
+            hub.start(asyncio.get_running_loop())
+            if scene:
+                view = _start_scene(settings, rt)
+            app.state.hrc = ApiContext(
+                settings=settings, token=token.value, runtime=rt, repo=repository, hub=hub, recorder=recorder
+            )
+            app.state.shutdown_hook = rt.stop
+            logger.info("operator API ready (token from %s)", token.source)
+            yield
+        finally:
+            app.state.hrc = None
+            hub.stop()
+            if view is not None:
+                with contextlib.suppress(Exception):
+                    view.stop()
+            try:
+                rt.stop()  # the robot stops first: a running trial ends (aborted) through the recorder
+            except Exception:
+                logger.exception("the runtime did not stop cleanly")
+            recorder.close()  # drain: results and events into the database, then flush
+            if engine is not None:
+                engine.dispose()
+            logger.info("operator API stopped")
+
+    app = FastAPI(
+        title="hrc-proactive operator API",
+        version=app_version(),
+        summary="Proactive human-aware motion planning for a UR5e: trials, robot, study records, live state.",
+        docs_url="/docs",
+        redoc_url=None,
+        openapi_url="/openapi.json",
+        openapi_tags=OPENAPI_TAGS,
+        lifespan=lifespan,
+    )
+    app.state.hrc = None
+    app.state.settings = settings
+    _install_error_handlers(app)
+    _include_routes(app)
+    _mount_ui(app)
+    return app
+
+
+def app_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("hrc-proactive")
+    except PackageNotFoundError:
+        return "0.0.0"
+
+
+def _include_routes(app: FastAPI) -> None:
+    from app.api import live
+    from app.api.deps import AuthDep
+    from app.api.routes import export, health, participants, robot, sessions, summary, trials
+
+    app.include_router(health.router, prefix=API_PREFIX)
+    for module in (participants, sessions, trials, robot, summary, export):
+        app.include_router(module.router, prefix=API_PREFIX, dependencies=[AuthDep])
+    app.include_router(live.router, prefix=API_PREFIX)
+
+
+def _mount_ui(app: FastAPI) -> None:
+    if (UI_STATIC_DIR / "index.html").is_file():
+        from fastapi.staticfiles import StaticFiles
+
+        app.mount("/", StaticFiles(directory=UI_STATIC_DIR, html=True), name="ui")
+        return
+
+    @app.get("/", include_in_schema=False)
+    def _root() -> RedirectResponse:
+        return RedirectResponse("/docs")
+
+
+def _format_loc(loc: tuple[Any, ...] | list[Any]) -> str:
+    return ".".join(str(p) for p in loc) or "<request>"
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = [
+            {
+                "loc": [str(p) for p in e.get("loc", ())],
+                "msg": str(e.get("msg", "")),
+                "type": str(e.get("type", "")),
+            }
+            for e in exc.errors()
+        ]
+        detail = "; ".join(f"{_format_loc(e['loc'])}: {e['msg']}" for e in errors) or "invalid request"
+        return JSONResponse(
+            status_code=status.HTTP_422_UNPROCESSABLE_CONTENT,
+            content={"detail": f"invalid request: {detail}", "errors": errors},
+        )
+
+    from sqlalchemy.exc import OperationalError
+
+    from app.study.repository import ConflictError, NotFoundError, TrialStateError
+
+    @app.exception_handler(NotFoundError)
+    async def _not_found(_request: Request, exc: NotFoundError) -> JSONResponse:
+        return JSONResponse(status_code=status.HTTP_404_NOT_FOUND, content={"detail": str(exc)})
+
+    @app.exception_handler(ConflictError)
+    @app.exception_handler(TrialStateError)
+    async def _conflict(_request: Request, exc: Exception) -> JSONResponse:
+        return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={"detail": str(exc)})
+
+    @app.exception_handler(OperationalError)
+    async def _database_down(request: Request, exc: OperationalError) -> JSONResponse:
+        logger.error("database error on %s %s: %s", request.method, request.url.path, exc)
+        return JSONResponse(
+            status_code=status.HTTP_503_SERVICE_UNAVAILABLE,
+            content={"detail": "the study database is not reachable; check HRC_DATABASE_URL and retry"},
+        )
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+        logger.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+        return JSONResponse(
+            status_code=status.HTTP_500_INTERNAL_SERVER_ERROR,
+            content={"detail": "internal server error; the server log has the details"},
+        )

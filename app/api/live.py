@@ -1,0 +1,522 @@
+"""Live WebSockets: ``/api/live`` streams runtime snapshots, ``/api/ingest`` takes skeleton frames in.
+
+Fan-out (``/api/live``): one broadcaster thread holds a single bounded runtime subscription, keeps only the
+newest snapshot, serialises it to JSON once per tick (at most ``live_rate_hz``, 30 Hz) and hands the text
+to the event loop, where every client has its own bounded queue that drops the oldest text when the client
+is slow. The runtime's control loop only ever pushes into its own bounded subscription: no client can block
+it, and the JSON encoding happens off the control thread, once for all clients.
+
+Ingest (``/api/ingest``): a tracker sends one JSON skeleton frame per text message (the ``StreamSource``
+format); each message is checked for size, rate (token bucket) and JSON syntax before it reaches
+``Runtime.ingest``; every rejected message is answered with ``{"type": "error", "code": ..., "detail": ...}``
+and a client that keeps flooding (or sends an oversized message) is closed. Nothing a client sends can raise
+into the runtime.
+
+Authentication on both sockets: ``Authorization: Bearer <token>`` header, ``?token=`` query parameter, or a
+first message ``{"token": "..."}`` within ``auth_timeout_s``. With ``HRC_READ_ONLY_OPEN`` ``/api/live`` is
+open; ``/api/ingest`` always needs the token.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from fastapi import APIRouter, WebSocket
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from app.api.auth import bearer_token, tokens_match
+
+logger = logging.getLogger(__name__)
+
+# WebSocket close codes (RFC 6455 section 7.4.1).
+WS_NORMAL = 1000
+WS_GOING_AWAY = 1001
+WS_UNSUPPORTED_DATA = 1003
+WS_POLICY_VIOLATION = 1008
+WS_MESSAGE_TOO_BIG = 1009
+WS_INTERNAL_ERROR = 1011
+WS_TRY_AGAIN_LATER = 1013
+
+
+@dataclass(frozen=True, slots=True)
+class LiveLimits:
+    """Bounds of the live sockets.
+
+    Attributes:
+        live_rate_hz: Most snapshots per second sent to each ``/api/live`` client.
+        live_queue: Texts queued per live client before the oldest is dropped.
+        max_live_clients: Live clients at once (more are closed with 1013).
+        subscription_size: Size of the broadcaster's runtime subscription (drops the oldest).
+        ingest_max_bytes: Largest accepted ``/api/ingest`` message (UTF-8 bytes); larger closes with 1009.
+        ingest_rate_hz: Sustained ingest messages per second (token bucket refill rate).
+        ingest_burst: Token bucket capacity (messages that may arrive back to back).
+        ingest_close_after: Rate-rejected messages within one second after which the client is closed.
+        max_ingest_clients: Trackers connected at once.
+        auth_timeout_s: How long a client without header/query token has to send ``{"token": ...}``.
+        max_auth_bytes: Largest first (authentication) message.
+        clock: Monotonic clock (s) for the rate limits; tests pass a fake one.
+    """
+
+    live_rate_hz: float = 30.0
+    live_queue: int = 8
+    max_live_clients: int = 256
+    subscription_size: int = 4
+    ingest_max_bytes: int = 64 * 1024
+    ingest_rate_hz: float = 120.0
+    ingest_burst: int = 120
+    ingest_close_after: int = 120
+    max_ingest_clients: int = 4
+    auth_timeout_s: float = 5.0
+    max_auth_bytes: int = 4096
+    clock: Callable[[], float] = time.monotonic
+
+    def __post_init__(self) -> None:
+        if not (0 < self.live_rate_hz <= 1000 and 0 < self.ingest_rate_hz <= 10_000):
+            raise ValueError("live_rate_hz and ingest_rate_hz must be positive (and sane)")
+        if min(self.live_queue, self.subscription_size, self.ingest_burst, self.ingest_max_bytes) < 1:
+            raise ValueError("queue sizes, the ingest burst and the message size limit must be >= 1")
+
+
+def finite_json(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None (strict JSON has no NaN or Infinity)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [finite_json(v) for v in obj]
+    return obj
+
+
+def dumps_strict(obj: Any) -> str:
+    """Compact, strict JSON (non-finite floats become null, so browsers can ``JSON.parse`` it)."""
+    try:
+        return json.dumps(obj, separators=(",", ":"), allow_nan=False)
+    except ValueError:
+        return json.dumps(finite_json(obj), separators=(",", ":"), allow_nan=False)
+
+
+def snapshot_json(snapshot: Any) -> dict[str, Any]:
+    """``{"type": "snapshot", **snapshot.to_json()}`` (the message of ``/api/live``)."""
+    return {"type": "snapshot", **snapshot.to_json()}
+
+
+class ClientQueue:
+    """A bounded queue of texts for one WebSocket client that drops the oldest when full.
+
+    Lives on the event loop thread (no locking): :meth:`put` is called by the hub, :meth:`get` by the client's
+    sender task.
+    """
+
+    def __init__(self, maxsize: int) -> None:
+        if maxsize < 1:
+            raise ValueError(f"client queue size must be >= 1, got {maxsize}")
+        self._items: deque[str] = deque(maxlen=maxsize)
+        self._ready = asyncio.Event()
+        self.dropped = 0
+        self.sent = 0
+
+    def put(self, text: str) -> None:
+        if len(self._items) == self._items.maxlen:
+            self.dropped += 1
+        self._items.append(text)
+        self._ready.set()
+
+    async def get(self, timeout_s: float) -> str | None:
+        """The oldest queued text, waiting at most ``timeout_s``; None on timeout."""
+        if not self._items:
+            self._ready.clear()
+            try:
+                await asyncio.wait_for(self._ready.wait(), timeout_s)
+            except TimeoutError:
+                return None
+            if not self._items:
+                return None
+        return self._items.popleft()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+class LiveHub:
+    """Fans runtime snapshots out to the ``/api/live`` clients (see the module docstring).
+
+    Args:
+        runtime: Anything with ``subscribe(maxsize) -> Subscription`` (``get(timeout)``, ``close()``) and
+            ``snapshot()``.
+        limits: Rate and queue bounds.
+    """
+
+    def __init__(self, runtime: Any, *, limits: LiveLimits | None = None) -> None:
+        self._runtime = runtime
+        self.limits = limits or LiveLimits()
+        self._clients: set[ClientQueue] = set()
+        self._n_clients = 0  # read by the broadcaster thread (an int read is atomic)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._subscription: Any = None
+        self.published = 0
+        self.latest_text: str | None = None
+        self.ingest_clients = 0
+
+    # ---- lifecycle (called from the lifespan) -------------------------------------------------------
+    def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Subscribe to the runtime and start the broadcaster thread, posting into ``loop``."""
+        if self._thread is not None:
+            raise RuntimeError("LiveHub already started")
+        self._loop = loop
+        self._stop.clear()
+        self._subscription = self._runtime.subscribe(maxsize=self.limits.subscription_size)
+        self._thread = threading.Thread(target=self._run, name="hrc-live-broadcaster", daemon=True)
+        self._thread.start()
+
+    def stop(self, *, timeout_s: float = 2.0) -> None:
+        """Stop the broadcaster and close the subscription (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                logger.warning("live broadcaster did not stop within %.1f s", timeout_s)
+            self._thread = None
+        if self._subscription is not None:
+            with contextlib.suppress(Exception):
+                self._subscription.close()
+            self._subscription = None
+
+    # ---- clients (event loop thread) ----------------------------------------------------------------
+    def register(self) -> ClientQueue | None:
+        """A new client queue, or None when ``max_live_clients`` are already connected."""
+        if len(self._clients) >= self.limits.max_live_clients:
+            return None
+        q = ClientQueue(self.limits.live_queue)
+        self._clients.add(q)
+        self._n_clients = len(self._clients)
+        return q
+
+    def unregister(self, q: ClientQueue) -> None:
+        self._clients.discard(q)
+        self._n_clients = len(self._clients)
+
+    @property
+    def client_count(self) -> int:
+        return len(self._clients)
+
+    def _fanout(self, text: str) -> None:
+        self.latest_text = text
+        self.published += 1
+        for q in self._clients:
+            q.put(text)
+
+    def current_text(self) -> str:
+        """The newest snapshot as JSON text (serialised now when nothing was broadcast yet)."""
+        if self.latest_text is not None:
+            return self.latest_text
+        return dumps_strict(snapshot_json(self._runtime.snapshot()))
+
+    # ---- broadcaster thread -------------------------------------------------------------------------
+    def _newest(self, first: Any) -> Any:
+        """``first`` or a newer snapshot already waiting in the subscription."""
+        newest = first
+        for _ in range(self.limits.subscription_size + 1):
+            nxt = self._subscription.get(timeout=0.0)
+            if nxt is None:
+                break
+            newest = nxt
+        return newest
+
+    def _run(self) -> None:
+        period_s = 1.0 / self.limits.live_rate_hz
+        clock = time.monotonic
+        next_t = clock()
+        while not self._stop.is_set():
+            try:
+                snap = self._subscription.get(timeout=0.25)
+                if snap is None:
+                    continue
+                wait_s = next_t - clock()
+                if wait_s > 0 and self._stop.wait(wait_s):
+                    break
+                now = clock()
+                next_t = max(next_t + period_s, now)
+                if self._n_clients == 0:
+                    continue  # nobody listens: do not serialise
+                text = dumps_strict(snapshot_json(self._newest(snap)))
+                loop = self._loop
+                if loop is None or loop.is_closed():
+                    break
+                loop.call_soon_threadsafe(self._fanout, text)
+            except RuntimeError as exc:  # the loop closed under us during shutdown
+                if self._stop.is_set():
+                    break
+                logger.warning("live broadcaster: %s", exc)
+            except Exception:
+                logger.exception("live broadcaster: a snapshot could not be published; continuing")
+                self._stop.wait(period_s)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# authentication of a WebSocket
+
+
+def _ctx(websocket: WebSocket) -> Any:
+    return getattr(websocket.app.state, "hrc", None)
+
+
+async def authenticate(websocket: WebSocket, *, token: str, allow_open: bool, limits: LiveLimits) -> bool:
+    """Accept ``websocket`` if it is authorised; close it (1008) and return False if not.
+
+    A token in the ``Authorization`` header or ``?token=`` is checked before accepting (a wrong one is denied
+    during the handshake). Without either, the socket is accepted and the first message must be
+    ``{"token": "..."}`` within ``limits.auth_timeout_s``.
+    """
+    given = bearer_token(websocket.headers.get("authorization")) or websocket.query_params.get("token")
+    if given is not None:
+        if not tokens_match(given, token):
+            await websocket.close(code=WS_POLICY_VIOLATION, reason="invalid operator token")
+            return False
+        await websocket.accept()
+        return True
+    await websocket.accept()
+    if allow_open:
+        return True
+    try:
+        message = await asyncio.wait_for(websocket.receive(), limits.auth_timeout_s)
+    except TimeoutError:
+        await _send_error(websocket, "unauthorized", 'no token: send {"token": "..."} first')
+        await websocket.close(code=WS_POLICY_VIOLATION, reason="authentication timed out")
+        return False
+    if message["type"] == "websocket.disconnect":
+        return False
+    text = _message_text(message)
+    presented = None
+    if text is not None and len(text) <= limits.max_auth_bytes:
+        with contextlib.suppress(ValueError):
+            obj = json.loads(text)
+            if isinstance(obj, dict) and isinstance(obj.get("token"), str):
+                presented = obj["token"]
+    if not tokens_match(presented, token):
+        await _send_error(websocket, "unauthorized", "missing or invalid operator token")
+        await websocket.close(code=WS_POLICY_VIOLATION, reason="invalid operator token")
+        return False
+    return True
+
+
+def _message_text(message: dict[str, Any]) -> str | None:
+    """The text of a received ASGI WebSocket message (UTF-8 decoded bytes), None if undecodable/empty."""
+    text = message.get("text")
+    if text is not None:
+        return text
+    data = message.get("bytes")
+    if data is None:
+        return None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+
+
+async def _send_error(websocket: WebSocket, code: str, detail: str) -> None:
+    if websocket.application_state == WebSocketState.CONNECTED:
+        with contextlib.suppress(WebSocketDisconnect, RuntimeError, OSError):
+            await websocket.send_text(dumps_strict({"type": "error", "code": code, "detail": detail}))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# rate limiting
+
+
+class RateLimiter:
+    """Token bucket: ``rate_hz`` sustained, ``burst`` back to back; counts rejections per one-second window.
+
+    Args:
+        rate_hz: Refill rate (messages per second).
+        burst: Bucket capacity.
+        clock: Monotonic time source (s).
+    """
+
+    def __init__(self, rate_hz: float, burst: int, clock: Callable[[], float]) -> None:
+        self.rate_hz = rate_hz
+        self.burst = burst
+        self._clock = clock
+        self._tokens = float(burst)
+        self._t_last = clock()
+        self._window_start = self._t_last
+        self.rejected_in_window = 0
+        self.rejected_total = 0
+
+    def allow(self) -> bool:
+        now = self._clock()
+        dt_s = max(0.0, now - self._t_last)
+        self._t_last = now
+        self._tokens = min(float(self.burst), self._tokens + dt_s * self.rate_hz)
+        if now - self._window_start >= 1.0:
+            self._window_start = now
+            self.rejected_in_window = 0
+        if self._tokens >= 1.0:
+            self._tokens -= 1.0
+            return True
+        self.rejected_in_window += 1
+        self.rejected_total += 1
+        return False
+
+
+# ---------------------------------------------------------------------------------------------------------
+# routes
+
+router = APIRouter(tags=["live"])
+
+
+@router.websocket("/live")
+async def live_socket(websocket: WebSocket) -> None:
+    """Snapshots of the runtime as JSON text messages (``{"type": "snapshot", ...}``) at up to 30 Hz."""
+    ctx = _ctx(websocket)
+    if ctx is None:
+        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="server starting or stopping")
+        return
+    hub: LiveHub = ctx.hub
+    if not await authenticate(
+        websocket, token=ctx.token, allow_open=ctx.settings.read_only_open, limits=hub.limits
+    ):
+        return
+    q = hub.register()
+    if q is None:
+        await _send_error(
+            websocket, "too_many_clients", f"at most {hub.limits.max_live_clients} live clients"
+        )
+        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="too many live clients")
+        return
+    try:
+        q.put(hub.current_text())
+        sender = asyncio.create_task(_live_sender(websocket, q))
+        receiver = asyncio.create_task(_drain_until_disconnect(websocket))
+        done, pending = await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
+        for task in pending:
+            task.cancel()
+        for task in pending:
+            with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, RuntimeError, OSError):
+                await task
+        for task in done:
+            exc = task.exception()
+            if exc is not None and not isinstance(exc, WebSocketDisconnect | OSError | RuntimeError):
+                logger.warning("live client ended with %r", exc)
+    finally:
+        hub.unregister(q)
+        if q.dropped:
+            logger.info("live client disconnected; %d snapshots dropped for it (slow client)", q.dropped)
+
+
+async def _live_sender(websocket: WebSocket, q: ClientQueue) -> None:
+    while True:
+        text = await q.get(timeout_s=1.0)
+        if text is None:
+            continue
+        await websocket.send_text(text)
+        q.sent += 1
+
+
+async def _drain_until_disconnect(websocket: WebSocket) -> None:
+    """Read (and ignore) client messages until the client disconnects."""
+    while True:
+        message = await websocket.receive()
+        if message["type"] == "websocket.disconnect":
+            return
+
+
+@router.websocket("/ingest")
+async def ingest_socket(websocket: WebSocket) -> None:
+    """Skeleton frames from an external tracker into the runtime's ``StreamSource`` (one JSON text each)."""
+    ctx = _ctx(websocket)
+    if ctx is None:
+        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="server starting or stopping")
+        return
+    hub: LiveHub = ctx.hub
+    limits = hub.limits
+    if not await authenticate(websocket, token=ctx.token, allow_open=False, limits=limits):
+        return
+    if hub.ingest_clients >= limits.max_ingest_clients:
+        await _send_error(websocket, "too_many_clients", f"at most {limits.max_ingest_clients} trackers")
+        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="too many ingest clients")
+        return
+    hub.ingest_clients += 1
+    try:
+        await websocket.send_text(
+            dumps_strict(
+                {
+                    "type": "ready",
+                    "max_message_bytes": limits.ingest_max_bytes,
+                    "max_rate_hz": limits.ingest_rate_hz,
+                    "human_source": ctx.settings.human_source,
+                }
+            )
+        )
+        await _ingest_loop(websocket, ctx.runtime, limits)
+    except WebSocketDisconnect:
+        pass
+    finally:
+        hub.ingest_clients -= 1
+
+
+async def _ingest_loop(websocket: WebSocket, runtime: Any, limits: LiveLimits) -> None:
+    from app.api.runtime_errors import frame_rejected_types, ingest_unavailable_types
+
+    rejected_types = frame_rejected_types()
+    unavailable_types = ingest_unavailable_types()
+    limiter = RateLimiter(limits.ingest_rate_hz, limits.ingest_burst, limits.clock)
+    while True:
+        message = await websocket.receive()
+        if message["type"] == "websocket.disconnect":
+            return
+        raw_len = len(message["text"].encode("utf-8")) if message.get("text") is not None else None
+        if raw_len is None:
+            raw_len = len(message.get("bytes") or b"")
+        if raw_len > limits.ingest_max_bytes:
+            await _send_error(
+                websocket, "too_large", f"message of {raw_len} bytes exceeds {limits.ingest_max_bytes} bytes"
+            )
+            await websocket.close(code=WS_MESSAGE_TOO_BIG, reason="message too big")
+            return
+        if not limiter.allow():
+            if limiter.rejected_in_window > limits.ingest_close_after:
+                await _send_error(
+                    websocket, "rate_limited", "closing: the rate limit was exceeded repeatedly"
+                )
+                await websocket.close(code=WS_POLICY_VIOLATION, reason="rate limit exceeded")
+                return
+            await _send_error(
+                websocket, "rate_limited", f"more than {limits.ingest_rate_hz:g} messages/s; message dropped"
+            )
+            continue
+        text = _message_text(message)
+        if text is None:
+            await _send_error(websocket, "malformed", "messages must be UTF-8 JSON text")
+            continue
+        try:
+            obj = json.loads(text)
+        except ValueError as exc:
+            await _send_error(websocket, "malformed", f"not JSON: {exc}")
+            continue
+        if not isinstance(obj, dict):
+            await _send_error(websocket, "malformed", "a frame must be a JSON object")
+            continue
+        try:
+            runtime.ingest(obj)
+        except rejected_types as exc:
+            await _send_error(websocket, "rejected", str(getattr(exc, "reason", None) or exc))
+        except unavailable_types as exc:
+            await _send_error(websocket, "unavailable", str(exc))
+        except (ValueError, TypeError, KeyError) as exc:
+            await _send_error(websocket, "rejected", f"invalid frame: {exc}")
+        except Exception:
+            logger.exception("ingest: the runtime failed on a frame; the frame is dropped")
+            await _send_error(websocket, "internal", "the frame could not be processed; it was dropped")

@@ -1,0 +1,158 @@
+"""Trial recording for the server: the runtime's listeners -> the study database, off the control thread.
+
+Per trial started over the API, :meth:`TrialRecorder.begin` opens a batched ``EventWriter`` (flushed at least
+once a second by its own thread). The runtime's event listener only appends to that writer's bounded buffer;
+its trial listener only puts the result into a bounded queue. One recorder thread then closes the writer and
+stores the metrics and the remaining events (``finish_trial``), so a slow database never blocks the runtime.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import queue
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+#: Runtime trial statuses stored as they are; anything else ends the trial as ``aborted`` with that reason.
+STORED_STATUSES = ("completed", "aborted")
+
+
+@dataclass(frozen=True, slots=True)
+class _TrialEnd:
+    trial_id: int
+    metrics: Any
+    events: tuple[Any, ...]
+    status: str
+    reason: str | None
+
+
+class TrialRecorder:
+    """Writes the events and results of live trials into a ``StudyRepository``.
+
+    Args:
+        repo: The repository (``event_writer``, ``finish_trial``).
+        queue_size: Bound of the queue of ended trials waiting to be stored.
+        put_timeout_s: Longest a trial listener waits when that queue is full (then the result is logged and
+            dropped; the trial is marked aborted at the next start).
+    """
+
+    def __init__(self, repo: Any, *, queue_size: int = 64, put_timeout_s: float = 1.0) -> None:
+        self._repo = repo
+        self._queue: queue.Queue[_TrialEnd | None] = queue.Queue(maxsize=queue_size)
+        self._put_timeout_s = put_timeout_s
+        self._lock = threading.Lock()
+        self._writers: dict[int, Any] = {}
+        self._live_counts: dict[int, int] = {}
+        self._done: dict[int, threading.Event] = {}
+        self._thread: threading.Thread | None = None
+        self.stored = 0
+        self.failed = 0
+
+    # ---- lifecycle ----------------------------------------------------------------------------------
+    def start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="hrc-trial-recorder", daemon=True)
+            self._thread.start()
+
+    def close(self, *, timeout_s: float = 10.0) -> None:
+        """Store every queued result, close open event writers and stop the thread (bounded wait)."""
+        if self._thread is not None:
+            try:
+                self._queue.put(None, timeout=timeout_s)
+            except queue.Full:
+                logger.error("trial recorder queue stayed full for %.1f s at shutdown", timeout_s)
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                logger.error("trial recorder did not finish within %.1f s", timeout_s)
+            self._thread = None
+        with self._lock:
+            writers = list(self._writers.items())
+            self._writers.clear()
+        for trial_id, writer in writers:
+            # A trial still open here never reported its end: keep its events; the next start aborts it.
+            with contextlib.suppress(Exception):
+                writer.close()
+            logger.warning("trial %d had not ended at shutdown; its events up to now are stored", trial_id)
+
+    # ---- trial life ---------------------------------------------------------------------------------
+    def begin(self, trial_id: int) -> None:
+        """Open the event writer of a trial (before the runtime starts it)."""
+        writer = self._repo.event_writer(trial_id)
+        with self._lock:
+            self._writers[trial_id] = writer
+            self._live_counts[trial_id] = 0
+            self._done[trial_id] = threading.Event()
+
+    def abandon(self, trial_id: int, reason: str) -> None:
+        """A trial that never started: close its writer and store it as aborted (synchronously)."""
+        self._store(_TrialEnd(trial_id, None, (), "aborted", reason))
+
+    def wait_stored(self, trial_id: int, timeout_s: float) -> bool:
+        """Wait until the end of ``trial_id`` is stored (True) or ``timeout_s`` passes (False)."""
+        with self._lock:
+            done = self._done.get(trial_id)
+        return True if done is None else done.wait(timeout_s)
+
+    # ---- runtime listeners (called on runtime threads: must not block) --------------------------------
+    def on_event(self, trial_id: int | None, event: Any) -> None:
+        if trial_id is None:
+            return
+        with self._lock:
+            writer = self._writers.get(trial_id)
+            if writer is None:
+                return
+            self._live_counts[trial_id] += 1
+        try:
+            writer.write(event)
+        except Exception:
+            logger.exception("trial %s: an event could not be queued for the database", trial_id)
+
+    def on_trial_end(self, trial_id: int, metrics: Any, events: Sequence[Any], status: str) -> None:
+        stored_status = status if status in STORED_STATUSES else "aborted"
+        reason = None if status in STORED_STATUSES else str(status)
+        item = _TrialEnd(trial_id, metrics, tuple(events or ()), stored_status, reason)
+        try:
+            self._queue.put(item, timeout=self._put_timeout_s)
+        except queue.Full:
+            self.failed += 1
+            logger.error("trial %d ended but the recorder queue is full; its result is not stored", trial_id)
+
+    # ---- recorder thread ----------------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            try:
+                item = self._queue.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            if item is None:
+                return
+            self._store(item)
+
+    def _store(self, item: _TrialEnd) -> None:
+        with self._lock:
+            writer = self._writers.pop(item.trial_id, None)
+            n_live = self._live_counts.pop(item.trial_id, 0)
+            done = self._done.get(item.trial_id)
+        try:
+            if writer is not None:
+                writer.close()
+            # The events the listener already wrote are the first n_live of the runtime's list.
+            rest = item.events[n_live:] if writer is not None else item.events
+            self._repo.finish_trial(
+                item.trial_id, status=item.status, metrics=item.metrics, reason=item.reason, events=rest
+            )
+            self.stored += 1
+            logger.info("trial %d stored as %s", item.trial_id, item.status)
+        except Exception:
+            self.failed += 1
+            logger.exception("trial %d: storing its result failed", item.trial_id)
+        finally:
+            if done is not None:
+                done.set()
+            with self._lock:
+                self._done.pop(item.trial_id, None)

@@ -1,0 +1,48 @@
+"""``/api/robot``: the robot and supervisor state, the E-stop and the reset after a stop; ``/api/state``: the
+full runtime snapshot (the same JSON as one ``/api/live`` message)."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, status
+
+from app.api.deps import RuntimeDep
+from app.api.live import finite_json, snapshot_json
+from app.api.schemas import AUTH_RESPONSES, CONFLICT, RobotStatus, robot_status
+
+logger = logging.getLogger(__name__)
+
+router = APIRouter(tags=["robot"], responses=AUTH_RESPONSES)
+
+
+@router.get("/robot", response_model=RobotStatus)
+def get_robot(runtime: RuntimeDep) -> RobotStatus:
+    """Robot configuration, tool position, supervisor state, speed scale, separation and E-stop flag."""
+    return robot_status(runtime.snapshot())
+
+
+@router.get("/state")
+def get_state(runtime: RuntimeDep) -> dict[str, Any]:
+    """The runtime's latest snapshot: state, counters, planning times, skeleton, forecast, plans (JSON)."""
+    return finite_json(snapshot_json(runtime.snapshot()))
+
+
+@router.post("/robot/estop", response_model=RobotStatus)
+def estop(runtime: RuntimeDep) -> RobotStatus:
+    """Emergency stop: the robot stops now and a running trial ends. Always accepted."""
+    runtime.estop(source="api")
+    logger.warning("E-stop from the API")
+    return robot_status(runtime.snapshot())
+
+
+@router.post("/robot/reset", response_model=RobotStatus, responses={**CONFLICT})
+def reset(runtime: RuntimeDep) -> RobotStatus:
+    """Clear an E-stop or protective stop so that trials can run again; 409 when the runtime refuses."""
+    try:
+        runtime.reset()
+    except (RuntimeError, ValueError) as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"cannot reset: {exc}") from exc
+    logger.info("reset from the API")
+    return robot_status(runtime.snapshot())

@@ -1,0 +1,146 @@
+"""Request and response models of the API that are not study records (those are in ``app.study.schemas``)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import Path, Query
+from pydantic import BaseModel, ConfigDict, Field
+
+from app.study.schemas import TrialEventRead, TrialRead
+
+#: Database ids in paths and bodies: positive, within a signed 32-bit integer.
+MAX_ID = 2**31 - 1
+Id = Annotated[int, Field(ge=1, le=MAX_ID)]
+Method = Literal["proactive", "reactive"]
+
+ParticipantIdPath = Annotated[int, Path(ge=1, le=MAX_ID, description="participant id")]
+SessionIdPath = Annotated[int, Path(ge=1, le=MAX_ID, description="study session id")]
+TrialIdPath = Annotated[int, Path(ge=1, le=MAX_ID, description="trial id")]
+OffsetQuery = Annotated[int, Query(ge=0, le=10**9, description="rows to skip")]
+LimitQuery = Annotated[int, Query(ge=1, le=1000, description="most rows to return")]
+
+#: Longest trial the API starts (s).
+MAX_TRIAL_DURATION_S = 3600.0
+
+
+class ErrorRead(BaseModel):
+    """Every error response: ``detail`` says what was wrong and what to do."""
+
+    detail: str
+
+
+class ValidationErrorItem(BaseModel):
+    loc: list[str]
+    msg: str
+    type: str
+
+
+class ValidationErrorRead(ErrorRead):
+    """A 422: ``detail`` lists every invalid field; ``errors`` has them one by one."""
+
+    errors: list[ValidationErrorItem]
+
+
+class HealthRead(BaseModel):
+    status: Literal["ok", "degraded"]
+    version: str
+    runtime: Literal["running", "stopped"]
+    database: Literal["ok", "error"]
+
+
+class InfoRead(BaseModel):
+    """What a client needs to know about this server (no secrets)."""
+
+    version: str
+    viser_port: int
+    robot: Literal["sim", "rtde"]
+    human_source: Literal["sim", "replay", "stream"]
+    read_only_open: bool
+    methods: list[str]
+    max_trial_duration_s: float
+    live_rate_hz: float
+    ingest_max_bytes: int
+    ingest_rate_hz: float
+
+
+class TrialStart(BaseModel):
+    """Start a trial: the runtime runs ``method`` for ``duration_s`` beside participant ``participant_id``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    participant_id: Id
+    method: Method
+    duration_s: float = Field(gt=0, le=MAX_TRIAL_DURATION_S, description="trial length (s)")
+    seed: int | None = Field(None, ge=0, le=2**32 - 1, description="default: drawn at random and stored")
+    session_id: Id | None = None
+
+
+class TrialDetail(TrialRead):
+    """A trial with its metrics (None while it runs) and its events in time order."""
+
+    events: list[TrialEventRead] = Field(default_factory=list)
+    events_total: int = 0
+
+
+class MethodOrderRead(BaseModel):
+    participant_id: int
+    methods: list[Method]
+
+
+class RobotStatus(BaseModel):
+    """The robot and supervisor now (from the runtime's latest snapshot).
+
+    ``q`` (6,) joint positions (rad); ``p_world_tcp`` (3,) tool position in the world frame (m);
+    separations in metres (None when no person is tracked).
+    """
+
+    t: float
+    state: str
+    estopped: bool
+    stale: bool
+    speed_scale: float
+    separation_m: float | None
+    required_separation_m: float | None
+    q: list[float]
+    p_world_tcp: list[float]
+    trial_id: int | None
+    method: str | None
+    trial_elapsed_s: float | None
+    trial_duration_s: float | None
+
+
+def robot_status(snapshot: Any) -> RobotStatus:
+    """:class:`RobotStatus` from a runtime ``Snapshot`` (non-finite floats become None)."""
+    import math
+
+    def opt(v: Any) -> float | None:
+        if v is None:
+            return None
+        v = float(v)
+        return v if math.isfinite(v) else None
+
+    return RobotStatus(
+        t=float(snapshot.t),
+        state=str(snapshot.state),
+        estopped=bool(snapshot.estopped),
+        stale=bool(snapshot.stale),
+        speed_scale=float(snapshot.speed_scale),
+        separation_m=opt(snapshot.separation_m),
+        required_separation_m=opt(snapshot.required_separation_m),
+        q=[float(v) for v in snapshot.q],
+        p_world_tcp=[float(v) for v in snapshot.p_world_tcp],
+        trial_id=snapshot.trial_id,
+        method=snapshot.method,
+        trial_elapsed_s=opt(snapshot.trial_elapsed_s),
+        trial_duration_s=opt(snapshot.trial_duration_s),
+    )
+
+
+#: Responses every authenticated route may give (documented in the OpenAPI schema).
+AUTH_RESPONSES: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorRead, "description": "missing or invalid operator token"},
+    422: {"model": ValidationErrorRead, "description": "invalid request"},
+}
+NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorRead, "description": "no such record"}}
+CONFLICT: dict[int | str, dict[str, Any]] = {409: {"model": ErrorRead, "description": "conflict"}}
