@@ -1,0 +1,159 @@
+"""ISO/TS 15066 speed and separation monitoring (SSM): the protective separation distance and speed scaling.
+
+ISO/TS 15066:2016, clause 5.5.4.2.3, gives the protective separation distance at time ``t0``:
+
+    S_p = S_h + S_r + S_s + C + Z_d + Z_r
+
+with (constant speeds, the form the standard itself uses as the simplest compliant choice)
+
+- ``S_h = v_h * (T_r + T_s)``: how far the person moves while the robot reacts and stops,
+- ``S_r = v_r * T_r``: how far the robot moves during its reaction time,
+- ``S_s = v_r * T_s / 2``: the robot's stopping distance, assuming a constant deceleration from ``v_r`` to
+  rest within the stopping time ``T_s`` (the integral of the speed over ``T_s``),
+- ``C``: the intrusion distance (parts of the body that reach beyond what the sensor detects),
+- ``Z_d``: the person's position uncertainty (the sensing system), ``Z_r``: the robot's position uncertainty.
+
+Distances in this project are *surface to surface* between the robot's and the person's capsule models
+(see :mod:`app.planning.collision`), so the capsules already cover the limbs' volume and ``C`` only has to
+cover what sticks out of them (fingers, loose clothing).
+
+How the parts of the app use this module:
+
+- The supervisor applies the full ``S_p`` to the *current* pose of the person and scales the robot's speed
+  with :func:`speed_scale` (the paper's *Nominal Execution*).
+- The planner replaces the worst-case ``S_h`` term by the *forecast* of the person over the horizon, plus
+  the forecast's own error margin (see :class:`app.planning.search.PlannerConfig`), and requires
+  :func:`robot_clearance` = ``S_r + S_s + C + Z_d + Z_r`` at every sampled instant of a motion.
+
+All lengths in metres, speeds in m/s, times in seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True, slots=True)
+class SSMParams:
+    """Parameters of ISO/TS 15066 speed and separation monitoring.
+
+    Defaults and where they come from:
+
+    - ``v_human_mps = 1.6``: ISO/TS 15066 5.5.4.2.3 (by reference to ISO 13855) uses 1.6 m/s for the
+      walking speed of a person when it is not measured.
+    - ``t_reaction_s = 0.10``: ``T_r``, the time from the person moving to the robot starting to stop:
+      one camera frame (33 ms at 30 Hz) + skeleton tracking latency + our processing, + the UR5e controller
+      cycle (2 ms at 500 Hz). Measure it on the real installation and set it.
+    - ``t_stop_s = 0.20``: ``T_s``, the robot's stopping time at the speeds and payloads of this task
+      (TCP <= ~1 m/s, a gripper and a light block). The UR5e hardware manual (section 9, "Stopping time and
+      stopping distance", category 1 and 2 graphs) gives stopping times that grow with speed, extension and
+      payload; the UR5 CB3 manual's worst case (category 0, full extension, 5 kg, 183 deg/s) is 0.53 s for
+      the shoulder, 0.24 s for the base and 0.16 s for the elbow. Use 0.53 for a worst-case configuration.
+    - ``intrusion_m = 0.05``: ``C``. ISO 13855 derives C from the sensor's detection capability; with a
+      skeleton tracker and body capsules only fingers and clothing reach beyond the model.
+    - ``z_human_m = 0.05``: ``Z_d``, the skeleton tracker's position error (a few cm for a ZED2 at 1-2 m).
+    - ``z_robot_m = 0.01``: ``Z_r``, the robot's position uncertainty (UR5e repeatability is 0.03 mm; the
+      rest covers the capsule model and the calibration of the camera to the robot base).
+
+    Attributes:
+        v_human_mps: ``v_h``, the person's speed toward the robot (m/s).
+        t_reaction_s: ``T_r``, reaction time of the robot system (s).
+        t_stop_s: ``T_s``, stopping time of the robot (s).
+        intrusion_m: ``C``, intrusion distance (m).
+        z_human_m: ``Z_d``, position uncertainty of the person (m).
+        z_robot_m: ``Z_r``, position uncertainty of the robot (m).
+    """
+
+    v_human_mps: float = 1.6
+    t_reaction_s: float = 0.10
+    t_stop_s: float = 0.20
+    intrusion_m: float = 0.05
+    z_human_m: float = 0.05
+    z_robot_m: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name in ("v_human_mps", "t_reaction_s", "t_stop_s", "intrusion_m", "z_human_m", "z_robot_m"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0.0):
+                raise ValueError(f"SSMParams.{name} must be a finite number >= 0, got {value!r}")
+        if self.t_reaction_s + self.t_stop_s / 2 <= 0.0:
+            raise ValueError("SSMParams: t_reaction_s + t_stop_s / 2 must be > 0 (robot speed is unbounded)")
+
+    @property
+    def constant_m(self) -> float:
+        """``C + Z_d + Z_r`` (m): the part of ``S_p`` that depends on neither speed."""
+        return self.intrusion_m + self.z_human_m + self.z_robot_m
+
+    @property
+    def robot_time_s(self) -> float:
+        """``T_r + T_s / 2`` (s): ``S_r + S_s = v_r * robot_time_s``."""
+        return self.t_reaction_s + self.t_stop_s / 2
+
+    def human_distance_m(self, v_human_mps: float | None = None) -> float:
+        """``S_h = v_h (T_r + T_s)`` (m), with ``v_human_mps`` overriding the default speed."""
+        v_h = self.v_human_mps if v_human_mps is None else float(v_human_mps)
+        return v_h * (self.t_reaction_s + self.t_stop_s)
+
+
+def robot_stopping_distance(v_robot_mps: float | np.ndarray, params: SSMParams) -> float | np.ndarray:
+    """``S_s = v_r T_s / 2`` (m): the distance the robot covers while braking from ``v_robot_mps``."""
+    return np.maximum(v_robot_mps, 0.0) * params.t_stop_s / 2
+
+
+def robot_clearance(v_robot_mps: float | np.ndarray, params: SSMParams) -> float | np.ndarray:
+    """``S_r + S_s + C + Z_d + Z_r`` (m): ``S_p`` without the person's own motion ``S_h``.
+
+    This is what the planner requires between the robot and the *forecast* person (the forecast stands in
+    for ``S_h``). Works element-wise on arrays of speeds.
+    """
+    v = np.maximum(v_robot_mps, 0.0)
+    out = v * params.robot_time_s + params.constant_m
+    return float(out) if np.ndim(out) == 0 else out
+
+
+def protective_separation(
+    v_robot_mps: float | np.ndarray, params: SSMParams, *, v_human_mps: float | None = None
+) -> float | np.ndarray:
+    """ISO/TS 15066 protective separation distance ``S_p`` (m) for a robot speed ``v_robot_mps`` (m/s).
+
+    Args:
+        v_robot_mps: Robot speed toward the person (m/s); negative values count as 0. Scalar or array.
+        params: The SSM parameters.
+        v_human_mps: The person's speed (m/s) when it is measured; default ``params.v_human_mps``.
+    """
+    return params.human_distance_m(v_human_mps) + robot_clearance(v_robot_mps, params)
+
+
+def max_safe_speed(
+    separation_m: float | np.ndarray, params: SSMParams, *, v_human_mps: float | None = None
+) -> float | np.ndarray:
+    """The largest robot speed (m/s) whose ``S_p`` fits into ``separation_m``: the speed-scaling law.
+
+    Solves ``S_p(v) = separation_m`` for ``v``: ``v = (d - S_h - C - Z_d - Z_r) / (T_r + T_s / 2)``,
+    clipped at 0 (the robot must stand still when the person is within ``S_p(0)``).
+    """
+    d = np.asarray(separation_m, dtype=np.float64)
+    slack = d - params.human_distance_m(v_human_mps) - params.constant_m
+    out = np.maximum(slack, 0.0) / params.robot_time_s
+    return float(out) if out.ndim == 0 else out
+
+
+def speed_scale(
+    separation_m: float, v_nominal_mps: float, params: SSMParams, *, v_human_mps: float | None = None
+) -> float:
+    """Fraction in [0, 1] of the nominal speed that keeps ``S_p`` within ``separation_m``.
+
+    Args:
+        separation_m: Current surface-to-surface distance robot-person (m); +inf when nobody is seen.
+        v_nominal_mps: The speed (m/s) the robot would move at with scale 1 (e.g. its current TCP speed).
+        params: The SSM parameters.
+        v_human_mps: The person's measured speed (m/s), if any.
+    """
+    if not np.isfinite(separation_m):
+        return 1.0 if separation_m > 0 else 0.0
+    v_max = float(max_safe_speed(separation_m, params, v_human_mps=v_human_mps))
+    if v_nominal_mps <= 1e-9:
+        return 1.0 if v_max > 0.0 else 0.0
+    return float(min(1.0, v_max / v_nominal_mps))
