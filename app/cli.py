@@ -202,6 +202,28 @@ def study(
         typer.echo(f"{result.aborted} trials aborted; see `hrc export` (trials.csv, abort_reason)", err=True)
 
 
+# --- server (app.api) ------------------------------------------------------------------------------------
+
+
+@app.command()
+def serve(
+    host: Annotated[str | None, typer.Option(help="Bind address (default HRC_HOST, 127.0.0.1).")] = None,
+    port: Annotated[int | None, typer.Option(help="API port (default HRC_PORT, 8000).")] = None,
+    viser_port: Annotated[int | None, typer.Option(help="3D view port (default HRC_VISER_PORT).")] = None,
+    log_level: Annotated[str, typer.Option(help="uvicorn log level.")] = "info",
+) -> None:
+    """Start the operator server: REST API (/docs), live WebSockets, the runtime and the 3D view."""
+    import logging
+
+    from app.api.server import run_server
+    from app.config import Settings
+
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    given = {"host": host, "port": port, "viser_port": viser_port}
+    settings = Settings(**{k: v for k, v in given.items() if v is not None})  # validated
+    run_server(settings, log_level=log_level, echo=lambda text: typer.echo(text, err=True))
+
+
 def main() -> None:
     """Console entry point."""
     app()

@@ -17,7 +17,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from collections.abc import AsyncIterator
+import threading
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,34 @@ OPENAPI_TAGS = [
     {"name": "summary", "description": "The study's Table I and paired tests."},
     {"name": "export", "description": "CSV export of every record."},
 ]
+
+
+class StopOnce:
+    """Call ``fn`` once, from whichever thread asks first (a signal's helper thread or the lifespan); later
+    callers wait (bounded) until that first call has finished."""
+
+    def __init__(self, fn: Callable[[], object], *, name: str, timeout_s: float = 30.0) -> None:
+        self._fn = fn
+        self._name = name
+        self._timeout_s = timeout_s
+        self._lock = threading.Lock()
+        self._done = threading.Event()
+        self._started = False
+
+    def __call__(self) -> None:
+        with self._lock:
+            first = not self._started
+            self._started = True
+        if not first:
+            if not self._done.wait(self._timeout_s):
+                logger.error("%s did not stop within %.0f s", self._name, self._timeout_s)
+            return
+        try:
+            self._fn()
+        except Exception:
+            logger.exception("%s did not stop cleanly", self._name)
+        finally:
+            self._done.set()
 
 
 def _open_repository(settings: Settings) -> tuple[Any, Any]:
@@ -126,6 +155,7 @@ def create_app(
         rt.add_event_listener(recorder.on_event)
         rt.add_trial_listener(recorder.on_trial_end)
         hub = LiveHub(rt, limits=limits)
+        stop_runtime = StopOnce(rt.stop, name="runtime")
         view = None
         try:
             rt.start()
@@ -135,7 +165,7 @@ def create_app(
             app.state.hrc = ApiContext(
                 settings=settings, token=token.value, runtime=rt, repo=repository, hub=hub, recorder=recorder
             )
-            app.state.shutdown_hook = rt.stop
+            app.state.stop_runtime = stop_runtime
             logger.info("operator API ready (token from %s)", token.source)
             yield
         finally:
@@ -144,10 +174,8 @@ def create_app(
             if view is not None:
                 with contextlib.suppress(Exception):
                     view.stop()
-            try:
-                rt.stop()  # the robot stops first: a running trial ends (aborted) through the recorder
-            except Exception:
-                logger.exception("the runtime did not stop cleanly")
+            stop_runtime()  # the robot stops first: a running trial ends (aborted) through the recorder
+            app.state.stop_runtime = None
             recorder.close()  # drain: results and events into the database, then flush
             if engine is not None:
                 engine.dispose()
@@ -164,6 +192,7 @@ def create_app(
         lifespan=lifespan,
     )
     app.state.hrc = None
+    app.state.stop_runtime = None
     app.state.settings = settings
     _install_error_handlers(app)
     _include_routes(app)
