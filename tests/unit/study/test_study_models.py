@@ -1,0 +1,61 @@
+"""Models, engine settings and migrations of the study database (SQLite)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from pathlib import Path
+
+import pytest
+from alembic import command
+from sqlalchemy import inspect, text
+
+from app.control.metrics import TrialMetrics
+from app.study.db import DatabaseError, alembic_config, current_revision, make_engine, upgrade_to_head
+from app.study.models import METRIC_COLUMNS, Base, TrialMetricsRow, UTCDateTime
+
+
+def test_one_metrics_column_per_trial_metrics_field() -> None:
+    # A new TrialMetrics field needs a column and a migration: this test names it.
+    assert set(METRIC_COLUMNS) == set(TrialMetrics.field_names()) - {"method"}
+    columns = {c.name for c in TrialMetricsRow.__table__.columns}
+    assert columns == {"trial_id", *METRIC_COLUMNS}
+
+
+def test_utc_datetime_rejects_naive_values() -> None:
+    with pytest.raises(ValueError, match="naive"):
+        UTCDateTime().process_bind_param(datetime(2026, 1, 1), None)  # type: ignore[arg-type]
+
+
+def test_sqlite_engine_uses_wal_and_foreign_keys(tmp_path: Path) -> None:
+    engine = make_engine(f"sqlite:///{tmp_path / 'sub' / 'x.db'}")
+    try:
+        with engine.connect() as conn:
+            assert conn.execute(text("PRAGMA journal_mode")).scalar() == "wal"
+            assert conn.execute(text("PRAGMA foreign_keys")).scalar() == 1
+        assert (tmp_path / "sub").is_dir()
+    finally:
+        engine.dispose()
+
+
+def test_upgrade_downgrade_upgrade(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'm.db'}"
+    upgrade_to_head(url)
+    engine = make_engine(url)
+    try:
+        assert current_revision(engine) == "0001"
+        assert set(inspect(engine).get_table_names()) >= set(Base.metadata.tables)
+        command.downgrade(alembic_config(url), "base")
+        assert current_revision(engine) is None
+        engine.dispose()
+        assert set(inspect(engine).get_table_names()) == {"alembic_version"}
+        upgrade_to_head(url)
+        assert current_revision(engine) == "0001"
+    finally:
+        engine.dispose()
+
+
+def test_upgrade_of_an_unreachable_database_says_which() -> None:
+    url = "postgresql+psycopg://nobody:secret@127.0.0.1:1/none?connect_timeout=2"
+    with pytest.raises(DatabaseError, match=r"127\.0\.0\.1:1") as info:
+        upgrade_to_head(url)
+    assert "secret" not in str(info.value)

@@ -1,0 +1,150 @@
+"""Paired tests (known answers against scipy), degenerate cases, the report object and files."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from app.study.stats import (
+    REPORT_METRICS,
+    TABLE_I_METRICS,
+    csv_table,
+    markdown_table,
+    paired_test,
+    summarize,
+    write_report,
+)
+
+
+def test_normal_differences_use_repeated_measures_anova_equal_to_the_paired_t_test() -> None:
+    rng = np.random.default_rng(1)
+    reactive = rng.normal(12.0, 2.0, size=10)
+    proactive = reactive + rng.normal(2.5, 1.0, size=10)
+    assert stats.shapiro(proactive - reactive).pvalue > 0.05  # the premise of this case
+    r = paired_test(proactive, reactive)
+    t = stats.ttest_rel(proactive, reactive)
+    assert r.test == "anova_rm" and "Shapiro-Wilk" in r.why and r.normality_p > 0.05
+    assert r.statistic == pytest.approx(t.statistic**2, rel=1e-9)  # F(1, n-1) = t^2
+    assert r.p_value == pytest.approx(t.pvalue, rel=1e-9)
+    assert r.effect_size_name == "partial_eta_squared"
+    assert r.effect_size == pytest.approx(t.statistic**2 / (t.statistic**2 + 9), rel=1e-9)
+    d = proactive - reactive
+    assert r.cohens_dz == pytest.approx(d.mean() / d.std(ddof=1))
+    assert r.n_pairs == 10
+
+
+def test_skewed_differences_use_wilcoxon_with_rank_biserial_r() -> None:
+    reactive = np.zeros(10)
+    proactive = np.array([0.1, 0.2, 0.15, 0.3, 5.0, 8.0, 12.0, 0.25, -0.05, 20.0])
+    r = paired_test(proactive, reactive)
+    assert stats.shapiro(proactive).pvalue <= 0.05
+    w = stats.wilcoxon(proactive, reactive)
+    assert r.test == "wilcoxon" and "not normal" in r.why
+    assert r.statistic == w.statistic and r.p_value == pytest.approx(w.pvalue)
+    # ranks of |d|: -0.05 has rank 1, the other nine are positive: r = (54 - 1) / 55
+    assert r.effect_size_name == "rank_biserial_r" and r.effect_size == pytest.approx(53 / 55)
+
+
+def test_rank_biserial_of_a_hand_example() -> None:
+    # |d| ranks 1..4 with the largest negative: W+ = 6, W- = 4 -> r = 0.2 (zero dropped); constant spread
+    # is not the case here, so force Wilcoxon with an impossible normality threshold.
+    r = paired_test(np.array([1.0, 2.0, 3.0, -4.0, 0.0]), np.zeros(5), normality_alpha=1.0)
+    assert r.test == "wilcoxon" and "1 zero differences dropped" in r.why
+    assert r.effect_size == pytest.approx(0.2)
+
+
+@pytest.mark.parametrize(
+    ("a", "b", "why"),
+    [
+        ([1.0, 2.0], [0.0, 1.0], "only 2 paired participants"),
+        ([], [], "only 0 paired participants"),
+        ([3.0, 4.0, 5.0, 6.0], [3.0, 4.0, 5.0, 6.0], "every paired difference is zero"),
+    ],
+)
+def test_degenerate_cases_are_not_testable(a: list[float], b: list[float], why: str) -> None:
+    r = paired_test(np.array(a), np.array(b))
+    assert r.test == "not testable" and why in r.why
+    assert r.p_value is None and r.statistic is None and r.effect_size is None
+    json.dumps(r.to_json(), allow_nan=False)
+
+
+def test_constant_nonzero_differences_fall_back_to_wilcoxon() -> None:
+    r = paired_test(np.array([2.0, 3.0, 4.0, 5.0]), np.array([1.0, 2.0, 3.0, 4.0]))
+    assert r.test == "wilcoxon" and "no spread" in r.why and r.normality_p is None
+    assert r.p_value is not None and 0 < r.p_value <= 1 and r.effect_size == 1.0
+
+
+def _rows() -> list[dict[str, Any]]:
+    rng = np.random.default_rng(7)
+    rows = []
+    for i in range(8):
+        base = rng.normal(12, 2)
+        for method in ("proactive", "reactive"):
+            rows.append(
+                {
+                    "participant_code": f"P{i}",
+                    "method": method,
+                    "status": "completed",
+                    "completed_tasks": int(base + (3 if method == "proactive" else 0) + rng.integers(0, 2)),
+                    "avg_planning_time_s": float(rng.normal(0.2, 0.02)),
+                    "stop_replans_per_task": float(rng.exponential(0.3 if method == "proactive" else 0.6)),
+                    "online_replans_per_task": float(rng.exponential(2.0 if method == "proactive" else 0.5)),
+                    "min_separation_m": None if i == 0 else float(rng.normal(0.4, 0.05)),
+                    "deadline_misses": 0,
+                    "time_stopped_s": float(rng.normal(10, 2)),
+                }
+            )
+    # one participant with only one method: in the descriptive n, not in the pairs
+    rows.append({**rows[0], "participant_code": "solo", "method": "reactive", "completed_tasks": 9})
+    return rows
+
+
+def test_summary_object_has_the_report_shape() -> None:
+    s = summarize(_rows())
+    json.dumps(s, allow_nan=False)
+    assert s["n_participants"] == 8
+    for method in ("proactive", "reactive"):
+        assert set(s[method]) == set(REPORT_METRICS)
+        for m in TABLE_I_METRICS:
+            assert set(s[method][m]) >= {"mean", "sd"}
+    assert s["reactive"]["completed_tasks"]["n"] == 9 and s["proactive"]["completed_tasks"]["n"] == 8
+    assert s["tests"]["min_separation_m"]["n_pairs"] == 7  # the None (no person seen) is left out
+    assert (
+        s["tests"]["deadline_misses"]["test"] == "not testable" and s["p_values"]["deadline_misses"] is None
+    )
+    assert s["tests"]["completed_tasks"]["test"] in ("wilcoxon", "anova_rm")
+    assert s["p_values"]["completed_tasks"] < 0.01
+    for m in REPORT_METRICS:
+        assert set(s["tests"][m]) >= {"test", "why", "statistic", "effect_size"}
+    solo = np.mean([r["completed_tasks"] for r in _rows() if r["method"] == "reactive"])
+    assert s["reactive"]["completed_tasks"]["mean"] == pytest.approx(solo)
+
+
+def test_aborted_trials_are_left_out() -> None:
+    rows = _rows()
+    rows.append({**rows[0], "status": "aborted", "completed_tasks": 1000})
+    assert (
+        summarize(rows)["proactive"]["completed_tasks"] == summarize(_rows())["proactive"]["completed_tasks"]
+    )
+
+
+def test_report_files(tmp_path: Path) -> None:
+    rows = _rows()
+    s = summarize(rows)
+    paths = write_report(rows, tmp_path / "rep", summary=s)
+    assert paths["boxplots"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads(paths["json"].read_text()) == json.loads(json.dumps(s))
+    md = paths["markdown"].read_text()
+    assert md == markdown_table(s) and "| proactive |" in md and "not testable" in md
+    df = pd.read_csv(paths["csv"])
+    assert list(df["metric"]) == list(REPORT_METRICS)
+    assert df.loc[df["metric"] == "completed_tasks", "proactive_mean"].item() == pytest.approx(
+        s["proactive"]["completed_tasks"]["mean"]
+    )
+    assert paths["csv"].read_text() == csv_table(s)
