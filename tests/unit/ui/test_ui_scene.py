@@ -1,0 +1,338 @@
+"""The viser scene: built once, then updated in place from runtime snapshots (no browser)."""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from app.config import load_workcell
+from app.prediction.skeleton import BONES, NUM_JOINTS
+from app.ui.scene import (
+    COLOR_DANGER,
+    COLOR_IDLE,
+    COLOR_OK,
+    COLOR_WARN,
+    CellScene,
+    CellView,
+    state_style,
+)
+
+viser = pytest.importorskip("viser")
+
+L_LINKS = 4
+
+
+@dataclass(frozen=True)
+class FakeSnapshot:
+    """The attributes of the runtime's Snapshot that the scene reads (CONTRACTS.md)."""
+
+    t: float
+    state: str = "nominal"
+    q: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    p_world_tcp: np.ndarray = field(default_factory=lambda: np.array([0.3, 0.0, 0.4]))
+    skeleton: np.ndarray | None = None
+    forecast: np.ndarray | None = None
+    plan_tcp: np.ndarray | None = None
+    backup_tcp: np.ndarray | None = None
+    required_separation_m: float | None = 0.4
+    separation_m: float | None = 1.0
+    speed_scale: float = 1.0
+    stale: bool = False
+    estopped: bool = False
+    method: str | None = "proactive"
+    trial_id: int | None = None
+    trial_elapsed_s: float | None = None
+    trial_duration_s: float | None = None
+
+
+def fake_capsules(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A toy arm: L_LINKS vertical capsules whose x offset is q[:, 0] (so q visibly moves them)."""
+    q = np.asarray(q, dtype=float)
+    z = np.arange(L_LINKS + 1) * 0.2
+    pts = np.zeros((q.shape[0], L_LINKS + 1, 3))
+    pts[:, :, 2] = z
+    pts[:, :, 0] = q[:, :1]
+    return pts[:, :-1], pts[:, 1:], np.full(L_LINKS, 0.05)
+
+
+def skeleton(x: float = 1.3, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.array([x, 0.0, 0.0]) + rng.uniform(-0.3, 0.3, (NUM_JOINTS, 3))
+
+
+@pytest.fixture()
+def server() -> Iterator[Any]:
+    s = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    try:
+        yield s
+    finally:
+        s.stop()
+
+
+@pytest.fixture(scope="module")
+def cell() -> Any:
+    return load_workcell()
+
+
+def node_names(server: Any) -> set[str]:
+    return set(server.scene._handle_from_node_name)
+
+
+def test_state_style_colours() -> None:
+    assert state_style("nominal") == ("NOMINAL", COLOR_OK)
+    assert state_style("collision_avoidance")[1] == COLOR_WARN
+    assert state_style("stop_replan")[1] == COLOR_DANGER
+    assert state_style("idle") == ("IDLE", COLOR_IDLE)
+    assert state_style("nominal", estopped=True) == ("E-STOP", COLOR_DANGER)
+    text, color = state_style("nominal", stale=True)
+    assert "STALE" in text and color == COLOR_DANGER
+
+
+def test_apply_updates_handles_in_place(server: Any, cell: Any) -> None:
+    view = CellView(server, cell, robot_capsules=fake_capsules, roadmap_nodes=np.zeros((5, 3)), ghosts=4)
+    handles_before = dict(view.handles)
+    names_before = node_names(server)
+
+    sk = skeleton()
+    forecast = np.stack([sk + 0.01 * k for k in range(10)])
+    plan = np.linspace([0.3, -0.5, 0.2], [0.6, 0.3, 0.1], 12)
+    snaps = [
+        FakeSnapshot(
+            t=0.0, q=np.full(6, 0.1), skeleton=sk, forecast=forecast, plan_tcp=plan, backup_tcp=plan[:5]
+        ),
+        FakeSnapshot(
+            t=0.1, q=np.full(6, -0.2), state="collision_avoidance", separation_m=0.5, speed_scale=0.4
+        ),
+        FakeSnapshot(t=0.2, q=np.full(6, 0.3), skeleton=sk + 0.1, plan_tcp=plan[:7], estopped=True),
+    ]
+    for snap in snaps:
+        view.apply(snap)
+        # Same handle objects, same scene nodes: nothing is created or removed by an update.
+        assert dict(view.handles) == handles_before
+        assert all(view.handles[k] is handles_before[k] for k in handles_before)
+        assert node_names(server) == names_before
+    assert view.applied == len(snaps)
+
+    h = view.handles
+    # Last snapshot: robot moved to x = 0.3, person shown at the new pose, no forecast, plan shortened.
+    links = h["robot_links"]
+    assert np.allclose(links.batched_positions[:, 0], 0.3, atol=1e-5)
+    assert np.allclose(links.batched_scales[:, 2], 0.2, atol=1e-5)
+    assert np.all(links.batched_colors == np.array(COLOR_DANGER, dtype=np.uint8))  # E-stop: red arm
+    assert h["person_joints"].visible and h["person_bones"].visible
+    assert np.allclose(h["person_joints"].batched_positions, sk + 0.1, atol=1e-5)
+    assert not h["forecast_ghosts"].visible
+    assert h["plan"].visible and h["plan"].points.shape == (6, 2, 3)
+    assert np.allclose(h["plan"].points[:, 0], plan[:6], atol=1e-5)
+    assert not h["backup"].visible
+    assert h["state_label"].text.startswith("E-STOP")
+
+
+def test_person_forecast_and_separation(server: Any, cell: Any) -> None:
+    view = CellView(server, cell, robot_capsules=fake_capsules, ghosts=3)
+    sk = skeleton()
+    forecast = np.stack([sk + np.array([0.05 * k, 0.0, 0.0]) for k in range(31)])
+    view.apply(
+        FakeSnapshot(
+            t=1.0,
+            skeleton=sk,
+            forecast=forecast,
+            required_separation_m=0.35,
+            separation_m=0.3,
+            p_world_tcp=np.array([0.4, 0.1, 0.3]),
+        )
+    )
+    h = view.handles
+    ghosts = h["forecast_ghosts"]
+    nb = len(BONES)
+    assert ghosts.visible
+    # Three ghosts at indices 1, 15, 30: the last one ends the horizon; the near ones are more opaque.
+    pos = ghosts.batched_positions.reshape(3, nb, 3)
+    mids = (forecast[:, BONES[:, 0]] + forecast[:, BONES[:, 1]]) / 2
+    assert np.allclose(pos[0], mids[1], atol=1e-5) and np.allclose(pos[2], mids[30], atol=1e-5)
+    opac = ghosts.batched_opacities.reshape(3, nb)
+    assert np.all(np.diff(opac[:, 0]) < 0)
+    sphere = h["separation"]
+    assert sphere.visible and np.isclose(sphere.scale, 0.35)
+    assert np.allclose(sphere.position, [0.4, 0.1, 0.3])
+    assert tuple(sphere.color) == COLOR_DANGER  # 0.30 m < 0.35 m required
+    assert np.allclose(h["tcp"].position, [0.4, 0.1, 0.3])
+
+    # The person leaves: skeleton, ghosts and sphere colour follow; no separation -> sphere hidden.
+    view.apply(FakeSnapshot(t=2.0, required_separation_m=None, separation_m=None))
+    assert not h["person_joints"].visible and not ghosts.visible and not sphere.visible
+
+
+def test_invalid_arrays_are_hidden_not_drawn(server: Any, cell: Any) -> None:
+    view = CellView(server, cell, robot_capsules=fake_capsules)
+    bad = skeleton()
+    bad[3] = np.nan
+    view.apply(FakeSnapshot(t=0.0, skeleton=bad, plan_tcp=np.zeros((1, 3)), forecast=np.zeros((5, 7, 3))))
+    h = view.handles
+    assert not h["person_joints"].visible  # NaN joint: not drawn
+    assert not h["plan"].visible  # a single point is no path
+    assert not h["forecast_ghosts"].visible  # wrong joint count
+    with pytest.raises(ValueError, match=r"snapshot\.q"):
+        view.apply(FakeSnapshot(t=0.0, q=np.full(6, np.nan)))
+
+
+def test_layer_toggles(server: Any, cell: Any) -> None:
+    nodes = np.random.default_rng(1).uniform(size=(20, 3))
+    view = CellView(server, cell, robot_capsules=fake_capsules, roadmap_nodes=nodes)
+    h = view.handles
+    assert not h["roadmap"].visible  # off by default
+    view.set_layer("roadmap", True)
+    assert h["roadmap"].visible
+    plan = np.linspace([0.3, -0.5, 0.2], [0.6, 0.3, 0.1], 5)
+    view.apply(FakeSnapshot(t=0.0, plan_tcp=plan))
+    assert h["plan"].visible
+    view.set_layer("plans", False)
+    assert not h["plan"].visible
+    view.apply(FakeSnapshot(t=0.1, plan_tcp=plan))
+    assert not h["plan"].visible  # stays hidden while the layer is off
+    view.set_layer("plans", True)
+    assert h["plan"].visible
+    with pytest.raises(ValueError, match="unknown layer"):
+        view.set_layer("nope", True)
+
+
+# ---------------------------------------------------------------------------------------------- CellScene
+
+
+class FakeSubscription:
+    """Bounded, drop-oldest, like ``Runtime.subscribe``."""
+
+    def __init__(self, maxsize: int) -> None:
+        self.q: queue.Queue[Any] = queue.Queue(maxsize)
+        self.closed = False
+
+    def put(self, item: Any) -> None:
+        while True:
+            try:
+                self.q.put_nowait(item)
+                return
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    self.q.get_nowait()
+
+    def get(self, timeout: float) -> Any | None:
+        try:
+            return self.q.get(timeout=timeout) if timeout > 0 else self.q.get_nowait()
+        except queue.Empty:
+            return None
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class FakeRuntime:
+    def __init__(self, backlog: list[Any] | None = None) -> None:
+        self.latest = FakeSnapshot(t=0.0, state="idle")
+        self.subs: list[FakeSubscription] = []
+        self.backlog = backlog or []
+        self.lock = threading.Lock()
+
+    def snapshot(self) -> Any:
+        return self.latest
+
+    def subscribe(self, maxsize: int = 8) -> FakeSubscription:
+        sub = FakeSubscription(max(maxsize, len(self.backlog), 1))
+        for s in self.backlog:
+            sub.put(s)
+        with self.lock:
+            self.subs.append(sub)
+        return sub
+
+    def publish(self, snap: Any) -> None:
+        """Never blocks, whatever the scene does (a full queue drops its oldest entry)."""
+        self.latest = snap
+        with self.lock:
+            for s in self.subs:
+                s.put(snap)
+
+
+def wait_for(cond: Any, what: str, *, tries: int = 500) -> None:
+    for _ in range(tries):
+        if cond():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_cell_scene_follows_the_runtime_and_stops(cell: Any) -> None:
+    rt = FakeRuntime()
+    scene = CellScene(rt, cell, port=0, robot_capsules=fake_capsules)
+    assert scene.port == 0
+    scene.start()
+    try:
+        assert scene.port > 0 and scene.running
+        assert scene.frames_applied == 1  # the initial snapshot
+        assert scene.view.handles["state_label"].text.startswith("IDLE")
+        handles = dict(scene.view.handles)
+        names = node_names(scene.server)
+        for k in range(1, 6):
+            rt.publish(FakeSnapshot(t=k * 0.1, q=np.full(6, 0.05 * k), skeleton=skeleton(seed=k)))
+        last = rt.latest
+        wait_for(
+            lambda: np.allclose(scene.view.handles["robot_links"].batched_positions[:, 0], 0.25, atol=1e-5),
+            "the newest snapshot to be drawn",
+        )
+        assert np.allclose(scene.view.handles["person_joints"].batched_positions, last.skeleton, atol=1e-5)
+        assert dict(scene.view.handles) == handles and node_names(scene.server) == names
+        with pytest.raises(RuntimeError, match="twice"):
+            scene.start()
+    finally:
+        scene.stop()
+    assert not scene.running
+    assert rt.subs[0].closed
+    scene.stop()  # idempotent
+
+
+def test_cell_scene_coalesces_a_backlog_and_survives_bad_snapshots(cell: Any) -> None:
+    backlog = [FakeSnapshot(t=0.1 * k, q=np.full(6, 0.1 * k)) for k in range(1, 4)]
+    rt = FakeRuntime(backlog=backlog)
+    with CellScene(rt, cell, port=0, robot_capsules=fake_capsules, rate_hz=60) as scene:
+        # The three queued snapshots are coalesced: only the newest is drawn.
+        wait_for(lambda: scene.frames_applied >= 2, "the backlog to be drawn")
+        assert scene.frames_skipped == 2
+        assert np.allclose(scene.view.handles["robot_links"].batched_positions[:, 0], 0.3, atol=1e-5)
+        # A broken snapshot is logged and counted; the thread keeps going.
+        rt.publish(replace(backlog[0], q=np.full(6, np.nan)))
+        wait_for(lambda: scene.errors == 1, "the bad snapshot to be rejected")
+        rt.publish(FakeSnapshot(t=1.0, q=np.full(6, -0.4)))
+        wait_for(
+            lambda: np.allclose(scene.view.handles["robot_links"].batched_positions[:, 0], -0.4, atol=1e-5),
+            "drawing to resume after a bad snapshot",
+        )
+        assert scene.running
+
+
+def test_cell_scene_checks_its_arguments(cell: Any) -> None:
+    with pytest.raises(ValueError, match="rate_hz"):
+        CellScene(FakeRuntime(), cell, port=0, rate_hz=0)
+    scene = CellScene(FakeRuntime(), cell, port=0, robot_capsules=fake_capsules)
+    with pytest.raises(RuntimeError, match="after start"):
+        _ = scene.view
+
+
+def test_cell_scene_default_robot_model_is_the_collision_model(cell: Any) -> None:
+    """Without an override the arm is drawn from ``CollisionModel.robot_capsules`` (the planner's model)."""
+    from app.planning.collision import CollisionModel
+
+    rt = FakeRuntime()
+    q = np.asarray(cell.robot.home_q)
+    rt.latest = FakeSnapshot(t=0.0, q=q)
+    with CellScene(rt, cell, port=0) as scene:
+        a, b, r = CollisionModel(cell).robot_capsules(q[None])
+        links = scene.view.handles["robot_links"]
+        assert links.batched_positions.shape == (a.shape[1], 3)
+        assert np.allclose(links.batched_positions, ((a + b) / 2)[0], atol=1e-4)
+        assert np.allclose(links.batched_scales[:, 0], r, atol=1e-6)
