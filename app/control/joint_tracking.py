@@ -1,0 +1,219 @@
+"""Joint-space servo tracking within position, velocity and acceleration limits (pure numpy, no I/O).
+
+Shared by :class:`~app.control.robot.SimRobot` (the tracker *is* the simulated arm) and the RTDE worker
+(the tracker shapes the set-points sent with ``servoJ``), so the real and the simulated arm obey the same
+limits, speed scale and stopping behaviour.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["JointLimits", "JointTracker", "ServoCommand"]
+
+
+def _vec6(x: object, name: str) -> np.ndarray:
+    a = np.array(x, dtype=np.float64).reshape(-1)
+    if a.shape != (6,):
+        raise ValueError(f"{name} must have shape (6,), got {np.shape(x)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite, got {a.tolist()}")
+    return a
+
+
+@dataclass(frozen=True)
+class JointLimits:
+    """Per-joint limits of a 6-axis arm.
+
+    Attributes:
+        q_min: Lower position limits (6,), rad.
+        q_max: Upper position limits (6,), rad.
+        qd_max: Speed limits (6,), rad/s, > 0.
+        qdd_max: Acceleration limits (6,), rad/s^2, > 0.
+    """
+
+    q_min: np.ndarray
+    q_max: np.ndarray
+    qd_max: np.ndarray
+    qdd_max: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("q_min", "q_max", "qd_max", "qdd_max"):
+            a = _vec6(getattr(self, name), name)
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+        if np.any(self.q_min >= self.q_max):
+            raise ValueError(f"q_min must be < q_max, got {self.q_min} and {self.q_max}")
+        if np.any(self.qd_max <= 0) or np.any(self.qdd_max <= 0):
+            raise ValueError("qd_max and qdd_max must be > 0")
+
+    @classmethod
+    def ur5e(cls) -> JointLimits:
+        """The UR5e limits from :mod:`app.planning.kinematics` (Q_MIN, Q_MAX, QD_MAX, QDD_MAX)."""
+        from app.planning.kinematics import Q_MAX, Q_MIN, QD_MAX, QDD_MAX
+
+        return cls(
+            q_min=np.asarray(Q_MIN, dtype=float),
+            q_max=np.asarray(Q_MAX, dtype=float),
+            qd_max=np.asarray(QD_MAX, dtype=float),
+            qdd_max=np.asarray(QDD_MAX, dtype=float),
+        )
+
+    def as_lists(self) -> dict[str, list[float]]:
+        """Plain lists (picklable without numpy, e.g. for the RTDE worker process)."""
+        return {k: getattr(self, k).tolist() for k in ("q_min", "q_max", "qd_max", "qdd_max")}
+
+
+@dataclass(frozen=True)
+class ServoCommand:
+    """A servo set-point: be at ``q`` with velocity ``qd`` at time ``t``.
+
+    Attributes:
+        t: Time of the set-point (s, runtime clock).
+        q: Joint positions (6,), rad.
+        qd: Joint velocities (6,), rad/s (feed-forward; zero for a hold).
+    """
+
+    t: float
+    q: np.ndarray
+    qd: np.ndarray
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.t):
+            raise ValueError(f"servo time must be finite, got {self.t}")
+        q = _vec6(self.q, "servo q")
+        qd = _vec6(self.qd, "servo qd")
+        q.setflags(write=False)
+        qd.setflags(write=False)
+        object.__setattr__(self, "q", q)
+        object.__setattr__(self, "qd", qd)
+
+
+class JointTracker:
+    """A kinematic joint-space tracker: follows servo set-points within the limits.
+
+    The reference at time ``tau`` is the command extrapolated with its velocity,
+    ``q_ref = q + qd * (tau - t)``, for at most ``hold_after_s``; after that it holds (zero feed-forward),
+    so a command stream that stops brings the arm to rest. The desired velocity is the feed-forward plus a
+    feedback that can always stop in time, ``sign(e) * min(kp |e|, sqrt(2 a |e|))``; the whole velocity
+    vector is scaled down uniformly to respect ``speed_scale * qd_max`` (the path direction is kept), then
+    each joint's change of velocity is limited by ``qdd_max``. Positions are clipped to the limits.
+
+    Args:
+        q0: Initial joint positions (6,), rad.
+        limits: Joint limits.
+        kp: Feedback gain (1/s).
+        hold_after_s: How long (s) a command is extrapolated with its velocity.
+        max_substep_s: Integration step (s); :meth:`step` subdivides longer steps.
+    """
+
+    def __init__(
+        self,
+        q0: np.ndarray,
+        limits: JointLimits,
+        *,
+        kp: float = 12.0,
+        hold_after_s: float = 0.1,
+        max_substep_s: float = 0.002,
+    ) -> None:
+        self.limits = limits
+        self.kp = float(kp)
+        self.hold_after_s = float(hold_after_s)
+        self.max_substep_s = float(max_substep_s)
+        q = np.clip(_vec6(q0, "q0"), limits.q_min, limits.q_max)
+        self.q = q
+        self.qd = np.zeros(6)
+        self.command: ServoCommand | None = None
+
+    def set_command(self, command: ServoCommand | None) -> None:
+        """Track ``command`` from now on (``None``: hold the current position)."""
+        if command is not None:
+            # Targets stay a hair inside the limits, so the braking never touches the hard clip below.
+            margin = 1e-4
+            q_target = np.clip(command.q, self.limits.q_min + margin, self.limits.q_max - margin)
+            if not np.array_equal(q_target, command.q):
+                command = ServoCommand(command.t, q_target, command.qd)
+        self.command = command
+
+    def reference(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
+        """Reference position (6,) rad and feed-forward velocity (6,) rad/s at time ``tau``."""
+        c = self.command
+        if c is None:
+            return self.q.copy(), np.zeros(6)
+        lead = tau - c.t
+        if lead > self.hold_after_s:
+            q_ref, qd_ref = c.q + c.qd * self.hold_after_s, np.zeros(6)
+        else:
+            q_ref, qd_ref = c.q + c.qd * lead, c.qd
+        return np.clip(q_ref, self.limits.q_min + 1e-4, self.limits.q_max - 1e-4), qd_ref
+
+    def step(self, t: float, dt_s: float, *, speed_scale: float = 1.0, stopping: bool = False) -> None:
+        """Integrate from time ``t`` over ``dt_s`` seconds.
+
+        Args:
+            t: Time (s) at the start of the step (for the command's extrapolation).
+            dt_s: Step length (s), >= 0.
+            speed_scale: Fraction (0..1) of ``qd_max`` allowed.
+            stopping: Decelerate to rest within ``qdd_max`` (all joints stop together, so the arm stays
+                on its joint-space path), ignoring the command.
+        """
+        if dt_s < 0:
+            raise ValueError(f"dt_s must be >= 0, got {dt_s}")
+        n = max(1, math.ceil(dt_s / self.max_substep_s - 1e-9)) if dt_s > 0 else 0
+        h = dt_s / n if n else 0.0
+        s = min(max(float(speed_scale), 0.0), 1.0)
+        for i in range(n):
+            if stopping:
+                self._substep_stop(h)
+            else:
+                self._substep_track(t + i * h, h, s)
+
+    def _substep_stop(self, h: float) -> None:
+        lim = self.limits
+        speed = np.abs(self.qd)
+        if not np.any(speed > 0):
+            return
+        t_stop = float(np.max(speed / lim.qdd_max))
+        if t_stop <= h:
+            qd_new = np.zeros(6)
+        else:
+            qd_new = self.qd * (1.0 - h / t_stop)
+        self._integrate(qd_new, h)
+
+    def _substep_track(self, tau: float, h: float, s: float) -> None:
+        lim = self.limits
+        q_ref, qd_ff = self.reference(tau + h)
+        err = q_ref - self.q
+        mag = np.abs(err)
+        # Fastest speed from which the joint still stops on the reference, for this discrete step: the
+        # continuous sqrt(2 a |e|) overshoots by about a h^2 per step.
+        ah = lim.qdd_max * h
+        v_brake = ah * (np.sqrt(0.25 + 2.0 * mag / (ah * h)) - 0.5)
+        v_fb = np.sign(err) * np.minimum(self.kp * mag, v_brake)
+        v_des = qd_ff + v_fb
+        cap = s * lim.qd_max
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(cap > 0, np.abs(v_des) / np.where(cap > 0, cap, 1.0), np.inf)
+        worst = float(np.max(np.where(np.abs(v_des) > 0, ratio, 0.0)))
+        if worst > 1.0:
+            v_des = v_des / worst if math.isfinite(worst) else np.zeros(6)
+        dv = np.clip(v_des - self.qd, -lim.qdd_max * h, lim.qdd_max * h)
+        self._integrate(self.qd + dv, h)
+
+    def _integrate(self, qd_new: np.ndarray, h: float) -> None:
+        lim = self.limits
+        q_new = self.q + qd_new * h  # semi-implicit Euler, consistent with the braking speed above
+        clipped = (q_new < lim.q_min) | (q_new > lim.q_max)
+        if np.any(clipped):
+            q_new = np.clip(q_new, lim.q_min, lim.q_max)
+            qd_new = np.where(clipped, 0.0, qd_new)
+        self.q = q_new
+        self.qd = qd_new
+
+    @property
+    def at_rest(self) -> bool:
+        """True when every joint speed is zero."""
+        return not np.any(self.qd)

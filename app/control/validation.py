@@ -1,0 +1,350 @@
+"""Frame validation in front of every human source, and the stale-stream watchdog.
+
+A frame is rejected (and counted, by reason) when it has non-finite values, the wrong joint count, a
+timestamp that is not after the previous accepted one (duplicate or backwards), or a joint outside the
+cell volume. :class:`StaleWatchdog` reports when no valid frame came for longer than its timeout (100 ms by
+default), so that the supervisor can stop the robot. :class:`ValidatedSource` puts both in front of any
+:class:`~app.control.human.HumanSource`.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+
+from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+
+if TYPE_CHECKING:
+    from app.config import WorkCell
+    from app.control.human import HumanSource
+
+__all__ = [
+    "REJECT_REASONS",
+    "CellVolume",
+    "FrameRejected",
+    "FrameValidator",
+    "StaleWatchdog",
+    "ValidatedSource",
+]
+
+#: Why a frame can be rejected (the keys of the rejection counters).
+REJECT_REASONS: tuple[str, ...] = (
+    "non_finite",  # NaN or inf in the timestamp, joints or confidences
+    "joint_count",  # not (J, 3) joints / (J,) confidences
+    "duplicate_timestamp",  # same time as the previous accepted frame
+    "backwards_timestamp",  # earlier than the previous accepted frame
+    "out_of_range",  # a joint outside the cell volume
+    "bad_confidence",  # confidence outside [0, 1]
+    "malformed",  # a stream message that cannot be parsed
+    "unknown_format",  # a stream message with an unknown joint format or frame
+    "missing_joints",  # too many joints not seen (null) in a stream message
+    "no_camera_pose",  # a camera-frame message but no camera pose configured
+)
+
+
+class FrameRejected(ValueError):  # noqa: N818 (the contract's name)
+    """A human frame was rejected.
+
+    Attributes:
+        reason: One of :data:`REJECT_REASONS`.
+        detail: What exactly was wrong.
+    """
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        if reason not in REJECT_REASONS:
+            raise ValueError(f"unknown rejection reason {reason!r}; expected one of {REJECT_REASONS}")
+        self.reason = reason
+        self.detail = detail
+        super().__init__(f"frame rejected ({reason}){': ' + detail if detail else ''}")
+
+
+@dataclass(frozen=True)
+class CellVolume:
+    """An axis-aligned box (world frame, metres) that every tracked joint must lie in.
+
+    Attributes:
+        lo: Lower corner (3,).
+        hi: Upper corner (3,).
+    """
+
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def __post_init__(self) -> None:
+        lo = np.array(self.lo, dtype=np.float64).reshape(-1)
+        hi = np.array(self.hi, dtype=np.float64).reshape(-1)
+        if lo.shape != (3,) or hi.shape != (3,) or not np.all(lo < hi):
+            raise ValueError(f"CellVolume needs lo (3,) < hi (3,), got {self.lo} and {self.hi}")
+        lo.setflags(write=False)
+        hi.setflags(write=False)
+        object.__setattr__(self, "lo", lo)
+        object.__setattr__(self, "hi", hi)
+
+    @classmethod
+    def from_workcell(cls, cell: WorkCell, *, margin_m: float = 1.0, height_m: float = 2.5) -> CellVolume:
+        """The box around the table, the static scene and the operator area, grown by ``margin_m`` in x and
+        y; z from 0.3 m below the floor to ``height_m`` above it."""
+        corners = []
+        for box in cell.static_boxes:
+            c, h = np.asarray(box.center), np.asarray(box.size) / 2
+            r = math.hypot(h[0], h[1])  # covers any yaw
+            ext = np.array([r, r, h[2]])
+            corners += [c - ext, c + ext]
+        op = cell.operator
+        oc, oh = np.asarray(op.center_xy), np.asarray(op.size_xy) / 2
+        corners += [[*(oc - oh), op.floor_z], [*(oc + oh), op.floor_z]]
+        pts = np.asarray(corners, dtype=float)
+        grow = np.array([margin_m, margin_m, 0.0])
+        lo = pts.min(axis=0) - grow
+        hi = pts.max(axis=0) + grow
+        lo[2] = op.floor_z - 0.3
+        hi[2] = op.floor_z + height_m
+        return cls(lo=lo, hi=hi)
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """Which points (..., 3) lie inside, shape (...)."""
+        p = np.asarray(points, dtype=float)
+        return np.all((p >= self.lo) & (p <= self.hi), axis=-1)
+
+
+class FrameValidator:
+    """Checks frames before anything else sees them; counts what it accepts and rejects (thread-safe).
+
+    Args:
+        volume: Every joint must lie in this box (``None``: no range check).
+        num_joints: Expected joint count (the canonical skeleton by default).
+    """
+
+    def __init__(self, *, volume: CellVolume | None = None, num_joints: int = NUM_JOINTS) -> None:
+        self.volume = volume
+        self.num_joints = int(num_joints)
+        self._lock = threading.Lock()
+        self._last_t: float | None = None
+        self._accepted = 0
+        self._rejected = dict.fromkeys(REJECT_REASONS, 0)
+
+    @classmethod
+    def for_workcell(cls, cell: WorkCell, *, margin_m: float = 1.0) -> FrameValidator:
+        """A validator whose volume is :meth:`CellVolume.from_workcell`."""
+        return cls(volume=CellVolume.from_workcell(cell, margin_m=margin_m))
+
+    # -- checks -----------------------------------------------------------------------------------------
+    def reject(self, reason: str, detail: str = "") -> FrameRejected:
+        """Count a rejection decided elsewhere (e.g. a stream parser) and return the exception to raise."""
+        exc = FrameRejected(reason, detail)
+        with self._lock:
+            self._rejected[reason] += 1
+        return exc
+
+    def validate(self, t: float, joints: Any, confidence: Any = None) -> HumanFrame:
+        """Check raw arrays and build the frame.
+
+        Args:
+            t: Timestamp (s, runtime clock).
+            joints: Joint positions, expected (J, 3), metres, world frame.
+            confidence: Per-joint confidence (J,) in [0, 1]; ``None`` means all ones.
+
+        Raises:
+            FrameRejected: with the reason (counted).
+        """
+        try:
+            t = float(t)
+            j = np.asarray(joints, dtype=np.float64)
+            c = np.ones(self.num_joints) if confidence is None else np.asarray(confidence, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise self.reject("malformed", f"joints/confidence/t are not numbers: {exc}") from None
+        if j.shape != (self.num_joints, 3):
+            raise self.reject("joint_count", f"joints must be ({self.num_joints}, 3), got {j.shape}")
+        if c.shape != (self.num_joints,):
+            raise self.reject("joint_count", f"confidence must be ({self.num_joints},), got {c.shape}")
+        if not math.isfinite(t):
+            raise self.reject("non_finite", f"timestamp {t}")
+        if not np.all(np.isfinite(j)):
+            bad = np.unique(np.nonzero(~np.isfinite(j))[0]).tolist()
+            raise self.reject("non_finite", f"joints {bad} are NaN or infinite")
+        if not np.all(np.isfinite(c)):
+            raise self.reject("non_finite", "confidence has NaN or inf")
+        if np.any((c < 0) | (c > 1)):
+            raise self.reject("bad_confidence", f"confidence must be within [0, 1], got {c.min()}..{c.max()}")
+        if self.volume is not None:
+            inside = self.volume.contains(j)
+            if not np.all(inside):
+                k = int(np.argmin(inside))
+                raise self.reject(
+                    "out_of_range",
+                    f"joint {k} at {np.round(j[k], 3).tolist()} is outside the cell volume "
+                    f"{self.volume.lo.tolist()}..{self.volume.hi.tolist()}",
+                )
+        with self._lock:
+            last = self._last_t
+            if last is not None and t == last:
+                self._rejected["duplicate_timestamp"] += 1
+                raise FrameRejected("duplicate_timestamp", f"t={t} equals the previous frame's")
+            if last is not None and t < last:
+                self._rejected["backwards_timestamp"] += 1
+                raise FrameRejected("backwards_timestamp", f"t={t} is before the previous frame's {last}")
+            self._last_t = t
+            self._accepted += 1
+        return HumanFrame(t=t, joints=j, confidence=c)
+
+    def check(self, frame: HumanFrame) -> HumanFrame:
+        """Check a built frame (same rules as :meth:`validate`); returns it when valid.
+
+        Raises:
+            FrameRejected: with the reason (counted).
+        """
+        return self.validate(frame.t, frame.joints, frame.confidence)
+
+    # -- counters ---------------------------------------------------------------------------------------
+    @property
+    def accepted(self) -> int:
+        return self._accepted
+
+    @property
+    def rejected(self) -> int:
+        with self._lock:
+            return sum(self._rejected.values())
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """``{"accepted": n, "rejected": n, "rejected_<reason>": n, ...}`` (every reason, zeros included)."""
+        with self._lock:
+            out = {"accepted": self._accepted, "rejected": sum(self._rejected.values())}
+            out.update({f"rejected_{k}": v for k, v in self._rejected.items()})
+            return out
+
+    @property
+    def last_t(self) -> float | None:
+        """Timestamp of the last accepted frame."""
+        return self._last_t
+
+    def reset(self) -> None:
+        """Forget the last timestamp and zero the counters (a new trial, a new stream)."""
+        with self._lock:
+            self._last_t = None
+            self._accepted = 0
+            self._rejected = dict.fromkeys(REJECT_REASONS, 0)
+
+
+class StaleWatchdog:
+    """Reports "no valid frame for more than ``timeout_s``" (the supervisor then stops the robot).
+
+    Feed it the time (runtime clock) at which each valid frame arrived. Before the first frame the stream
+    counts as stale.
+
+    Args:
+        timeout_s: Longest allowed gap (s) between valid frames.
+    """
+
+    def __init__(self, timeout_s: float = 0.1) -> None:
+        if not timeout_s > 0:
+            raise ValueError(f"timeout_s must be > 0, got {timeout_s}")
+        self.timeout_s = float(timeout_s)
+        self._last: float | None = None
+        self._stale_reported = True
+        self.stale_events = 0
+
+    def feed(self, t: float) -> None:
+        """A valid frame arrived at time ``t`` (s)."""
+        if self._last is None or t > self._last:
+            self._last = float(t)
+
+    def age(self, now: float) -> float:
+        """Seconds since the last valid frame (``inf`` before the first)."""
+        return math.inf if self._last is None else max(0.0, now - self._last)
+
+    def is_stale(self, now: float) -> bool:
+        """True when no valid frame arrived within ``timeout_s`` before ``now``."""
+        return self.age(now) > self.timeout_s + 1e-9  # tolerance for float time arithmetic
+
+    def poll(self, now: float) -> Literal["stale", "resumed"] | None:
+        """Edge detector: ``"stale"`` once when the stream goes stale, ``"resumed"`` once when it recovers."""
+        stale = self.is_stale(now)
+        if stale and not self._stale_reported:
+            self._stale_reported = True
+            self.stale_events += 1
+            return "stale"
+        if not stale and self._stale_reported:
+            self._stale_reported = False
+            return "resumed"
+        return None
+
+    def reset(self) -> None:
+        self._last = None
+        self._stale_reported = True
+
+
+class ValidatedSource:
+    """A human source behind a :class:`FrameValidator` and a :class:`StaleWatchdog`.
+
+    :meth:`frame_at` returns the newest *valid* frame at or before ``t``; each distinct frame of the inner
+    source is checked once (asking again for the same frame is not a duplicate). :meth:`poll` is the
+    runtime's per-tick call: it returns a frame only when a new valid one arrived.
+
+    Args:
+        source: The inner source.
+        validator: Frame checks (default: no range check).
+        watchdog: Stale detection (default 100 ms).
+    """
+
+    def __init__(
+        self,
+        source: HumanSource,
+        *,
+        validator: FrameValidator | None = None,
+        watchdog: StaleWatchdog | None = None,
+    ) -> None:
+        self.source = source
+        self.validator = validator if validator is not None else FrameValidator()
+        self.watchdog = watchdog if watchdog is not None else StaleWatchdog()
+        self._seen: HumanFrame | None = None
+        self._valid: HumanFrame | None = None
+        self.last_rejection: FrameRejected | None = None
+        self._lock = threading.Lock()
+
+    def frame_at(self, t: float) -> HumanFrame | None:
+        with self._lock:
+            frame = self.source.frame_at(t)
+            if frame is not None and frame is not self._seen:
+                self._seen = frame
+                self._accept(frame, t)
+            valid = self._valid
+        if valid is not None and valid.t > t:
+            return None
+        return valid
+
+    def _accept(self, frame: HumanFrame, now: float) -> None:
+        if (
+            self._valid is not None
+            and frame.t == self._valid.t
+            and np.array_equal(frame.joints, self._valid.joints)
+        ):
+            return  # the same frame, rebuilt by the inner source: not a new one
+        try:
+            self._valid = self.validator.check(frame)
+            self.watchdog.feed(max(now, frame.t) if math.isfinite(frame.t) else now)
+        except FrameRejected as exc:
+            self.last_rejection = exc
+
+    def poll(self, now: float) -> HumanFrame | None:
+        """The newest valid frame if it is new since the previous :meth:`poll`, else ``None``."""
+        before = self._valid
+        frame = self.frame_at(now)
+        return frame if frame is not None and frame is not before else None
+
+    def is_stale(self, now: float) -> bool:
+        return self.watchdog.is_stale(now)
+
+    def notify_block_placed(self, station: str, t: float) -> None:
+        """Forwarded to the inner source (the simulated operator reacts to it; others ignore it)."""
+        notify = getattr(self.source, "notify_block_placed", None)
+        if notify is not None:
+            notify(station, t)
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return self.validator.counters

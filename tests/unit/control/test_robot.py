@@ -1,0 +1,219 @@
+"""The simulated UR5e: tracking within limits, speed scale, stop and protective stop, either clock."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.config import Settings
+from app.control.clock import SimClock
+from app.control.joint_tracking import JointLimits, JointTracker, ServoCommand
+from app.control.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot, make_robot
+
+HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+DT = 0.002
+
+
+def _run(robot: SimRobot, clock: SimClock, seconds: float, dt: float = DT) -> list[RobotState]:
+    out = []
+    for _ in range(round(seconds / dt)):
+        clock.advance(dt)
+        out.append(robot.state())
+    return out
+
+
+def _check_limits(states: list[RobotState], limits: JointLimits, *, scale: float = 1.0) -> None:
+    q = np.stack([s.q for s in states])
+    qd = np.stack([s.qd for s in states])
+    t = np.array([s.t for s in states])
+    assert np.all(q >= limits.q_min - 1e-9) and np.all(q <= limits.q_max + 1e-9)
+    assert np.all(np.abs(qd) <= scale * limits.qd_max + 1e-6)
+    qdd = np.diff(qd, axis=0) / np.diff(t)[:, None]
+    assert np.all(np.abs(qdd) <= limits.qdd_max + 1e-6)
+
+
+def test_ur5e_limits_come_from_the_kinematics_module() -> None:
+    from app.planning import kinematics
+
+    lim = JointLimits.ur5e()
+    np.testing.assert_array_equal(lim.q_max, kinematics.Q_MAX)
+    np.testing.assert_array_equal(lim.qdd_max, kinematics.QDD_MAX)
+
+
+def test_tracks_a_far_step_within_velocity_and_acceleration_limits() -> None:
+    clock = SimClock()
+    robot = SimRobot(clock, q0=HOME)
+    target = HOME + np.array([1.5, -0.5, 0.8, 0.3, -1.0, 3.0])
+    robot.servo(target, np.zeros(6), clock.now())
+    states = _run(robot, clock, 4.0)
+    _check_limits(states, robot.limits)
+    np.testing.assert_allclose(states[-1].q, target, atol=1e-3)
+    assert np.all(np.abs(states[-1].qd) < 1e-2)
+    # joint 5 moves 3 rad with 4 rad/s^2: a bang-bang profile would peak at sqrt(12) > pi, so it cruises at
+    # the speed limit
+    assert np.max(np.abs([s.qd[5] for s in states])) == pytest.approx(math.pi, abs=1e-6)
+    # time-optimal for joint 5: 3 rad at pi rad/s plus the ramps pi/4 s: about 1.74 s
+    arrived = next(s.t for s in states if abs(s.q[5] - target[5]) < 1e-3)
+    assert arrived == pytest.approx(3.0 / math.pi + math.pi / 4.0, abs=0.05)
+
+
+def test_follows_a_moving_set_point_closely() -> None:
+    clock = SimClock()
+    robot = SimRobot(clock, q0=HOME)
+    v = np.array([0.3, -0.2, 0.1, 0.0, 0.25, -0.4])
+    errors = []
+    for k in range(1500):  # 3 s at 500 Hz, the set-point moves at constant velocity
+        t = clock.now()
+        robot.servo(HOME + v * t, v, t)
+        clock.advance(DT)
+        if k > 500:
+            errors.append(np.max(np.abs(robot.state().q - (HOME + v * clock.now()))))
+    assert max(errors) < 2e-3
+
+
+def test_speed_scale_caps_joint_speeds_and_keeps_the_path() -> None:
+    clock = SimClock()
+    robot = SimRobot(clock, q0=HOME)
+    robot.set_speed_scale(0.25)
+    delta = np.array([1.0, 0.5, -0.5, 0.0, 0.0, 1.0])
+    robot.servo(HOME + delta, np.zeros(6), clock.now())
+    states = _run(robot, clock, 1.0)
+    _check_limits(states, robot.limits, scale=0.25)
+    assert states[-1].speed_scale == 0.25
+    assert np.max(np.abs(states[-1].qd)) == pytest.approx(0.25 * math.pi, abs=1e-6)
+    with pytest.raises(ValueError):
+        robot.set_speed_scale(1.5)
+
+
+def test_speed_scale_zero_brings_the_arm_to_rest_within_limits() -> None:
+    clock = SimClock()
+    robot = SimRobot(clock, q0=HOME)
+    robot.servo(HOME + 2.0, np.zeros(6), clock.now())
+    _run(robot, clock, 0.6)
+    assert np.max(np.abs(robot.state().qd)) > 1.0
+    robot.set_speed_scale(0.0)
+    states = _run(robot, clock, 1.0)
+    _check_limits(states, robot.limits)
+    assert np.all(states[-1].qd == 0.0)
+
+
+def test_protective_stop_decelerates_within_limits_and_ignores_servo_until_reset() -> None:
+    clock = SimClock()
+    robot = SimRobot(clock, q0=HOME)
+    target = HOME + np.array([2.0, 1.0, -1.0, 0.5, 0.5, 2.0])
+    robot.servo(target, np.zeros(6), clock.now())
+    moving = _run(robot, clock, 0.7)
+    qd0 = moving[-1].qd
+    assert np.max(np.abs(qd0)) > 2.0
+    robot.protective_stop()
+    stopping = _run(robot, clock, 1.2)
+    _check_limits([moving[-1], *stopping], robot.limits)
+    assert stopping[-1].protective_stop
+    assert np.all(stopping[-1].qd == 0.0)
+    # all joints stop together: the stop takes max(|qd| / qdd_max) and the joint path is a straight line
+    t_stop = np.max(np.abs(qd0) / robot.limits.qdd_max)
+    n_moving = sum(1 for s in stopping if np.any(s.qd != 0))
+    assert n_moving * DT == pytest.approx(t_stop, abs=2 * DT)
+    dq = stopping[-1].q - moving[-1].q
+    np.testing.assert_allclose(dq / np.linalg.norm(dq), qd0 / np.linalg.norm(qd0), atol=1e-3)
+    # servo commands are ignored while stopped
+    q_hold = stopping[-1].q.copy()
+    robot.servo(target, np.zeros(6), clock.now())
+    _run(robot, clock, 0.5)
+    np.testing.assert_array_equal(robot.state().q, q_hold)
+    assert robot.ignored_servo_commands == 1
+    robot.reset_protective_stop()
+    st = robot.state()
+    assert not st.protective_stop
+    np.testing.assert_array_equal(st.q, q_hold)  # the stale command is gone: it holds
+    robot.servo(target, np.zeros(6), clock.now())
+    _run(robot, clock, 3.0)
+    np.testing.assert_allclose(robot.state().q, target, atol=1e-3)
+
+
+def test_stop_comes_to_rest_then_accepts_new_commands() -> None:
+    clock = SimClock()
+    robot = SimRobot(clock, q0=HOME)
+    robot.servo(HOME + 1.0, np.zeros(6), clock.now())
+    _run(robot, clock, 0.5)
+    robot.stop()
+    states = _run(robot, clock, 1.0)
+    assert np.all(states[-1].qd == 0) and not states[-1].protective_stop
+    robot.servo(HOME, np.zeros(6), clock.now())
+    _run(robot, clock, 3.0)
+    np.testing.assert_allclose(robot.state().q, HOME, atol=1e-3)
+
+
+def test_targets_beyond_the_joint_limits_are_clipped() -> None:
+    clock = SimClock()
+    lim = JointLimits.ur5e()
+    robot = SimRobot(clock, q0=np.zeros(6))
+    robot.servo(np.array([0.0, 0.0, 3.5, 0.0, 0.0, 0.0]), np.zeros(6), clock.now())  # elbow limit is pi
+    states = _run(robot, clock, 3.0)
+    _check_limits(states, lim)
+    assert states[-1].q[2] == pytest.approx(math.pi, abs=1e-3)
+    assert max(s.q[2] for s in states) < math.pi
+
+
+def test_lazy_sync_on_the_clock_equals_explicit_steps() -> None:
+    clock_a, clock_b = SimClock(), SimClock()
+    lazy = SimRobot(clock_a, q0=HOME)
+    stepped = SimRobot(clock_b, q0=HOME)
+    target = HOME + 0.8
+    lazy.servo(target, np.zeros(6), 0.0)
+    stepped.servo(target, np.zeros(6), 0.0)
+    clock_a.advance(0.5)  # one jump on the clock
+    for _ in range(125):
+        stepped.step(0.004)  # explicit steps of the robot's own substep, the clock stays at 0
+    np.testing.assert_allclose(lazy.state().q, stepped._tracker.q, atol=1e-9)
+
+
+def test_a_stream_of_commands_that_stops_brings_the_arm_to_rest() -> None:
+    clock = SimClock()
+    robot = SimRobot(clock, q0=HOME)
+    v = np.full(6, 0.5)
+    for _ in range(250):
+        t = clock.now()
+        robot.servo(HOME + v * t, v, t)
+        clock.advance(DT)
+    _run(robot, clock, 1.0)  # no more commands: extrapolates 0.1 s, then holds
+    st = robot.state()
+    assert np.all(np.abs(st.qd) < 1e-3)
+    np.testing.assert_allclose(st.q, HOME + v * (0.5 + 0.1), atol=2e-3)
+
+
+def test_closed_robot_refuses_commands_and_bad_commands_raise() -> None:
+    clock = SimClock()
+    robot = SimRobot(clock, q0=HOME)
+    with pytest.raises(ValueError, match="shape"):
+        robot.servo(np.zeros(5), np.zeros(6), 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        robot.servo(np.full(6, np.nan), np.zeros(6), 0.0)
+    robot.close()
+    assert not robot.state().connected
+    with pytest.raises(RobotConnectionError):
+        robot.servo(HOME, np.zeros(6), 0.0)
+
+
+def test_make_robot_sim_is_a_backend() -> None:
+    robot = make_robot(Settings(robot="sim"), SimClock(), q0=HOME)
+    assert isinstance(robot, SimRobot)
+    assert isinstance(robot, RobotBackend)
+    st = robot.state()
+    assert st.connected and not st.protective_stop and st.speed_scale == 1.0
+    np.testing.assert_allclose(st.q, HOME)
+    with pytest.raises(ValueError):
+        RobotState(0.0, np.zeros(5), np.zeros(6), False, 1.0, True)
+
+
+def test_tracker_reference_extrapolates_then_holds() -> None:
+    tracker = JointTracker(HOME, JointLimits.ur5e(), hold_after_s=0.1)
+    tracker.set_command(ServoCommand(1.0, HOME, np.full(6, 0.2)))
+    q, qd = tracker.reference(1.05)
+    np.testing.assert_allclose(q, HOME + 0.01)
+    np.testing.assert_allclose(qd, 0.2)
+    q, qd = tracker.reference(5.0)
+    np.testing.assert_allclose(q, HOME + 0.02)
+    np.testing.assert_array_equal(qd, 0.0)
