@@ -224,6 +224,39 @@ def serve(
     run_server(settings, log_level=log_level, echo=lambda text: typer.echo(text, err=True))
 
 
+@app.command()
+def replay(
+    trial_id: Annotated[int, typer.Argument(help="The trial to replay (see GET /api/trials).")],
+    viser_port: Annotated[int, typer.Option(help="Port of the replay's 3D view.")] = 8081,
+    host: Annotated[str, typer.Option(help="Bind address.")] = "127.0.0.1",
+    url: _DbUrl = None,
+) -> None:
+    """Replay a recorded trial in the 3D view (time slider, play/pause, speed) until Ctrl-C."""
+    import threading
+
+    from app.config import Settings
+    from app.study.repository import NotFoundError
+    from app.ui.replay import ReplayError, TrialReplay, load_timeline
+
+    repo = _open_study(url)
+    cell = Settings().load_workcell()
+    try:
+        timeline = load_timeline(repo, trial_id, cell)
+    except (NotFoundError, ReplayError) as exc:
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(1) from exc
+    player = TrialReplay(timeline, cell, port=viser_port, host=host)
+    player.start()
+    typer.echo(f"replaying trial {trial_id} ({timeline.duration_s:.1f} s) at http://{host}:{player.port}")
+    try:
+        while not threading.Event().wait(1.0):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        player.stop()
+
+
 def main() -> None:
     """Console entry point."""
     app()
