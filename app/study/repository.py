@@ -731,11 +731,12 @@ def open_repository(
 class EventWriter:
     """Batched, thread-safe writer of one trial's events.
 
-    :meth:`write` never blocks on the database: it appends to a bounded buffer. A flusher thread (started
-    by :meth:`start`) writes the buffer in one transaction at least every ``flush_interval_s`` seconds, and
-    at once when the buffer is full; :meth:`close` stops it and writes what is left. A failed write keeps
-    the batch for the next attempt; if the buffer overflows meanwhile, the oldest events are dropped and
-    counted in :attr:`dropped` (and logged). Without :meth:`start`, :meth:`write` flushes when due.
+    :meth:`write` appends to a bounded buffer; a flusher thread (started by :meth:`start`) writes the buffer
+    in one transaction at least every ``flush_interval_s`` seconds, and :meth:`close` stops it and writes
+    what is left. Only a full buffer makes :meth:`write` write it itself (back-pressure in a burst). A failed
+    write keeps the batch for the next attempt; if the buffer overflows meanwhile (database unreachable),
+    the oldest events are dropped, counted in :attr:`dropped` and logged once. Without :meth:`start`,
+    :meth:`write` flushes when due.
 
     Args:
         repo: Where to write.
@@ -774,6 +775,7 @@ class EventWriter:
         self._thread: threading.Thread | None = None
         self._last_flush = clock()
         self._closed = False
+        self._overflowing = False
         self.written = 0
         self.dropped = 0
         self.failed_flushes = 0
@@ -802,26 +804,34 @@ class EventWriter:
         self.write_many((event,))
 
     def write_many(self, events: Sequence[TrialEvent]) -> None:
-        """Queue several events in order."""
+        """Queue several events in order. When the buffer is full, the caller writes it (back-pressure for a
+        burst, a few ms); only when that write fails are the oldest events beyond the bound dropped."""
         if self._closed:
             raise TrialStateError(f"the event writer of trial {self.trial_id} is closed")
-        overflow = 0
         with self._lock:
             self._buf.extend(events)
+            full = len(self._buf) >= self.max_buffer
+        if full:
+            self.flush()
+            self._enforce_bound()
+        elif self._thread is None:
+            self.maybe_flush()
+
+    def _enforce_bound(self) -> None:
+        with self._lock:
+            lost = 0
             while len(self._buf) > self.max_buffer:
                 self._buf.popleft()
-                overflow += 1
-            self.dropped += overflow
-            full = len(self._buf) >= self.max_buffer
-        if overflow:
+                lost += 1
+            self.dropped += lost
+            first = lost > 0 and not self._overflowing
+            self._overflowing = self._overflowing or lost > 0
+        if first:
             log.error(
-                "event buffer of trial %d overflowed: dropped %d oldest events", self.trial_id, overflow
+                "event buffer of trial %d is full and the database cannot be written: dropping the oldest "
+                "events (counted in EventWriter.dropped) until a write succeeds",
+                self.trial_id,
             )
-        if self._thread is not None:
-            if full:
-                self._wake.set()
-        else:
-            self.maybe_flush()
 
     def maybe_flush(self, now: float | None = None) -> int:
         """Flush if ``flush_interval_s`` has passed since the last flush or the buffer is full."""
@@ -846,11 +856,7 @@ class EventWriter:
                 with self._lock:
                     self.failed_flushes += 1
                     self._buf.extendleft(reversed(batch))
-                    lost = 0
-                    while len(self._buf) > self.max_buffer:
-                        self._buf.popleft()
-                        lost += 1
-                    self.dropped += lost
+                self._enforce_bound()
                 log.error(
                     "writing %d events of trial %d failed (kept for retry): %s",
                     len(batch),
@@ -861,6 +867,7 @@ class EventWriter:
             with self._lock:
                 self.written += len(batch)
                 total = self.written
+                self._overflowing = False
         if self._on_flush is not None:
             self._on_flush(total)
         return len(batch)

@@ -97,7 +97,8 @@ def test_flush_interval_must_be_at_most_one_second() -> None:
 def test_background_flusher_and_concurrent_writers(repo_and_trial: tuple[StudyRepository, int]) -> None:
     repo, trial_id = repo_and_trial
     n_threads, per_thread = 4, 150
-    with repo.event_writer(trial_id, flush_interval_s=0.05) as w:
+    # A small buffer: bursts fill it, and the writers then flush it themselves (nothing is dropped).
+    with repo.event_writer(trial_id, flush_interval_s=0.05, max_buffer=64) as w:
 
         def produce(k: int) -> None:
             for i in range(per_thread):  # all at t = 0: list_events then returns insertion order
@@ -113,6 +114,7 @@ def test_background_flusher_and_concurrent_writers(repo_and_trial: tuple[StudyRe
         while repo.count_events(trial_id) < n_threads * per_thread and time.monotonic() < deadline:
             time.sleep(0.02)
         assert repo.count_events(trial_id) == n_threads * per_thread
+    assert w.dropped == 0 and w.written == n_threads * per_thread
     ids = [e.payload["i"] for e in repo.list_events(trial_id, limit=10_000)]
     assert sorted(ids) == sorted(k * 1000 + i for k in range(n_threads) for i in range(per_thread))
     for k in range(n_threads):  # each producer's events stay in its order
