@@ -733,10 +733,11 @@ class EventWriter:
 
     :meth:`write` appends to a bounded buffer; a flusher thread (started by :meth:`start`) writes the buffer
     in one transaction at least every ``flush_interval_s`` seconds, and :meth:`close` stops it and writes
-    what is left. Only a full buffer makes :meth:`write` write it itself (back-pressure in a burst). A failed
-    write keeps the batch for the next attempt; if the buffer overflows meanwhile (database unreachable),
-    the oldest events are dropped, counted in :attr:`dropped` and logged once. Without :meth:`start`,
-    :meth:`write` flushes when due.
+    what is left. Only a full buffer makes :meth:`write` write it itself (back-pressure in a burst; the
+    buffer then holds at most ``max_buffer`` plus one event per concurrent writer). A failed write keeps
+    the batch for the next attempt; while the database stays unreachable the buffer is cut to
+    ``max_buffer`` by dropping the oldest events, counted in :attr:`dropped` and logged once. Without
+    :meth:`start`, :meth:`write` flushes when due.
 
     Args:
         repo: Where to write.
@@ -776,6 +777,7 @@ class EventWriter:
         self._last_flush = clock()
         self._closed = False
         self._overflowing = False
+        self._last_write_failed = False
         self.written = 0
         self.dropped = 0
         self.failed_flushes = 0
@@ -813,7 +815,8 @@ class EventWriter:
             full = len(self._buf) >= self.max_buffer
         if full:
             self.flush()
-            self._enforce_bound()
+            if self._last_write_failed:
+                self._enforce_bound()
         elif self._thread is None:
             self.maybe_flush()
 
@@ -855,6 +858,7 @@ class EventWriter:
             except SQLAlchemyError as exc:
                 with self._lock:
                     self.failed_flushes += 1
+                    self._last_write_failed = True
                     self._buf.extendleft(reversed(batch))
                 self._enforce_bound()
                 log.error(
@@ -868,6 +872,7 @@ class EventWriter:
                 self.written += len(batch)
                 total = self.written
                 self._overflowing = False
+                self._last_write_failed = False
         if self._on_flush is not None:
             self._on_flush(total)
         return len(batch)
