@@ -102,7 +102,13 @@ def _start_scene(settings: Settings, runtime: Any) -> Any:
         logger.info("no 3D view: app.ui.scene is not available (%s)", exc)
         return None
     try:
-        scene = CellScene(runtime, settings.load_workcell(), port=settings.viser_port)
+        scene = CellScene(
+            runtime,
+            settings.load_workcell(),
+            port=settings.viser_port,
+            host=settings.host,  # the 3D view is reachable where the API is
+            roadmap=getattr(runtime, "roadmap", None),
+        )
         scene.start()
     except Exception:
         logger.exception(

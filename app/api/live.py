@@ -512,7 +512,7 @@ async def _ingest_loop(websocket: WebSocket, runtime: Any, limits: LiveLimits) -
         try:
             runtime.ingest(obj)
         except rejected_types as exc:
-            await _send_error(websocket, "rejected", str(getattr(exc, "reason", None) or exc))
+            await _send_error(websocket, "rejected", str(exc))
         except unavailable_types as exc:
             await _send_error(websocket, "unavailable", str(exc))
         except (ValueError, TypeError, KeyError) as exc:

@@ -3,7 +3,10 @@ CSV, Markdown and box plots."""
 
 from __future__ import annotations
 
+import hashlib
 import tempfile
+import threading
+from collections import OrderedDict
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -57,13 +60,32 @@ def summary_markdown(repo: RepoDep, session_id: SessionQuery = None) -> PlainTex
     )
 
 
+#: Rendered box plots by (session, data fingerprint): a plot is drawn again only when the data changed.
+_PLOT_CACHE: OrderedDict[tuple[int | None, str], bytes] = OrderedDict()
+_PLOT_CACHE_SIZE = 8
+_PLOT_LOCK = threading.Lock()
+
+
+def _fingerprint(rows: list[dict[str, Any]]) -> str:
+    return hashlib.sha256(repr(rows).encode("utf-8")).hexdigest()
+
+
 @router.get("/boxplots.png", response_class=Response, responses={200: {"content": {"image/png": {}}}})
 def summary_boxplots(repo: RepoDep, session_id: SessionQuery = None) -> Response:
     """Box plots of the per-participant values of both methods, one panel per metric (PNG)."""
     from app.study.stats import box_plots, summarize_rows
 
     rows = repo.metrics_rows(session_id=session_id, status="completed")
-    with tempfile.TemporaryDirectory(prefix="hrc-plots-") as tmp:
-        path = box_plots(rows, Path(tmp) / "boxplots.png", summary=summarize_rows(rows))
-        data = path.read_bytes()
+    key = (session_id, _fingerprint(rows))
+    with _PLOT_LOCK:
+        data = _PLOT_CACHE.get(key)
+        if data is None:
+            with tempfile.TemporaryDirectory(prefix="hrc-plots-") as tmp:
+                path = box_plots(rows, Path(tmp) / "boxplots.png", summary=summarize_rows(rows))
+                data = path.read_bytes()
+            _PLOT_CACHE[key] = data
+            while len(_PLOT_CACHE) > _PLOT_CACHE_SIZE:
+                _PLOT_CACHE.popitem(last=False)
+        else:
+            _PLOT_CACHE.move_to_end(key)
     return Response(data, media_type="image/png", headers={"Cache-Control": "no-store"})
