@@ -1,0 +1,180 @@
+"""The task executive: pick a block at the conveyor, place it at the drop station the participant's assembly
+needs next, repeat.
+
+A task is a sequence of *legs*, each a motion to a named task pose of the roadmap followed by an action:
+
+    pickup_approach -> pickup (grip) -> pickup_approach -> X_approach -> X (release) -> X_approach
+
+where ``X`` is the drop station of this block and ``<name>_approach`` is the pose ``approach_height_m`` above
+a station (the robot descends and rises vertically). A task counts as completed when the block is released
+at ``X`` (the end of the release dwell). The order of drop stations is the participant's assembly sequence:
+seeded, reproducible, drawn in rounds that visit the stations in a shuffled order without serving the same
+station twice in a row.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from app.config import WorkCell
+
+Action = Literal["move", "pick", "place"]
+
+
+@dataclass(frozen=True, slots=True)
+class TaskLeg:
+    """One motion of a task.
+
+    Attributes:
+        goal: Roadmap task pose to go to (``pickup``, ``A_approach`` ...).
+        action: What happens on arrival: ``move`` (nothing), ``pick`` (grip), ``place`` (release).
+        station: The station this leg serves (``pickup`` or a drop station).
+        dwell_s: How long the robot stays at the goal for the action (s).
+    """
+
+    goal: str
+    action: Action
+    station: str
+    dwell_s: float
+
+
+@dataclass(frozen=True, slots=True)
+class LegDone:
+    """What :meth:`TaskExecutive.arrived` reports.
+
+    Attributes:
+        leg: The leg that was reached.
+        placed: The drop station where a block was just released (the task completed), else None.
+        index: Number of completed tasks after this leg.
+        leave_at: When the robot may leave for the next leg (arrival + dwell) (s).
+        next_leg: The following leg.
+    """
+
+    leg: TaskLeg
+    placed: str | None
+    index: int
+    leave_at: float
+    next_leg: TaskLeg
+
+
+class AssemblySequence:
+    """The participant's order of drop stations: seeded rounds over the stations, shuffled, never the same
+    station twice in a row."""
+
+    def __init__(self, stations: Sequence[str], *, seed: int) -> None:
+        if not stations:
+            raise ValueError("an assembly sequence needs at least one drop station")
+        self._stations = list(stations)
+        self._rng = np.random.default_rng(seed)
+        self._queue: list[str] = []
+        self._last: str | None = None
+
+    def next(self) -> str:
+        if not self._queue:
+            order = [self._stations[i] for i in self._rng.permutation(len(self._stations))]
+            if len(order) > 1 and order[0] == self._last:
+                order[0], order[1] = order[1], order[0]
+            self._queue = order
+        self._last = self._queue.pop(0)
+        return self._last
+
+    def peek(self, n: int) -> list[str]:
+        """The next ``n`` stations without consuming them (draws rounds as needed)."""
+        state = (self._rng.bit_generator.state, list(self._queue), self._last)
+        out = [self.next() for _ in range(n)]
+        self._rng.bit_generator.state, self._queue, self._last = state[0], state[1], state[2]
+        return out
+
+
+class TaskExecutive:
+    """Pick-and-place legs in the participant's order.
+
+    Args:
+        cell: The work cell (its pickup and drop stations).
+        seed: Seed of the assembly sequence (the participant's).
+        pick_dwell_s: Time to grip a block at the conveyor (s).
+        place_dwell_s: Time to release a block at a drop station (s).
+        use_approach: Go through the approach poses above the stations (vertical descent and rise).
+        goals: The goal names the roadmap knows; approach legs are used only for stations whose approach
+            pose is among them (None: assume all exist).
+    """
+
+    def __init__(
+        self,
+        cell: WorkCell,
+        *,
+        seed: int,
+        pick_dwell_s: float = 0.4,
+        place_dwell_s: float = 0.4,
+        use_approach: bool = True,
+        goals: Sequence[str] | None = None,
+    ) -> None:
+        if pick_dwell_s < 0 or place_dwell_s < 0:
+            raise ValueError("dwell times must be >= 0")
+        self.pickup = cell.conveyor.pickup.name
+        self.stations = [s.name for s in cell.drop_stations]
+        self.sequence = AssemblySequence(self.stations, seed=seed)
+        self.pick_dwell_s = float(pick_dwell_s)
+        self.place_dwell_s = float(place_dwell_s)
+        self._known = None if goals is None else set(goals)
+        self.use_approach = use_approach
+        self.completed = 0
+        self._legs: list[TaskLeg] = []
+        self._current: TaskLeg | None = None
+
+    def _approach(self, station: str) -> str | None:
+        if not self.use_approach:
+            return None
+        name = f"{station}_approach"
+        if self._known is not None and name not in self._known:
+            return None
+        return name
+
+    def _task_legs(self, drop: str) -> list[TaskLeg]:
+        legs: list[TaskLeg] = []
+        pa = self._approach(self.pickup)
+        da = self._approach(drop)
+        if pa is not None:
+            legs.append(TaskLeg(pa, "move", self.pickup, 0.0))
+        legs.append(TaskLeg(self.pickup, "pick", self.pickup, self.pick_dwell_s))
+        if pa is not None:
+            legs.append(TaskLeg(pa, "move", self.pickup, 0.0))
+        if da is not None:
+            legs.append(TaskLeg(da, "move", drop, 0.0))
+        legs.append(TaskLeg(drop, "place", drop, self.place_dwell_s))
+        if da is not None:
+            legs.append(TaskLeg(da, "move", drop, 0.0))
+        return legs
+
+    @property
+    def current(self) -> TaskLeg:
+        """The leg in progress (the first one of the first task before anything happened)."""
+        if self._current is None:
+            self._current = self._pop()
+        return self._current
+
+    def _pop(self) -> TaskLeg:
+        if not self._legs:
+            self._legs = self._task_legs(self.sequence.next())
+        return self._legs.pop(0)
+
+    def upcoming_drops(self, n: int) -> list[str]:
+        """The current task's drop station (if one is in progress) followed by the next ones."""
+        current = [leg.station for leg in self._legs if leg.action == "place"]
+        if self._current is not None and self._current.action == "place":
+            current = [self._current.station, *current]
+        return (current + self.sequence.peek(n))[:n]
+
+    def arrived(self, t: float) -> LegDone:
+        """The robot reached the current leg's goal at time ``t`` (s): do its action, move on."""
+        leg = self.current
+        placed = None
+        if leg.action == "place":
+            self.completed += 1
+            placed = leg.station
+        self._current = self._pop()
+        return LegDone(leg, placed, self.completed, t + leg.dwell_s, self._current)

@@ -1,0 +1,585 @@
+"""The replan state machine with small fakes: a point robot (q[:3] is its position), a straight-line planner
+that detours sideways when the forecast blocks the line, and a "point person" (all joints at one point).
+
+Time is driven by hand (no clock, no sleeps): servo ticks at 100 Hz and frames at 30 Hz.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pytest
+
+from app.control.supervisor import (
+    BackupComputer,
+    HoldTrajectory,
+    InlinePlanJobs,
+    ScaledView,
+    SeparationModel,
+    SpeedProfile,
+    Supervisor,
+    SupervisorConfig,
+    _ramp_distance,
+)
+from app.prediction.forecast import HumanForecast
+from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+
+R_HUMAN = 0.1  # radius of the point person (m)
+CLEAR = 0.5  # clearance the fake planner requires (m)
+SPEED = 0.5  # fake plan speed (m/s)
+FAR = np.array([10.0, 0.0, 0.0])
+#: S_p = 0.15 m + 0.2 s * v_robot + 0.3 s * v_human; a person speeds up at most 8 m/s^2, up to 2 m/s
+SSM = SeparationModel(s0_m=0.1, k_robot_s=0.2, k_human_s=0.3, human_speed_max_mps=2.0, human_accel_mps2=8.0)
+
+
+def scale_law(d: float, v: float, v_h: float) -> float:
+    """ISO speed scaling: the largest v with S_p(v, v_h) <= d, as a fraction of v."""
+    v_max = max(d - SSM.s0_m - SSM.k_human_s * v_h, 0.0) / SSM.k_robot_s
+    return 1.0 if v <= 1e-9 else float(min(1.0, v_max / v))
+
+
+def person_at(p: np.ndarray) -> np.ndarray:
+    return np.tile(np.asarray(p, dtype=float), (NUM_JOINTS, 1))
+
+
+def q_of(p: np.ndarray) -> np.ndarray:
+    q = np.zeros(6)
+    q[:3] = p
+    return q
+
+
+class LinearTrajectory:
+    """Piecewise-linear joint trajectory through (times, q); holds the ends."""
+
+    def __init__(self, times: np.ndarray, q: np.ndarray) -> None:
+        self.times = np.asarray(times, dtype=float)
+        self.qs = np.asarray(q, dtype=float)
+
+    @property
+    def t_start(self) -> float:
+        return float(self.times[0])
+
+    @property
+    def t_end(self) -> float:
+        return float(self.times[-1])
+
+    def q(self, t: Any) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        out = np.stack([np.interp(t, self.times, self.qs[:, j]) for j in range(6)], axis=-1)
+        return out
+
+    def qd(self, t: Any) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        tt = np.atleast_1d(t)
+        if self.times.shape[0] < 2:
+            return np.zeros((*t.shape, 6))
+        idx = np.clip(np.searchsorted(self.times, tt, side="right") - 1, 0, self.times.shape[0] - 2)
+        dts = np.diff(self.times)
+        slope = np.diff(self.qs, axis=0) / np.where(dts > 0, dts, 1.0)[:, None]
+        v = slope[idx]
+        v[(tt < self.times[0]) | (tt >= self.times[-1])] = 0.0
+        return v.reshape(*t.shape, 6)
+
+
+@dataclass
+class FakePlan:
+    times: np.ndarray
+    q: np.ndarray
+    nodes: np.ndarray
+
+
+@dataclass
+class FakeResult:
+    ok: bool
+    plan: Any
+    reason: str
+    expanded: int = 0
+    compute_s: float = 0.0
+
+
+class PointGeometry:
+    def separation(self, q: np.ndarray, joints: np.ndarray) -> float:
+        return float(np.min(np.linalg.norm(joints - q[:3], axis=-1)) - R_HUMAN)
+
+    def point_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(np.asarray(qd)[..., :3], axis=-1)
+
+
+def make_traj(plan: FakePlan, qd0: np.ndarray | None) -> LinearTrajectory:
+    return LinearTrajectory(plan.times, plan.q)
+
+
+class FakePlanner:
+    """Straight line at SPEED; when the forecast blocks it, a detour: sideways, across, back."""
+
+    def __init__(self, goals: dict[str, np.ndarray]) -> None:
+        self.goals = goals
+        self.plan_calls = 0
+        self.emergency_calls = 0
+        self.raise_after: int | None = None
+        self.detour_y = 1.0
+        self.returned: list[LinearTrajectory] = []
+
+    def _line(self, pts: list[np.ndarray], t0: float) -> FakePlan:
+        times = [t0]
+        for a, b in itertools.pairwise(pts):
+            times.append(times[-1] + max(np.linalg.norm(b - a) / SPEED, 1e-3))
+        return FakePlan(np.array(times), np.stack([q_of(p) for p in pts]), np.arange(len(pts)))
+
+    def _violates(self, plan: FakePlan, forecast: HumanForecast | None) -> bool:
+        if forecast is None:
+            return False
+        traj = LinearTrajectory(plan.times, plan.q)
+        return self.first_violation(traj, forecast, t_from=traj.t_start, t_to=traj.t_end) is not None
+
+    def plan(self, *, q_start, t_start, goal, forecast, workers=1, deadline_s=None) -> FakeResult:
+        self.plan_calls += 1
+        if self.raise_after is not None and self.plan_calls > self.raise_after:
+            raise RuntimeError("planner crashed (test)")
+        a = np.asarray(q_start)[:3]
+        b = self.goals[goal]
+        side = np.array([0.0, self.detour_y, 0.0])
+        for pts in ([a, b], [a, a + side, b + side, b]):
+            p = self._line(pts, t_start)
+            if not self._violates(p, forecast):
+                return FakeResult(True, p, "ok")
+        return FakeResult(False, None, "blocked")
+
+    def emergency(self, *, q_start, t_start, forecast, horizon_s) -> FakeResult:
+        self.emergency_calls += 1
+        q = np.asarray(q_start)
+        return FakeResult(
+            True, FakePlan(np.array([t_start, t_start + horizon_s]), np.stack([q, q]), np.zeros(2)), ""
+        )
+
+    def first_violation(self, traj, forecast, *, t_from, t_to) -> float | None:
+        n = max(int((t_to - t_from) / 0.02) + 1, 2)
+        ts = np.linspace(t_from, t_to, n)
+        q = traj.q(ts)
+        joints, margins = forecast.poses_at(ts)
+        d = np.min(np.linalg.norm(joints - q[:, None, :3], axis=-1), axis=1) - R_HUMAN - margins
+        bad = np.nonzero(d < CLEAR)[0]
+        return float(ts[bad[0]]) if bad.size else None
+
+
+PersonFn = Callable[[float], np.ndarray]
+
+
+class Harness:
+    """Drives a supervisor with servo ticks at 100 Hz and frames at 30 Hz."""
+
+    def __init__(
+        self,
+        person: PersonFn,
+        *,
+        forecast_fn: Callable[[float], HumanForecast] | None = None,
+        fixed_compute_s: float | None = 0.01,
+        q0: np.ndarray | None = None,
+        goals: dict[str, np.ndarray] | None = None,
+        config: SupervisorConfig | None = None,
+    ) -> None:
+        self.goals = goals or {"B": np.array([2.0, 0.0, 0.0])}
+        self.planner = FakePlanner(self.goals)
+        self.geometry = PointGeometry()
+        self.config = config or SupervisorConfig(deadline_s=0.1, frame_period_s=1 / 30)
+        computer = BackupComputer(
+            self.planner, make_traj, self.geometry, deadline_s=self.config.deadline_s, workers=1
+        )
+        self.jobs = InlinePlanJobs(computer, fixed_compute_s=fixed_compute_s)
+        self.events: list[tuple[float, str, dict]] = []
+        self.sup = Supervisor(
+            planner=self.planner,
+            geometry=self.geometry,
+            jobs=self.jobs,
+            make_trajectory=make_traj,
+            separation=SSM,
+            speed_scale=scale_law,
+            config=self.config,
+            q0=np.zeros(6) if q0 is None else q0,
+            t0=0.0,
+            on_event=lambda t, k, p: self.events.append((t, k, p)),
+            timer=_FakeTimer(),
+        )
+        self.person = person
+        self.forecast_fn = forecast_fn
+        self.t = 0.0
+        self.dt = 0.01
+        self.next_frame = 0.0
+        self.frames_on = True
+        self.log: list[tuple[float, np.ndarray, float, float]] = []  # t, q, scale, v
+        self.decisions: list[Any] = []
+        self.sup.begin(0.0)
+
+    def forecast(self, t: float) -> HumanForecast:
+        if self.forecast_fn is not None:
+            return self.forecast_fn(t)
+        return HumanForecast.hold(HumanFrame(t, self.person(t)))
+
+    def run(self, until: float) -> None:
+        prev_q = None
+        while self.t < until - 1e-9:
+            t = self.t
+            if self.frames_on and t >= self.next_frame - 1e-9:
+                frame = HumanFrame(t, self.person(t))
+                self.decisions.append(self.sup.on_frame(frame, self.forecast(t), t_now=t))
+                self.next_frame += self.config.frame_period_s
+            elif not self.frames_on:
+                self.next_frame = t
+            cmd = self.sup.servo(t)
+            v = 0.0 if prev_q is None else float(np.linalg.norm(cmd.q[:3] - prev_q[:3]) / self.dt)
+            self.log.append((t, cmd.q.copy(), cmd.scale, v))
+            prev_q = cmd.q
+            self.t = round(t + self.dt, 9)
+
+    def kinds(self) -> list[str]:
+        return [k for _, k, _ in self.events]
+
+
+class _FakeTimer:
+    """A timer that advances 1 ms per call (compute times are deterministic)."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        self.t += 0.001
+        return self.t
+
+
+def _monitor_violations(h: Harness) -> int:
+    """Ticks where the moving robot is closer to the true person than S_p of its speed and of the person's
+    directed speed toward it (independent of the supervisor: true poses, finite differences)."""
+    bad = 0
+    for k in range(1, len(h.log)):
+        t, q, _, v = h.log[k]
+        if v <= 1e-3:
+            continue
+        d = h.geometry.separation(q, h.person(t))
+        d_before = h.geometry.separation(q, h.person(t - h.dt))
+        v_h = max((d_before - d) / h.dt, 0.0)
+        if d < SSM.required(v, v_h) - 1e-9:
+            bad += 1
+    return bad
+
+
+# ----------------------------------------------------------------------------------------------------------
+
+
+def test_reaches_goal_when_nobody_is_near() -> None:
+    h = Harness(lambda t: person_at(FAR))
+    h.sup.set_goal("B")
+    h.run(5.0)
+    assert h.sup.take_arrival() == "B"
+    np.testing.assert_allclose(h.log[-1][1][:3], [2.0, 0.0, 0.0], atol=1e-9)
+    c = h.sup.counters
+    assert c.stop_replans == 0 and c.online_replans == 0 and c.deadline_misses == 0
+    # the robot starts moving only after T_0 + D: the first backup is usable from then
+    first_move = next(t for t, q, _, _ in h.log if q[0] > 0)
+    assert first_move >= h.config.deadline_s - 1e-9
+
+
+def test_hold_and_scaled_view() -> None:
+    hold = HoldTrajectory(np.arange(6.0), 2.0)
+    assert hold.q(np.array([0.0, 5.0])).shape == (2, 6)
+    assert hold.t_end == 2.0 and not np.any(hold.qd(3.0))
+    lin = LinearTrajectory(np.array([0.0, 2.0]), np.stack([q_of([0, 0, 0]), q_of([2, 0, 0])]))
+    view = ScaledView(lin, t_ref=10.0, tau_ref=1.0, scale=0.5)
+    assert view.t_start == 10.0 and view.t_end == pytest.approx(12.0)
+    assert view.q(11.0)[0] == pytest.approx(1.5)
+    assert view.qd(11.0)[0] == pytest.approx(0.5)
+
+
+def test_ramp_distance() -> None:
+    assert _ramp_distance(1.0, 4.0, 0.1) == pytest.approx(0.1)
+    assert _ramp_distance(0.0, 4.0, 0.1) == pytest.approx(0.02)  # 0.5 * 4 * 0.01
+    assert _ramp_distance(0.9, 4.0, 0.1) == pytest.approx(0.9 * 0.025 + 0.5 * 4 * 0.025**2 + 0.075)
+
+
+def test_envelope_matches_the_closed_form_for_a_steady_person() -> None:
+    model = SeparationModel(
+        s0_m=0.3, k_robot_s=0.2, k_human_s=0.0, human_speed_max_mps=1.6, human_accel_mps2=0.0
+    )
+    assert model.max_speed(0.29, v_human_mps=1.6, decel_mps2=2.0) == 0.0
+    # S_p = S0 + k v, person at a steady 1.6 m/s: need S0 + k v + (vh + v - k a)^2 / (2 a) when the worst
+    # instant lies inside the braking, else S0 + vh v / a + v^2 / (2 a) at its end
+    a, k, vh = 2.0, 0.2, 1.6
+    for v in (0.2, 0.5, 1.0, 2.0):
+        ts = (vh + v - k * a) / a
+        if ts < v / a:
+            need = 0.3 + k * v + (vh + v - k * a) ** 2 / (2 * a)
+        else:
+            need = 0.3 + vh * v / a + v * v / (2 * a)
+        got = model.max_speed(need, v_human_mps=vh, decel_mps2=a)
+        assert got <= v + 1e-9  # never more than exact
+        assert got >= v - 3.0 / 96 - 0.02  # within a grid step (and the sampled instants) of it
+    speeds = [model.max_speed(d, v_human_mps=0.5, decel_mps2=2.0) for d in np.linspace(0, 3, 50)]
+    assert np.all(np.diff(speeds) >= 0)
+
+
+def test_envelope_is_stricter_for_faster_people_and_weaker_brakes() -> None:
+    d = 0.8
+    assert SSM.max_speed(d, v_human_mps=1.0, decel_mps2=3.0) < SSM.max_speed(
+        d, v_human_mps=0.0, decel_mps2=3.0
+    )
+    assert SSM.max_speed(d, v_human_mps=0.0, decel_mps2=1.0) < SSM.max_speed(
+        d, v_human_mps=0.0, decel_mps2=3.0
+    )
+    assert SSM.required(0.0) == pytest.approx(0.1)
+    assert SSM.required(1.0, 1.0) == pytest.approx(0.6)
+    x, v = SSM.human_approach(1.0, np.array([0.0, 0.125, 1.0]))
+    np.testing.assert_allclose(v, [1.0, 2.0, 2.0])
+    np.testing.assert_allclose(x, [0.0, 0.125 + 0.5 * 8 * 0.125**2, 0.1875 + 2.0 * 0.875])
+
+
+def test_speed_profile_windows() -> None:
+    lin = LinearTrajectory(
+        np.array([0.0, 1.0, 2.0]), np.stack([q_of([0, 0, 0]), q_of([1, 0, 0]), q_of([1, 0, 0])])
+    )
+    prof = SpeedProfile.of(lin, PointGeometry(), step_s=0.1, window_s=0.3)
+    assert prof.window_at(0.0) == pytest.approx(1.0)
+    assert prof.window_at(0.75) == pytest.approx(1.0)  # the fast part is still within the window
+    assert prof.window_at(1.5) == pytest.approx(0.0)
+    assert prof.window_at(5.0) == 0.0
+
+
+def walker(start: np.ndarray, end: np.ndarray, t0: float, t1: float) -> PersonFn:
+    """A person walking at constant speed from ``start`` (until ``t0``) to ``end`` (from ``t1`` on)."""
+    start, end = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
+
+    def person(t: float) -> np.ndarray:
+        u = float(np.clip((t - t0) / (t1 - t0), 0.0, 1.0))
+        return person_at(start + u * (end - start))
+
+    return person
+
+
+def perfect_forecast(person: PersonFn, known_from: float) -> Callable[[float], HumanForecast]:
+    """The person's true future over 1.5 s; before ``known_from`` the current pose held."""
+
+    def fc(t: float) -> HumanForecast:
+        if t < known_from:
+            return HumanForecast.hold(HumanFrame(t, person(t)))
+        times = t + np.linspace(0.0, 1.5, 16)
+        joints = np.stack([person(float(x)) for x in times])
+        return HumanForecast(t0=t, times=times, joints=joints, margins=np.zeros(16))
+
+    return fc
+
+
+# the person walks slowly onto the straight path at x = 1.0, arriving at t = 3.4
+WHERE = np.array([1.0, 0.0, 0.0])
+WALK_IN = walker(np.array([1.0, -1.0, 0.0]), WHERE, 0.4, 3.7)
+
+
+def test_late_predicted_violation_switches_to_the_backup_online() -> None:
+    h = Harness(WALK_IN, forecast_fn=perfect_forecast(WALK_IN, 0.5))
+    h.sup.set_goal("B")
+    h.run(10.0)
+    c = h.sup.counters
+    assert c.online_replans >= 1
+    assert c.stop_replans == 0
+    assert "online_replan" in h.kinds()
+    # it went around: the executed path left the straight line
+    assert max(q[1] for _, q, _, _ in h.log) > 0.3
+    assert h.sup.take_arrival() == "B"
+    assert _monitor_violations(h) == 0
+
+
+def test_imminent_violation_stops_and_takes_the_emergency_plan() -> None:
+    """The forecast suddenly says the person will be on the path a few cm ahead of the robot within D (the
+    true person stays far away, so only the decision reacts, not the speed governor)."""
+    h_ref = Harness(lambda t: person_at(FAR))
+
+    def fc(t: float) -> HumanForecast:
+        if t < 1.0:
+            return HumanForecast.hold(HumanFrame(t, person_at(FAR)))
+        ahead = h_ref.sup.status().q[:3] + np.array([0.55, 0.0, 0.0])
+        times = np.array([t, t + 0.05, t + 2.0])
+        joints = np.stack([person_at(FAR), person_at(ahead), person_at(ahead)])
+        return HumanForecast(t0=t, times=times, joints=joints, margins=np.zeros(3))
+
+    h = h_ref
+    h.forecast_fn = fc
+    h.sup.set_goal("B")
+    h.run(1.0)
+    assert h.sup.counters.stop_replans == 0
+    h.run(2.0)
+    c = h.sup.counters
+    assert c.stop_replans == 1
+    assert c.emergency_plans == 1
+    ev = next(p for _, k, p in h.events if k == "stop_replan")
+    assert ev["reason"] == "predicted_violation" and ev["violation_t"] <= 1.0 + h.config.deadline_s
+    # braking starts at once and never speeds up until the robot is at rest
+    speeds = [v for t, _, _, v in h.log if 1.01 <= t <= 1.5]
+    k_rest = next(i for i, v in enumerate(speeds) if v < 1e-9)
+    assert k_rest > 0
+    assert all(b <= a + 1e-9 for a, b in itertools.pairwise(speeds[: k_rest + 1]))
+    assert h.sup.status().state in ("stopped", "collision_avoidance")
+
+
+def test_stop_distance_violation_stops_the_robot() -> None:
+    # a person suddenly right next to the path: within S_p(0) of the robot
+    person = walker(np.array([0.5, 1.5, 0.0]), np.array([0.5, 0.22, 0.0]), 0.2, 1.0)
+    h = Harness(person, forecast_fn=None)
+    h.sup.set_goal("B")
+    h.run(1.5)
+    assert h.sup.counters.stop_replans >= 1
+    ev = [p for _, k, p in h.events if k == "stop_replan"]
+    assert any(p["reason"] == "stop_distance" for p in ev)
+    speeds = [v for t, _, _, v in h.log if 1.2 <= t <= 1.5]
+    assert max(speeds) < 1e-6
+
+
+def test_backup_is_rechecked_against_the_latest_forecast_before_the_switch() -> None:
+    """A backup planned against an older forecast is not executed when the newest forecast says it
+    collides soon: the switch takes the emergency path instead."""
+    base = perfect_forecast(WALK_IN, 0.5)
+    state: dict[str, Any] = {"after": None, "h": None}
+
+    def fc(t: float) -> HumanForecast:
+        after = state["after"]
+        if after is not None and t > after + 1e-9:
+            # the frames after the one that scheduled the switch see someone right where the detour begins
+            p = state["h"].sup.status().q[:3] + np.array([0.0, 0.62, 0.0])
+            times = np.array([t, t + 3.0])
+            return HumanForecast(t0=t, times=times, joints=np.stack([person_at(p)] * 2), margins=np.zeros(2))
+        return base(t)
+
+    h = Harness(WALK_IN, forecast_fn=fc)
+    state["h"] = h
+    h.sup.set_goal("B")
+    while not any(d.action == "online_replan" for d in h.decisions):
+        h.run(h.t + 0.01)
+        assert h.t < 3.0
+    state["after"] = h.t - 0.01
+    calls = h.planner.plan_calls
+    h.run(h.t + 0.3)
+    assert h.planner.plan_calls > calls  # the backup was computed...
+    assert h.sup.counters.online_replans == 0  # ...but not executed
+    assert any(k == "plan_failed" and "violates the latest forecast" in p["reason"] for _, k, p in h.events)
+    assert h.sup.counters.stop_replans == 1
+    assert max(abs(q[1]) for _, q, _, _ in h.log) < 1e-9  # never on the detour
+
+
+def test_missed_deadline_takes_the_emergency_path() -> None:
+    h = Harness(WALK_IN, forecast_fn=perfect_forecast(WALK_IN, 0.5))
+    h.sup.set_goal("B")
+    h.run(0.3)  # started (the start backup met its deadline)
+    h.jobs.fixed_compute_s = 0.15  # slower than D = 0.1 from now on
+    h.run(2.0)
+    c = h.sup.counters
+    assert c.deadline_misses >= 1
+    assert c.online_replans == 0
+    assert c.stop_replans >= 1
+    assert "deadline_miss" in h.kinds()
+    assert _monitor_violations(h) == 0
+
+
+def test_planner_exception_takes_the_emergency_path() -> None:
+    h = Harness(WALK_IN, forecast_fn=perfect_forecast(WALK_IN, 0.5))
+    h.planner.raise_after = 1  # the start plan works, every later one raises
+    h.sup.set_goal("B")
+    h.run(2.0)
+    c = h.sup.counters
+    assert c.stop_replans >= 1 and c.plan_failures >= 1
+    assert any(k == "plan_failed" and "error" in p["reason"] for _, k, p in h.events)
+    assert _monitor_violations(h) == 0
+
+
+def test_stale_stream_stops_until_frames_resume() -> None:
+    h = Harness(lambda t: person_at(FAR))
+    h.sup.set_goal("B")
+    h.run(0.8)
+    assert h.log[-1][2] == pytest.approx(1.0)
+    h.frames_on = False
+    h.sup.set_stale(True, h.t)
+    h.run(1.6)
+    assert h.sup.status().stale
+    q_stale = [q[0] for t, q, _, _ in h.log if t >= 1.3]
+    assert max(q_stale) - min(q_stale) < 1e-9  # at rest while stale
+    assert h.sup.counters.stale_stops == 1
+    h.sup.set_stale(False, h.t)
+    h.frames_on = True
+    h.run(6.0)
+    assert h.sup.take_arrival() == "B"
+    assert h.kinds().count("stale_stream") == 1 and h.kinds().count("stream_resumed") == 1
+
+
+def test_estop_holds_until_reset() -> None:
+    h = Harness(lambda t: person_at(FAR))
+    h.sup.set_goal("B")
+    h.run(0.6)
+    h.sup.estop(h.t, source="test")
+    q_e = h.log[-1][1].copy()
+    h.run(2.0)
+    assert h.sup.state == "nominal" and h.sup.status().state == "estop"
+    assert all(np.allclose(q, q_e) for t, q, _, _ in h.log if t > 0.6)
+    h.sup.reset(h.t, q_e)
+    h.sup.set_goal("B")
+    h.run(6.0)
+    assert h.sup.take_arrival() == "B"
+    assert "estop" in h.kinds()
+
+
+def test_speed_is_scaled_near_a_person_and_the_monitor_stays_clean() -> None:
+    # a person standing beside the path: the robot slows down while passing, and never violates S_p
+    h = Harness(lambda t: person_at(np.array([0.75, 0.75, 0.0])))
+    h.sup.set_goal("B")
+    h.run(8.0)
+    scales = [s for _, _, s, _ in h.log]
+    assert min(s for s in scales[50:] if s > 0) < 1.0
+    assert h.sup.take_arrival() == "B"
+    assert _monitor_violations(h) == 0
+
+
+def test_person_rushing_at_the_robot_never_breaks_the_separation() -> None:
+    """The person runs at 1.6 m/s straight at the moving robot: the governor brakes in time."""
+
+    def person(t: float) -> np.ndarray:
+        x = 3.0 - 1.6 * max(t - 0.5, 0.0)
+        return person_at(np.array([max(x, 0.9), 0.0, 0.0]))
+
+    h = Harness(person)
+    h.sup.set_goal("B")
+    h.run(3.0)
+    assert _monitor_violations(h) == 0
+    assert h.log[-1][3] == pytest.approx(0.0, abs=1e-9)  # stopped in the end
+
+
+def test_path_time_slows_the_timing_not_the_path() -> None:
+    near = Harness(lambda t: person_at(np.array([0.75, 0.62, 0.0])))
+    far = Harness(lambda t: person_at(FAR))
+    for h in (near, far):
+        h.sup.set_goal("B")
+        h.run(10.0)
+    t_near = next(t for t, q, _, _ in near.log if q[0] >= 2.0 - 1e-9)
+    t_far = next(t for t, q, _, _ in far.log if q[0] >= 2.0 - 1e-9)
+    assert t_near > t_far + 0.2
+    # same straight path, only slower
+    assert max(abs(q[1]) for _, q, _, _ in near.log) < 1e-9
+    # no jumps: per-tick motion bounded by the plan speed
+    steps = [np.linalg.norm(b[1] - a[1]) for a, b in zip(near.log[:-1], near.log[1:], strict=True)]
+    assert max(steps) <= SPEED * 0.01 + 1e-9
+
+
+def test_lazy_jobs_compute_only_the_backups_that_are_consumed() -> None:
+    h = Harness(lambda t: person_at(FAR))
+    h.sup.set_goal("B")
+    h.run(4.0)
+    # 120 frames submitted a backup; only the start plan was ever needed
+    assert h.sup.counters.frames >= 100
+    assert h.planner.plan_calls == 1
+    assert h.sup.counters.plans_computed == 1
+
+
+def test_config_validation_and_jobs_bound() -> None:
+    with pytest.raises(ValueError, match="method"):
+        SupervisorConfig(method="psychic")  # type: ignore[arg-type]
+    assert SupervisorConfig(deadline_s=0.1, frame_period_s=1 / 30).max_jobs == 3
+    assert SupervisorConfig(deadline_s=0.2, frame_period_s=1 / 30).max_jobs == 6
+    assert math.isclose(SupervisorConfig().emergency_horizon, 0.1 + 1 / 30)
