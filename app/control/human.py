@@ -1,0 +1,419 @@
+"""Human sources: where the person's skeleton comes from, as canonical :class:`HumanFrame` at 30 Hz.
+
+- :class:`~app.control.operator_sim.SimulatedOperator`: a simulated participant (re-exported here).
+- :class:`ReplaySource`: a recorded clip (the shared CMU npz format or the app's own canonical recordings),
+  placed and turned into the operator's area, looped.
+- :class:`StreamSource`: frames pushed by an external tracker as JSON (``docs/stream-protocol.md``), e.g. a
+  ZED body-tracking client over ``/api/ingest``.
+
+Every source answers ``frame_at(t)`` with the newest frame at or before ``t`` (``None`` when there is none
+yet). Put :class:`~app.control.validation.ValidatedSource` in front of the simulated and replayed sources;
+the stream source validates every pushed message itself (it must answer the sender).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+
+import numpy as np
+
+from app.control.operator_sim import OperatorParams, SimulatedOperator
+from app.control.validation import FrameRejected, FrameValidator
+from app.prediction.skeleton import JOINT_INDEX, JOINTS, NUM_JOINTS, PARENTS, HumanFrame
+
+if TYPE_CHECKING:
+    from app.config import Settings, WorkCell
+
+__all__ = [
+    "Clip",
+    "FrameRejected",
+    "HumanSource",
+    "OperatorParams",
+    "ReplaySource",
+    "SimulatedOperator",
+    "StreamSource",
+    "load_clip",
+    "make_human_source",
+    "place_clip",
+    "save_clip",
+]
+
+log = logging.getLogger(__name__)
+
+#: Height of the ankle joint above the floor (m), used to put a clip's feet on the cell's floor.
+ANKLE_HEIGHT_M = 0.08
+
+
+@runtime_checkable
+class HumanSource(Protocol):
+    """Where skeleton frames come from. Sources may also have ``notify_block_placed(station, t)``."""
+
+    def frame_at(self, t: float) -> HumanFrame | None:
+        """The newest frame at or before ``t`` (s), or ``None`` if there is none yet."""
+        ...
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Clips
+# ---------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Clip:
+    """A recorded motion in the canonical joint set.
+
+    Attributes:
+        times: Frame times (T,), seconds from the clip's start (strictly increasing, ``times[0] == 0``).
+        joints: Joint positions (T, J, 3), metres, z up.
+        confidence: Per-joint confidence (T, J).
+        period_s: Loop period (s): the last frame's time plus one nominal frame period.
+        source: ``"cmu38"`` or ``"canonical"``.
+    """
+
+    times: np.ndarray
+    joints: np.ndarray
+    confidence: np.ndarray
+    period_s: float
+    source: str
+
+    def __post_init__(self) -> None:
+        T = len(self.times)
+        if T < 1 or self.joints.shape != (T, NUM_JOINTS, 3) or self.confidence.shape != (T, NUM_JOINTS):
+            raise ValueError(
+                f"Clip needs times (T,), joints (T, {NUM_JOINTS}, 3), confidence (T, {NUM_JOINTS}); got "
+                f"{self.times.shape}, {self.joints.shape}, {self.confidence.shape}"
+            )
+
+
+def load_clip(path: str | Path, *, fps: float | None = None) -> Clip:
+    """Read a clip: the shared CMU format (``positions`` (T, 38, 3), ``fps``) or a canonical recording
+    (``joints`` (T, J, 3) with ``t`` (T,) or ``fps``, optional ``confidence`` (T, J)).
+
+    Raises:
+        ValueError: the file is not one of the two formats (the message says what was found).
+    """
+    p = Path(path)
+    try:
+        data = np.load(p, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"cannot read clip {p}: {exc}") from exc
+    with data:
+        keys = set(data.files)
+        if "positions" in keys:
+            from app.prediction.adapters import from_cmu38
+
+            pos = np.asarray(data["positions"], dtype=np.float64)
+            if pos.ndim != 3 or pos.shape[1:] != (38, 3):
+                raise ValueError(f"clip {p}: CMU positions must be (T, 38, 3), got {pos.shape}")
+            joints = from_cmu38(pos)
+            conf = np.ones(joints.shape[:2])
+            source = "cmu38"
+            rate = float(fps or (data["fps"] if "fps" in keys else 30.0))
+            times = np.arange(len(joints)) / rate
+        elif "joints" in keys:
+            joints = np.asarray(data["joints"], dtype=np.float64)
+            if joints.ndim != 3 or joints.shape[1:] != (NUM_JOINTS, 3):
+                raise ValueError(f"clip {p}: joints must be (T, {NUM_JOINTS}, 3), got {joints.shape}")
+            if "joint_names" in keys and tuple(str(n) for n in data["joint_names"]) != JOINTS:
+                raise ValueError(f"clip {p}: joint_names differ from the canonical skeleton {JOINTS}")
+            conf = np.asarray(data["confidence"], dtype=np.float64) if "confidence" in keys else None
+            if conf is None:
+                conf = np.ones(joints.shape[:2])
+            source = "canonical"
+            if "t" in keys and fps is None:
+                t = np.asarray(data["t"], dtype=np.float64)
+                if t.shape != (len(joints),) or np.any(np.diff(t) <= 0):
+                    raise ValueError(f"clip {p}: t must be (T,) strictly increasing")
+                times = t - t[0]
+                rate = 1.0 / float(np.median(np.diff(t))) if len(t) > 1 else 30.0
+            else:
+                rate = float(fps or (data["fps"] if "fps" in keys else 30.0))
+                times = np.arange(len(joints)) / rate
+        else:
+            raise ValueError(
+                f"clip {p} has neither 'positions' (CMU, (T, 38, 3)) nor 'joints' (canonical); "
+                f"found {sorted(keys)}"
+            )
+    if not np.all(np.isfinite(joints)):
+        raise ValueError(f"clip {p} contains NaN or infinite positions")
+    return Clip(
+        times=times, joints=joints, confidence=conf, period_s=float(times[-1] + 1.0 / rate), source=source
+    )
+
+
+def save_clip(path: str | Path, frames: Sequence[HumanFrame], *, fps: float = 30.0) -> Path:
+    """Write frames as a canonical recording (``t``, ``joints``, ``confidence``, ``joint_names``, ``parents``,
+    ``fps``): the format :func:`load_clip` and :class:`ReplaySource` read back."""
+    if not frames:
+        raise ValueError("save_clip needs at least one frame")
+    p = Path(path)
+    np.savez_compressed(
+        p,
+        t=np.array([f.t for f in frames], dtype=np.float64),
+        joints=np.stack([f.joints for f in frames]).astype(np.float32),
+        confidence=np.stack([f.confidence for f in frames]).astype(np.float32),
+        joint_names=np.array(JOINTS),
+        parents=PARENTS.astype(np.int16),
+        fps=np.float64(fps),
+    )
+    return p if p.suffix == ".npz" else p.with_suffix(p.suffix + ".npz")
+
+
+def _facing_yaw(joints: np.ndarray) -> float:
+    """Mean facing direction (rad about z) of poses (T, J, 3): forward = (left hip - right hip) x up."""
+    lr = joints[:, JOINT_INDEX["l_hip"]] - joints[:, JOINT_INDEX["r_hip"]]
+    lr += joints[:, JOINT_INDEX["l_shoulder"]] - joints[:, JOINT_INDEX["r_shoulder"]]
+    fwd = np.stack([lr[:, 1], -lr[:, 0]], axis=-1)  # (lr x z) in the xy plane
+    fwd /= np.maximum(np.linalg.norm(fwd, axis=-1, keepdims=True), 1e-9)
+    m = fwd.mean(axis=0)
+    return math.atan2(m[1], m[0])
+
+
+def place_clip(joints: np.ndarray, cell: WorkCell, *, yaw_offset: float = 0.0) -> np.ndarray:
+    """Put a clip (T, J, 3) into the operator's area: turned to face ``facing_yaw + yaw_offset``, the mean
+    pelvis position on the area's centre, the lowest ankle on the floor."""
+    j = np.asarray(joints, dtype=np.float64)
+    op = cell.operator
+    dyaw = op.facing_yaw + yaw_offset - _facing_yaw(j)
+    c, s = math.cos(dyaw), math.sin(dyaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    pelvis = j[:, JOINT_INDEX["pelvis"]]
+    center = np.array([pelvis[:, 0].mean(), pelvis[:, 1].mean(), 0.0])
+    out = (j - center) @ R.T
+    out[..., 0] += op.center_xy[0]
+    out[..., 1] += op.center_xy[1]
+    ankles = out[:, [JOINT_INDEX["l_ankle"], JOINT_INDEX["r_ankle"]], 2]
+    out[..., 2] += op.floor_z + ANKLE_HEIGHT_M - float(np.percentile(ankles, 1.0))
+    return out
+
+
+class ReplaySource:
+    """Replays a clip as the operator, looped (or held on its last frame).
+
+    Args:
+        path: The clip (see :func:`load_clip`).
+        cell: The work cell (for the placement).
+        t0: Time of the clip's first frame (s, runtime clock).
+        loop: Start again after the end; otherwise hold the last frame (the stream then goes stale).
+        place: Place and turn the clip into the operator area (see :func:`place_clip`); off for recordings
+            already in this cell's world frame.
+        yaw_offset: Extra turn (rad) on top of facing the robot.
+        fps: Override the clip's frame rate.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        cell: WorkCell,
+        *,
+        t0: float = 0.0,
+        loop: bool = True,
+        place: bool = True,
+        yaw_offset: float = 0.0,
+        fps: float | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.clip = load_clip(self.path, fps=fps)
+        self.joints = place_clip(self.clip.joints, cell, yaw_offset=yaw_offset) if place else self.clip.joints
+        self.t0 = float(t0)
+        self.loop = bool(loop)
+        self._cache: tuple[int, HumanFrame] | None = None
+
+    @property
+    def duration_s(self) -> float:
+        """Length of one pass (s)."""
+        return self.clip.period_s
+
+    def frame_at(self, t: float) -> HumanFrame | None:
+        u = t - self.t0
+        if u < 0:
+            return None
+        times, n = self.clip.times, len(self.clip.times)
+        if self.loop:
+            cycle = math.floor(u / self.clip.period_s)
+            within = u - cycle * self.clip.period_s
+        else:
+            cycle, within = 0, min(u, float(times[-1]))
+        k = max(int(np.searchsorted(times, within + 1e-9, side="right")) - 1, 0)
+        key = cycle * n + k
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1]
+        frame = HumanFrame(
+            t=self.t0 + cycle * self.clip.period_s + float(times[k]),
+            joints=self.joints[k],
+            confidence=self.clip.confidence[k],
+        )
+        self._cache = (key, frame)
+        return frame
+
+    def notify_block_placed(self, station: str, t: float) -> None:
+        """A recorded person does not react to the robot: ignored."""
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Stream
+# ---------------------------------------------------------------------------------------------------------
+class StreamSource:
+    """Frames pushed by an external tracker (thread-safe; :meth:`push` from the server, :meth:`frame_at`
+    from the runtime).
+
+    Each message is parsed, converted to canonical world coordinates, completed, timed and validated before it
+    is queued; a rejected message raises :class:`~app.control.validation.FrameRejected` (counted).
+
+    - Missing keypoints (``null``): the canonical joints they feed are filled from the previous valid frame
+      (confidence 0); more than ``max_missing_joints`` missing, or none to fill from: rejected
+      (``missing_joints``).
+    - Time: a message's ``t`` (the sender's clock) is mapped onto the runtime clock by the smallest observed
+      ``t_received - t`` over the last ``offset_window`` messages (the least-delayed message), keeping the
+      sender's frame spacing; a jump of the sender's clock by more than 1 s restarts the estimate. Without
+      ``t`` the receive time is the frame time.
+
+    Args:
+        max_queue: Frames kept (the oldest are dropped first, and counted).
+        validator: The frame checks (default: no range check).
+        T_world_camera: Camera pose (4, 4) for messages in the camera frame.
+        max_missing_joints: Most canonical joints that may be filled from the previous frame.
+        offset_window: Messages over which the clock offset is estimated.
+    """
+
+    def __init__(
+        self,
+        *,
+        max_queue: int = 64,
+        validator: FrameValidator | None = None,
+        T_world_camera: np.ndarray | None = None,
+        max_missing_joints: int = 6,
+        offset_window: int = 300,
+    ) -> None:
+        if max_queue < 1:
+            raise ValueError(f"max_queue must be >= 1, got {max_queue}")
+        self.validator = validator if validator is not None else FrameValidator()
+        self.T_world_camera = None if T_world_camera is None else np.asarray(T_world_camera, dtype=float)
+        if self.T_world_camera is not None and self.T_world_camera.shape != (4, 4):
+            raise ValueError(f"T_world_camera must be (4, 4), got {self.T_world_camera.shape}")
+        self.max_missing_joints = int(max_missing_joints)
+        self._frames: deque[HumanFrame] = deque(maxlen=int(max_queue))
+        self._offsets: deque[float] = deque(maxlen=int(offset_window))
+        self._lock = threading.Lock()
+        self.received = 0
+        self.dropped = 0
+
+    def push(self, message: dict[str, Any] | str | bytes, t_received: float) -> HumanFrame:
+        """Take one message received at ``t_received`` (s, runtime clock); returns the queued frame.
+
+        Raises:
+            FrameRejected: the message is malformed or the frame invalid (the reason is counted).
+        """
+        from app.control.stream_protocol import parse_message, to_canonical
+
+        with self._lock:
+            self.received += 1
+            try:
+                msg = parse_message(message)
+                joints, conf = to_canonical(msg, T_world_camera=self.T_world_camera)
+            except FrameRejected as exc:
+                raise self.validator.reject(exc.reason, exc.detail) from None
+            missing = ~np.all(np.isfinite(joints), axis=1)
+            if np.any(missing):
+                prev = self._frames[-1] if self._frames else None
+                n_missing = int(missing.sum())
+                if prev is None or n_missing > self.max_missing_joints:
+                    why = "no previous frame to fill them from" if prev is None else "too many"
+                    names = [JOINTS[i] for i in np.nonzero(missing)[0]]
+                    raise self.validator.reject(
+                        "missing_joints", f"{n_missing} joints not seen ({why}): {names}"
+                    )
+                joints = np.where(missing[:, None], prev.joints, joints)
+                conf = np.where(missing, 0.0, conf)
+            t = self._frame_time(msg.t, float(t_received))
+            frame = self.validator.validate(t, joints, conf)
+            if len(self._frames) == self._frames.maxlen:
+                self.dropped += 1
+            self._frames.append(frame)
+            return frame
+
+    def _frame_time(self, t_sender: float | None, t_received: float) -> float:
+        if t_sender is None:
+            return t_received
+        sample = t_received - t_sender
+        if self._offsets and abs(sample - min(self._offsets)) > 1.0:
+            log.warning("stream: the sender's clock jumped by %.3f s; re-estimating the offset", sample)
+            self._offsets.clear()
+        self._offsets.append(sample)
+        return t_sender + min(self._offsets)
+
+    def frame_at(self, t: float) -> HumanFrame | None:
+        with self._lock:
+            for frame in reversed(self._frames):
+                if frame.t <= t:
+                    return frame
+        return None
+
+    def frames_after(self, t: float) -> list[HumanFrame]:
+        """Queued frames newer than ``t`` (oldest first): every frame, not only the newest."""
+        with self._lock:
+            return [f for f in self._frames if f.t > t]
+
+    def notify_block_placed(self, station: str, t: float) -> None:
+        """A tracked person reacts on their own: ignored."""
+
+    def reset(self) -> None:
+        """Drop queued frames, the clock offset and the validator's last timestamp and counters."""
+        with self._lock:
+            self._frames.clear()
+            self._offsets.clear()
+            self.validator.reset()
+            self.received = 0
+            self.dropped = 0
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {**self.validator.counters, "received": self.received, "dropped": self.dropped}
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Factory
+# ---------------------------------------------------------------------------------------------------------
+def camera_pose_from_settings(settings: Settings) -> np.ndarray | None:
+    """``T_world_camera`` (4, 4) from ``settings.camera_pose`` (x, y, z, roll, pitch, yaw), or ``None``."""
+    from app.config import pose_matrix
+
+    pose = getattr(settings, "camera_pose", None)
+    if pose is None:
+        return None
+    return pose_matrix(pose[:3], pose[3:])
+
+
+def make_human_source(
+    settings: Settings,
+    cell: WorkCell,
+    *,
+    seed: int = 0,
+    t0: float = 0.0,
+    params: OperatorParams | None = None,
+) -> HumanSource:
+    """The source ``settings.human_source`` selects (``sim``, ``replay`` with ``settings.replay_clip``,
+    ``stream``). Simulated and replayed frames start at ``t0``.
+
+    Raises:
+        ValueError: ``replay`` without a clip, or an unknown source.
+    """
+    kind = settings.human_source
+    if kind == "sim":
+        return SimulatedOperator(
+            cell, params if params is not None else OperatorParams.draw(seed), seed=seed, t0=t0
+        )
+    if kind == "replay":
+        if settings.replay_clip is None:
+            raise ValueError("HRC_HUMAN_SOURCE=replay needs HRC_REPLAY_CLIP (an .npz clip)")
+        return ReplaySource(settings.replay_clip, cell, t0=t0)
+    if kind == "stream":
+        return StreamSource(
+            validator=FrameValidator.for_workcell(cell), T_world_camera=camera_pose_from_settings(settings)
+        )
+    raise ValueError(f"unknown human source {kind!r}; expected 'sim', 'replay' or 'stream'")

@@ -1,0 +1,600 @@
+"""A simulated operator: a standing person across the table who assembles the blocks the robot brings.
+
+The person stands in the cell's operator area facing the robot. They assemble at their own work spot
+(small, quick hand movements), fetch each block the robot placed at a drop station (a reach into the shared
+area, a short grasp, a return), and now and then reach across into the shared area for no task reason.
+Reaches are minimum-jerk movements of the hand in the world, with a lift over the table, at the
+participant's hand speed (peaks of 1-1.5 m/s on long reaches); the torso leans and twists with the reach,
+the pelvis sways slightly, and every joint gets tracking noise.
+
+The body has the proportions of the canonical skeleton of the recorded CMU clips (the data the motion
+predictor learns from), scaled to the participant's height.
+
+Determinism: everything is drawn from ``seed``; decisions are made on the 30 Hz frame grid, in time order,
+when a frame at or after the decision time is first asked for, and they see the notifications
+(:meth:`SimulatedOperator.notify_block_placed`) whose time is at or before the decision. The same seed,
+parameters and notifications give the same frames, however the frames are queried.
+
+Frames: body frame ``B`` = x forward (``facing_yaw``), y left, z up, origin on the floor under the pelvis;
+world = ``R_z(yaw) @ p_B + origin``. Metres, seconds.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, fields
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
+
+if TYPE_CHECKING:
+    from app.config import WorkCell
+
+__all__ = ["OperatorParams", "SimulatedOperator", "min_jerk"]
+
+log = logging.getLogger(__name__)
+
+# Canonical-skeleton proportions measured on the shared CMU clips (metres for a person 1.65 m tall).
+_REF_HEIGHT_M = 1.65
+_PELVIS_Z = 1.01
+_L_SPINE, _L_CHEST, _L_NECK, _L_HEAD = 0.116, 0.117, 0.089, 0.088
+_SHOULDER_Y, _SHOULDER_Z = 0.199, 0.05
+_L_UPPER_ARM, _L_FOREARM, _L_HAND = 0.28, 0.19, 0.04
+_HIP_Y, _HIP_Z = 0.092, -0.108
+_L_THIGH, _L_SHANK, _ANKLE_Z, _FOOT_Y = 0.428, 0.41, 0.075, 0.10
+
+_J = JOINT_INDEX
+#: Postures searched for a reach: forward lean (rad) and a step of the pelvis towards the table (m).
+_LEAN_GRID = np.arange(0.0, 1.3501, 0.05)
+_DX_GRID = np.array([0.0, 0.04, 0.08, 0.12])
+
+
+def min_jerk(s: float | np.ndarray) -> float | np.ndarray:
+    """Minimum-jerk phase ``10 s^3 - 15 s^4 + 6 s^5`` for ``s`` in [0, 1] (clipped)."""
+    s = np.clip(s, 0.0, 1.0)
+    return s**3 * (10.0 + s * (-15.0 + 6.0 * s))
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _ry(a: float) -> np.ndarray:
+    # Positive ``a`` tips +z towards +x (a forward lean in the body frame).
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _norm(v: np.ndarray) -> float:
+    return math.sqrt(float(v @ v))
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = _norm(v)
+    return v / n if n > 1e-12 else v
+
+
+def _two_link(
+    a: np.ndarray, target: np.ndarray, l1: float, l2: float, pole: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Middle joint and end point of a two-link chain from ``a`` towards ``target`` (clamped to reach),
+    bending towards ``pole``."""
+    d_vec = target - a
+    d = _norm(d_vec)
+    reach = 0.999 * (l1 + l2)
+    n = _unit(d_vec) if d > 1e-9 else np.array([0.0, 0.0, -1.0])
+    d = min(max(d, abs(l1 - l2) + 1e-6), reach)
+    end = a + n * d
+    x = (l1 * l1 - l2 * l2 + d * d) / (2.0 * d)
+    r = math.sqrt(max(l1 * l1 - x * x, 0.0))
+    perp = pole - n * float(pole @ n)
+    if _norm(perp) < 1e-9:
+        perp = np.cross(n, [0.0, 1.0, 0.0])
+    return a + n * x + _unit(perp) * r, end
+
+
+@dataclass(frozen=True)
+class OperatorParams:
+    """One participant's body and behaviour.
+
+    Attributes:
+        height_m: Body height (m); all segment lengths scale with it.
+        handedness: The preferred hand for reaches straight ahead.
+        hand_speed_mps: Peak hand speed of a long reach (m/s).
+        reaction_s: Delay from a block being placed to the start of fetching it (s).
+        assemble_s: Mean time spent assembling one block at the work spot (s).
+        reach_rate_hz: Spontaneous reaches into the shared area per second (while busy or idle).
+        reach_depth: 0..1, how far those reaches go into the shared area (0: just past the work spot,
+            1: beyond the drop stations).
+        stand_forward_m: Where they stand relative to the operator area's centre, towards the table (m).
+        stand_left_m: ... and to their left (m).
+        sway_m: Amplitude of the slow body sway (m).
+        noise_m: Standard deviation of the per-joint tracking noise (m).
+    """
+
+    height_m: float = 1.72
+    handedness: Literal["right", "left"] = "right"
+    hand_speed_mps: float = 1.2
+    reaction_s: float = 0.6
+    assemble_s: float = 3.0
+    reach_rate_hz: float = 0.08
+    reach_depth: float = 0.5
+    stand_forward_m: float = 0.05
+    stand_left_m: float = 0.0
+    sway_m: float = 0.01
+    noise_m: float = 0.005
+
+    def __post_init__(self) -> None:
+        checks = {
+            "height_m": (1.3, 2.2),
+            "hand_speed_mps": (0.2, 3.0),
+            "reaction_s": (0.0, 10.0),
+            "assemble_s": (0.2, 60.0),
+            "reach_rate_hz": (0.0, 2.0),
+            "reach_depth": (0.0, 1.0),
+            "stand_forward_m": (-0.5, 0.5),
+            "stand_left_m": (-0.5, 0.5),
+            "sway_m": (0.0, 0.1),
+            "noise_m": (0.0, 0.1),
+        }
+        for name, (lo, hi) in checks.items():
+            v = getattr(self, name)
+            if not (lo <= v <= hi):
+                raise ValueError(f"OperatorParams.{name} must be within [{lo}, {hi}], got {v}")
+        if self.handedness not in ("right", "left"):
+            raise ValueError(f"handedness must be 'right' or 'left', got {self.handedness!r}")
+
+    @classmethod
+    def draw(cls, seed: int) -> OperatorParams:
+        """A random participant, reproducible from ``seed``."""
+        rng = np.random.default_rng([int(seed), 0x0BE7A])
+        return cls(
+            height_m=float(np.clip(rng.normal(1.72, 0.09), 1.52, 1.95)),
+            handedness="right" if rng.random() < 0.88 else "left",
+            hand_speed_mps=float(rng.uniform(1.0, 1.5)),
+            reaction_s=float(rng.uniform(0.3, 1.2)),
+            assemble_s=float(np.clip(rng.lognormal(math.log(3.0), 0.35), 1.2, 8.0)),
+            reach_rate_hz=float(rng.uniform(0.03, 0.15)),
+            reach_depth=float(rng.beta(2.0, 2.0)),
+            stand_forward_m=float(rng.uniform(0.0, 0.1)),
+            stand_left_m=float(rng.uniform(-0.12, 0.12)),
+            sway_m=float(rng.uniform(0.005, 0.015)),
+            noise_m=float(rng.uniform(0.003, 0.008)),
+        )
+
+    def to_dict(self) -> dict[str, float | str]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+class _Track:
+    """A piecewise minimum-jerk signal: segments (t0, t1, v0, v1, arc) in time order; holds between them."""
+
+    def __init__(self, v0: np.ndarray) -> None:
+        self.t0: list[float] = []
+        self.segs: list[tuple[float, float, np.ndarray, np.ndarray, float]] = []
+        self.initial = np.asarray(v0, dtype=float)
+
+    def end_value(self) -> np.ndarray:
+        return self.segs[-1][3] if self.segs else self.initial
+
+    def move(self, t0: float, t1: float, v1: np.ndarray, arc: float = 0.0) -> None:
+        if self.segs and t0 < self.segs[-1][1] - 1e-9:
+            raise RuntimeError("operator track segments must not overlap")
+        self.t0.append(t0)
+        self.segs.append((t0, t1, self.end_value(), np.asarray(v1, dtype=float), arc))
+
+    def value(self, t: float) -> np.ndarray:
+        i = bisect.bisect_right(self.t0, t) - 1
+        if i < 0:
+            return self.segs[0][2] if self.segs else self.initial
+        t0, t1, v0, v1, arc = self.segs[i]
+        if t >= t1:
+            return v1
+        s = float(min_jerk((t - t0) / (t1 - t0)))
+        v = v0 + (v1 - v0) * s
+        if arc:
+            v = v.copy()
+            v[2] += arc * math.sin(math.pi * s)
+        return v
+
+    def prune(self, t: float) -> None:
+        """Drop segments that ended before ``t`` (keeps the last one for its end value)."""
+        n = bisect.bisect_left([s[1] for s in self.segs], t)
+        n = min(n, len(self.segs) - 1)
+        if n > 0:
+            self.initial = self.segs[n - 1][3]
+            del self.segs[:n]
+            del self.t0[:n]
+
+
+class _Body:
+    """Segment lengths for a height, and the pose function (body frame)."""
+
+    def __init__(self, height_m: float) -> None:
+        k = height_m / _REF_HEIGHT_M
+        self.k = k
+        self.pelvis_z = _PELVIS_Z * k
+        self.l_spine, self.l_chest, self.l_neck, self.l_head = (
+            _L_SPINE * k,
+            _L_CHEST * k,
+            _L_NECK * k,
+            _L_HEAD * k,
+        )
+        self.sh_y, self.sh_z = _SHOULDER_Y * k, _SHOULDER_Z * k
+        self.l_upper, self.l_fore, self.l_hand = _L_UPPER_ARM * k, _L_FOREARM * k, _L_HAND * k
+        self.hip_y, self.hip_z = _HIP_Y * k, _HIP_Z * k
+        self.l_thigh, self.l_shank, self.ankle_z, self.foot_y = (
+            _L_THIGH * k,
+            _L_SHANK * k,
+            _ANKLE_Z * k,
+            _FOOT_Y * k,
+        )
+        self.arm = self.l_upper + self.l_fore
+        self.protraction = 0.05 * k
+
+    def pelvis(self, posture: np.ndarray) -> np.ndarray:
+        lean, _, dx, dy = posture
+        drop = 0.08 * self.k * (1.0 - math.cos(lean))  # knees give a little on a deep lean
+        return np.array([dx, dy, self.pelvis_z - drop])
+
+    def torso_rotation(self, posture: np.ndarray) -> np.ndarray:
+        lean, twist = posture[0], posture[1]
+        return _rz(twist) @ _ry(lean)
+
+    def shoulders(self, posture: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(chest, left shoulder, right shoulder) without protraction."""
+        lean, twist = posture[0], posture[1]
+        p = self.pelvis(posture)
+        spine = p + _rz(0.6 * twist) @ _ry(0.45 * lean) @ np.array([0.0, 0.0, self.l_spine])
+        R = self.torso_rotation(posture)
+        chest = spine + R @ np.array([0.0, 0.0, self.l_chest])
+        ls = chest + R @ np.array([0.0, self.sh_y, self.sh_z])
+        rs = chest + R @ np.array([0.0, -self.sh_y, self.sh_z])
+        return chest, ls, rs
+
+    def wrist_target(self, shoulder: np.ndarray, hand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Wrist target and the hand's pointing direction (forward and down, like a grasp from above)."""
+        u = _unit(_unit(hand - shoulder) + np.array([0.0, 0.0, -0.7]))
+        return hand - self.l_hand * u, u
+
+    def pose(self, posture: np.ndarray, lh: np.ndarray, rh: np.ndarray, sway: np.ndarray) -> np.ndarray:
+        """Joints (J, 3) in the body frame for a posture (lean, twist, dx, dy) and hand targets."""
+        lean, twist = posture[0], posture[1]
+        out = np.empty((NUM_JOINTS, 3))
+        p = self.pelvis(posture) + sway
+        R_half = _rz(0.6 * twist) @ _ry(0.45 * lean)
+        R = self.torso_rotation(posture)
+        spine = p + R_half @ np.array([0.0, 0.0, self.l_spine])
+        chest = spine + R @ np.array([0.0, 0.0, self.l_chest])
+        neck = chest + R @ np.array([0.0, 0.0, self.l_neck])
+        head = neck + R @ _ry(-0.35 * lean + 0.2) @ np.array([0.0, 0.0, self.l_head])
+        out[_J["pelvis"]], out[_J["spine"]], out[_J["chest"]] = p, spine, chest
+        out[_J["neck"]], out[_J["head"]] = neck, head
+        for side, hand, names in (
+            (1.0, lh, ("l_shoulder", "l_elbow", "l_wrist", "l_hand")),
+            (-1.0, rh, ("r_shoulder", "r_elbow", "r_wrist", "r_hand")),
+        ):
+            sh = chest + R @ np.array([0.0, side * self.sh_y, self.sh_z])
+            w, u = self.wrist_target(sh, hand)
+            excess = _norm(w - sh) - 0.85 * self.arm
+            if excess > 0:  # the shoulder comes forward on a long reach
+                sh = sh + _unit(w - sh) * min(self.protraction, excess)
+            pole = R @ _unit(np.array([-0.3, side * 0.6, -1.0]))
+            elbow, wrist = _two_link(sh, w, self.l_upper, self.l_fore, pole)
+            out[_J[names[0]]], out[_J[names[1]]], out[_J[names[2]]] = sh, elbow, wrist
+            out[_J[names[3]]] = wrist + self.l_hand * u
+        R_p = _rz(0.35 * twist)
+        for side, names in ((1.0, ("l_hip", "l_knee", "l_ankle")), (-1.0, ("r_hip", "r_knee", "r_ankle"))):
+            hip = p + R_p @ np.array([0.0, side * self.hip_y, self.hip_z])
+            ankle = np.array([0.0, side * self.foot_y, self.ankle_z])
+            knee, ankle = _two_link(hip, ankle, self.l_thigh, self.l_shank, np.array([1.0, 0.0, 0.0]))
+            out[_J[names[0]]], out[_J[names[1]]], out[_J[names[2]]] = hip, knee, ankle
+        return out
+
+    def solve_posture(self, lh: np.ndarray, rh: np.ndarray, *, reaching: str | None) -> np.ndarray:
+        """The least-effort posture (lean, twist, dx, dy) from which both hands reach their targets."""
+        if reaching == "left":
+            focus = lh
+        elif reaching == "right":
+            focus = rh
+        else:
+            focus = 0.5 * (lh + rh)
+        side_y = self.sh_y if reaching == "left" else -self.sh_y if reaching == "right" else 0.0
+        twist = float(np.clip(0.5 * math.atan2(focus[1] - side_y, max(focus[0], 0.05)), -0.5, 0.5))
+        lean, dx = (g.reshape(-1) for g in np.meshgrid(_LEAN_GRID, _DX_GRID))
+        n = lean.size
+        pelvis = np.stack([dx, np.zeros(n), self.pelvis_z - 0.08 * self.k * (1.0 - np.cos(lean))], axis=-1)
+        Rz_half, Rz = _rz(0.6 * twist), _rz(twist)
+        spine_local = np.stack(
+            [self.l_spine * np.sin(0.45 * lean), np.zeros(n), self.l_spine * np.cos(0.45 * lean)], -1
+        )
+        chest_local = np.stack([self.l_chest * np.sin(lean), np.zeros(n), self.l_chest * np.cos(lean)], -1)
+        chest = pelvis + spine_local @ Rz_half.T + chest_local @ Rz.T
+        excess = np.full(n, -np.inf)
+        for side, hand in ((1.0, lh), (-1.0, rh)):
+            sh_local = np.stack(
+                [self.sh_z * np.sin(lean), np.full(n, side * self.sh_y), self.sh_z * np.cos(lean)], -1
+            )
+            sh = chest + sh_local @ Rz.T
+            d = hand - sh
+            d /= np.linalg.norm(d, axis=-1, keepdims=True)
+            u = d + np.array([0.0, 0.0, -0.7])
+            u /= np.linalg.norm(u, axis=-1, keepdims=True)
+            w = hand - self.l_hand * u
+            excess = np.maximum(
+                excess, np.linalg.norm(w - sh, axis=-1) - (0.97 * self.arm + self.protraction)
+            )
+        feasible = excess <= 0
+        i = (
+            int(np.argmin(np.where(feasible, lean + 3.0 * dx, np.inf)))
+            if feasible.any()
+            else int(np.argmin(excess))
+        )
+        return np.array([lean[i], twist, dx[i], 0.0])
+
+
+@dataclass(frozen=True)
+class OperatorAction:
+    """One scheduled action (for inspection and tests).
+
+    Attributes:
+        t_start: Start (s). t_end: End (s).
+        kind: ``assemble``, ``idle``, ``fetch`` or ``reach_across``.
+        station: The drop station of a fetch.
+        hand: ``left``/``right`` for reaches.
+        target_world: Hand target (3,) of a reach (world frame, m).
+    """
+
+    t_start: float
+    t_end: float
+    kind: str
+    station: str | None = None
+    hand: str | None = None
+    target_world: tuple[float, float, float] | None = None
+
+
+class SimulatedOperator:
+    """A simulated person working across the table (a :class:`~app.control.human.HumanSource`).
+
+    Args:
+        cell: The work cell (operator area, work spot, drop stations, table).
+        params: The participant (default ``OperatorParams.draw(seed)``).
+        seed: Seeds the behaviour, the sway and the tracking noise.
+        t0: Time of the first frame (s); frames lie on ``t0 + k / fps``.
+        fps: Frame rate (Hz).
+        noise: Add tracking noise.
+    """
+
+    def __init__(
+        self,
+        cell: WorkCell,
+        params: OperatorParams | None = None,
+        *,
+        seed: int = 0,
+        t0: float = 0.0,
+        fps: float = 30.0,
+        noise: bool = True,
+    ) -> None:
+        if not fps > 0:
+            raise ValueError(f"fps must be > 0, got {fps}")
+        self.cell = cell
+        self.seed = int(seed)
+        self.params = params if params is not None else OperatorParams.draw(seed)
+        self.t0 = float(t0)
+        self.fps = float(fps)
+        self.noise = bool(noise)
+        p = self.params
+        op = cell.operator
+        self.yaw = float(op.facing_yaw)
+        self.R_world_body = _rz(self.yaw)
+        fwd, left = self.R_world_body[:, 0], self.R_world_body[:, 1]
+        half = np.asarray(op.size_xy) / 2
+        origin_xy = np.asarray(op.center_xy) + p.stand_forward_m * fwd[:2] + p.stand_left_m * left[:2]
+        origin_xy = np.clip(origin_xy, np.asarray(op.center_xy) - half, np.asarray(op.center_xy) + half)
+        self.origin_world = np.array([origin_xy[0], origin_xy[1], op.floor_z])
+        self.body = _Body(p.height_m)
+        self.table_top_z = cell.table.center[2] + cell.table.size[2] / 2
+        self._block_z = self.table_top_z + 0.04
+        self.stations_body = {
+            s.name: self.to_body(np.array([s.xyz[0], s.xyz[1], self._block_z])) for s in cell.drop_stations
+        }
+        spot = self.to_body(np.asarray(op.work_spot, dtype=float))
+        spot[2] = max(spot[2], self.to_body(np.array([0.0, 0.0, self.table_top_z]))[2]) + 0.05
+        self.home = {"left": spot + np.array([0.0, 0.1, 0.0]), "right": spot + np.array([0.0, -0.1, 0.0])}
+        self._rng = np.random.default_rng([self.seed, 0x5EED])
+        phase_rng = np.random.default_rng([self.seed, 0x5A7])
+        self._sway_f = phase_rng.uniform(0.12, 0.35, size=3)
+        self._sway_phi = phase_rng.uniform(0, 2 * math.pi, size=3)
+        self._tracks = {
+            "left": _Track(self.home["left"]),
+            "right": _Track(self.home["right"]),
+            "torso": _Track(self.body.solve_posture(self.home["left"], self.home["right"], reaching=None)),
+        }
+        self._plan_end = self.t0
+        self._pending: deque[tuple[float, str]] = deque(maxlen=64)
+        self._future: list[tuple[float, int, str]] = []
+        self._notify_count = 0
+        self._work_left_s = 0.0
+        self._cache: tuple[int, HumanFrame] | None = None
+        self._oldest_t = self.t0
+        self.actions: deque[OperatorAction] = deque(maxlen=512)
+
+    # -- frames ---------------------------------------------------------------------------------------
+    def to_body(self, p_world: np.ndarray) -> np.ndarray:
+        """World point (3,) -> body frame (3,)."""
+        return self.R_world_body.T @ (np.asarray(p_world, dtype=float) - self.origin_world)
+
+    def to_world(self, p_body: np.ndarray) -> np.ndarray:
+        """Body-frame points (..., 3) -> world (..., 3)."""
+        return np.asarray(p_body) @ self.R_world_body.T + self.origin_world
+
+    def frame_index(self, t: float) -> int:
+        """Index of the newest frame at or before ``t`` (negative before ``t0``)."""
+        return math.floor((t - self.t0) * self.fps + 1e-9)
+
+    def frame_at(self, t: float) -> HumanFrame | None:
+        """The newest frame at or before ``t`` (``None`` before ``t0``)."""
+        k = self.frame_index(t)
+        if k < 0:
+            return None
+        if self._cache is not None and self._cache[0] == k:
+            return self._cache[1]
+        tk = self.t0 + k / self.fps
+        if tk < self._oldest_t - 1e-9:
+            raise ValueError(f"frame_at({t}): frames older than {self._oldest_t:.3f} s were discarded")
+        self._plan_until(tk)
+        joints = self.to_world(self._pose_body(tk))
+        if self.noise and self.params.noise_m > 0:
+            rng = np.random.default_rng([self.seed, 0x7015E, k])
+            joints = joints + rng.normal(0.0, self.params.noise_m, size=joints.shape)
+        frame = HumanFrame(t=tk, joints=joints, confidence=np.ones(NUM_JOINTS))
+        self._cache = (k, frame)
+        if tk - self._oldest_t > 90.0:
+            self._oldest_t = tk - 60.0
+            for track in self._tracks.values():
+                track.prune(self._oldest_t)
+        return frame
+
+    def _pose_body(self, t: float) -> np.ndarray:
+        p = self.params
+        sway = p.sway_m * np.sin(2 * math.pi * self._sway_f * (t - self.t0) + self._sway_phi)
+        sway[2] *= 0.3
+        return self.body.pose(
+            self._tracks["torso"].value(t),
+            self._tracks["left"].value(t),
+            self._tracks["right"].value(t),
+            sway,
+        )
+
+    def hand_positions(self, t: float) -> dict[str, np.ndarray]:
+        """Noise-free hand targets (world, (3,) each) at ``t`` (plans ahead as needed)."""
+        self._plan_until(t)
+        return {h: self.to_world(self._tracks[h].value(t)) for h in ("left", "right")}
+
+    # -- notifications --------------------------------------------------------------------------------
+    def notify_block_placed(self, station: str, t: float) -> None:
+        """The robot placed a block at drop ``station`` at time ``t``; the person will fetch it.
+
+        A notification for a time the operator has already planned past is acted on at the next decision.
+
+        Raises:
+            ValueError: ``station`` is not a drop station of the cell.
+        """
+        if station not in self.stations_body:
+            raise ValueError(f"unknown drop station {station!r}; the cell has {sorted(self.stations_body)}")
+        self._notify_count += 1
+        bisect.insort(self._future, (float(t), self._notify_count, station))
+
+    # -- behaviour ------------------------------------------------------------------------------------
+    def _plan_until(self, t: float) -> None:
+        while self._plan_end <= t:
+            tau = self._plan_end
+            while self._future and self._future[0][0] <= tau:
+                t_n, _, station = self._future.pop(0)
+                if len(self._pending) == self._pending.maxlen:
+                    log.warning(
+                        "operator: more than %d blocks waiting; the oldest is dropped", len(self._pending)
+                    )
+                self._pending.append((t_n, station))
+            end = self._decide(tau)
+            # Decisions stay on the frame grid, so the same frames are produced however they are queried.
+            k_end = max(
+                math.ceil((end - self.t0) * self.fps - 1e-9), math.floor((tau - self.t0) * self.fps) + 1
+            )
+            self._plan_end = self.t0 + k_end / self.fps
+
+    def _decide(self, tau: float) -> float:
+        p, rng = self.params, self._rng
+        if self._pending and self._work_left_s <= 0:
+            t_n, station = self._pending[0]
+            if tau >= t_n + p.reaction_s:
+                self._pending.popleft()
+                end = self._reach(tau, self.stations_body[station], kind="fetch", station=station)
+                self._work_left_s = float(p.assemble_s * rng.uniform(0.7, 1.3))
+                return end
+            chunk = max(min(rng.uniform(0.5, 1.1), t_n + p.reaction_s - tau), 1.0 / self.fps)
+        else:
+            chunk = float(rng.uniform(0.6, 1.2))
+        if rng.random() < 1.0 - math.exp(-p.reach_rate_hz * chunk):
+            return self._reach(tau, self._across_target(), kind="reach_across")
+        busy = self._work_left_s > 0
+        self._work_left_s = max(0.0, self._work_left_s - chunk)
+        return self._assemble(tau, chunk, kind="assemble" if busy else "idle")
+
+    def _across_target(self) -> np.ndarray:
+        rng, p = self._rng, self.params
+        spot_x = 0.5 * (self.home["left"][0] + self.home["right"][0])
+        far_x = max(s[0] for s in self.stations_body.values()) + 0.1
+        x = rng.uniform(
+            spot_x + 0.15, spot_x + 0.15 + (far_x - spot_x - 0.15) * (0.35 + 0.65 * p.reach_depth)
+        )
+        y = rng.uniform(-0.35, 0.35)
+        z = self._block_z - self.origin_world[2] + rng.uniform(0.0, 0.15)
+        return np.array([x, y, z])
+
+    def _choose_hand(self, target: np.ndarray) -> str:
+        if target[1] > 0.12:
+            return "left"
+        if target[1] < -0.12:
+            return "right"
+        return self.params.handedness
+
+    def _reach(self, tau: float, target: np.ndarray, *, kind: str, station: str | None = None) -> float:
+        p, rng, body = self.params, self._rng, self.body
+        hand = self._choose_hand(target)
+        other = "left" if hand == "right" else "right"
+        tr, to, torso = self._tracks[hand], self._tracks[other], self._tracks["torso"]
+        start = tr.end_value()
+        v_peak = p.hand_speed_mps * rng.uniform(0.85, 1.05)
+        dist = float(np.linalg.norm(target - start))
+        t_out = max(0.35, 1.875 * dist / v_peak)
+        arc = min(0.12, 0.25 * dist)
+        t1 = tau + t_out
+        tr.move(tau, t1, target, arc)
+        hands = {hand: target, other: to.end_value()}
+        torso.move(tau, t1, body.solve_posture(hands["left"], hands["right"], reaching=hand))
+        dwell = rng.uniform(0.15, 0.35) if kind == "fetch" else rng.uniform(0.2, 0.8)
+        t2 = t1 + dwell
+        back = self.home[hand] + rng.uniform(-0.03, 0.03, size=3) * [1, 1, 0.5]
+        dist_back = float(np.linalg.norm(back - target))
+        t_back = max(0.35, 1.875 * dist_back / (0.9 * v_peak))
+        t3 = t2 + t_back
+        tr.move(t2, t3, back, min(0.12, 0.25 * dist_back))
+        hands = {hand: back, other: to.end_value()}
+        torso.move(t2, t3, body.solve_posture(hands["left"], hands["right"], reaching=None))
+        self.actions.append(
+            OperatorAction(tau, t3, kind, station, hand, tuple(float(v) for v in self.to_world(target)))
+        )
+        return t3
+
+    def _assemble(self, tau: float, duration: float, *, kind: str) -> float:
+        rng, body = self._rng, self.body
+        amp = 0.05 if kind == "assemble" else 0.025
+        speed = 1.0 if kind == "assemble" else 0.6
+        end = tau + duration
+        for hand in ("left", "right"):
+            tr = self._tracks[hand]
+            t = tau + rng.uniform(0.0, 0.2)
+            while True:
+                dur = rng.uniform(0.3, 0.6) / speed
+                if t + dur > end:
+                    break
+                target = self.home[hand] + rng.uniform(-amp, amp, size=3) * [1.0, 1.0, 0.5]
+                tr.move(t, t + dur, target)
+                t += dur + rng.uniform(0.0, 0.25)
+        torso = self._tracks["torso"]
+        posture = body.solve_posture(self.home["left"], self.home["right"], reaching=None)
+        posture = posture + np.array([rng.uniform(-0.03, 0.03), rng.uniform(-0.05, 0.05), 0.0, 0.0])
+        torso.move(tau, tau + min(0.8, duration), posture)
+        self.actions.append(OperatorAction(tau, end, kind))
+        return end
+
+    def pending_blocks(self) -> list[str]:
+        """Stations whose blocks the person knows about and has not fetched yet."""
+        return [s for _, s in self._pending]
