@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from app.control.cli import cell_app
+
 if TYPE_CHECKING:
     from app.study.repository import StudyRepository
 
@@ -55,6 +57,7 @@ def bench(
     typer.echo(json.dumps(result, indent=None if as_json else 2, sort_keys=False))
 
 
+app.add_typer(cell_app, name="cell")
 # --- study records (app.study) --------------------------------------------------------------------------
 
 db_app = typer.Typer(help="Study database: migrations.", no_args_is_help=True)
