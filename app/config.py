@@ -223,6 +223,9 @@ class Settings(BaseSettings):
     robot_host: str = "192.168.1.10"
     human_source: Literal["sim", "replay", "stream"] = "sim"
     replay_clip: Path | None = None
+    camera_pose: Annotated[list[float], Field(min_length=6, max_length=6)] | None = Field(
+        None, description="x, y, z (m), roll, pitch, yaw (rad) of the tracking camera in the world frame"
+    )
 
     # planning and supervision (paper section II)
     deadline_s: float = Field(0.1, gt=0, le=2.0, description="D: backup-plan deadline")

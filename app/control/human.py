@@ -383,7 +383,7 @@ def camera_pose_from_settings(settings: Settings) -> np.ndarray | None:
     """``T_world_camera`` (4, 4) from ``settings.camera_pose`` (x, y, z, roll, pitch, yaw), or ``None``."""
     from app.config import pose_matrix
 
-    pose = getattr(settings, "camera_pose", None)
+    pose = settings.camera_pose
     if pose is None:
         return None
     return pose_matrix(pose[:3], pose[3:])

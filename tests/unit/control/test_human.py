@@ -351,6 +351,10 @@ def test_make_human_source_follows_settings(tmp_path: Path) -> None:
     src = make_human_source(Settings(human_source="replay", replay_clip=clip), CELL)
     assert isinstance(src, ReplaySource)
     assert isinstance(make_human_source(Settings(human_source="stream"), CELL), StreamSource)
+    cam = make_human_source(Settings(human_source="stream", camera_pose=[1.4, 0.0, 0.2, 0.0, 0.0, 0.0]), CELL)
+    assert isinstance(cam, StreamSource)
+    msg = make_message(_canonical_pose() - np.array([1.4, 0.0, 0.2]), frame="camera", t=0.0)
+    np.testing.assert_allclose(cam.push(msg, t_received=0.0).joints, _canonical_pose(), atol=2e-4)
     with pytest.raises(ValueError, match="HRC_REPLAY_CLIP"):
         make_human_source(Settings(human_source="replay"), CELL)
 
