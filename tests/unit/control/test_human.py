@@ -387,3 +387,22 @@ def test_send_messages_streams_to_a_websocket_with_the_token() -> None:
     assert headers == ["Bearer secret-token"]
     assert [m["t"] for m in received] == pytest.approx([k / FPS for k in range(5)])
     assert parse_message(received[0]).format == "canonical"
+
+
+def test_replay_client_example_builds_placed_timed_messages(tmp_path: Path) -> None:
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[3] / "examples" / "stream_replay_client.py"
+    spec = importlib.util.spec_from_file_location("stream_replay_client", script)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    clip = _sim_clip(tmp_path, 1.0)
+    msgs, fps, total = module.messages(clip, loops=2, place=False)
+    msgs = list(msgs)
+    assert fps == pytest.approx(30.0) and total == len(msgs) == 60
+    src = StreamSource(validator=FrameValidator.for_workcell(CELL))
+    for k, m in enumerate(msgs):
+        src.push(json.dumps(m), t_received=100.0 + k / FPS)  # every message is valid, in order
+    assert src.counters["accepted"] == 60
+    assert [m["t"] for m in msgs[28:32]] == pytest.approx([28 / 30, 29 / 30, 1.0, 31 / 30])
