@@ -1,0 +1,764 @@
+"""Collision model: the UR5e and the person as capsules, the static scene as boxes, batched signed distances.
+
+Geometry (world frame, metres):
+
+* Robot: one capsule per link (:data:`ROBOT_LINKS`), placed on the DH frames of
+  :class:`~app.planning.kinematics.UR5e`. The upper arm and the forearm of a UR5e run beside the joint axes,
+  offset along the shoulder/elbow axis (0.138 m and 0.007 m, the UR5e's ``shoulder_offset`` and
+  ``elbow_offset``); the radii (:data:`ROBOT_LINK_RADII`) enclose the housings (base 149 mm across,
+  shoulder/elbow joints about 120 mm, wrists about 90 mm). The tool is a capsule from the flange to the TCP
+  with the work cell's ``tool.radius_m``.
+* Person: one capsule per bone of the canonical skeleton (:data:`app.prediction.skeleton.BONES`) plus a sphere
+  around the head joint, radii from :class:`HumanRadii`.
+* Static scene: the work cell's boxes (table, conveyor, extra obstacles). The capsule-box signed distance is
+  computed exactly in numpy (cross-checked against python-fcl in the tests; fcl is a few microseconds per pair
+  and call, far too slow for roadmap construction).
+
+Signed distance: the distance between the surfaces, negative when they overlap (for two capsules it is the
+segment distance minus both radii, exact; for a capsule and a box it is the minimum over the segment of the
+box's signed distance field minus the radius).
+
+Performance: :meth:`CollisionModel.distance_to_human` and :meth:`CollisionModel.distance_to_human_paired` are
+the planner's hot path. They rewrite every dot product of the segment-segment problem as one matrix product
+(BLAS), then run a branch-free closest-point computation on contiguous blocks small enough to stay in cache.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from app.config import Box, WorkCell
+from app.planning.kinematics import UR5e
+from app.prediction.skeleton import BONES, JOINT_INDEX, JOINTS, NUM_JOINTS
+
+if TYPE_CHECKING:
+    import fcl
+
+__all__ = [
+    "HUMAN_CAPSULES",
+    "ROBOT_LINKS",
+    "ROBOT_LINK_RADII",
+    "SELF_COLLISION_PAIRS",
+    "CollisionModel",
+    "HumanRadii",
+    "capsule_distance",
+    "fcl_box",
+    "fcl_capsule",
+    "segment_box_distance",
+    "segment_distance",
+]
+
+# ------------------------------------------------------------------------------------------- robot geometry
+
+#: Robot capsules, in order. ``tool`` runs from the flange to the TCP.
+ROBOT_LINKS: tuple[str, ...] = (
+    "base",
+    "shoulder",
+    "upper_arm",
+    "elbow",
+    "forearm",
+    "wrist_1",
+    "wrist_2",
+    "wrist_3",
+    "tool",
+)
+#: Radii (m) of the robot capsules except the tool (whose radius comes from the work cell).
+ROBOT_LINK_RADII: dict[str, float] = {
+    "base": 0.075,
+    "shoulder": 0.075,
+    "upper_arm": 0.06,
+    "elbow": 0.06,
+    "forearm": 0.05,
+    "wrist_1": 0.045,
+    "wrist_2": 0.045,
+    "wrist_3": 0.045,
+}
+#: Offsets (m) along the shoulder/elbow axis of the upper-arm and forearm centre lines (UR5e).
+SHOULDER_OFFSET_M = 0.138
+FOREARM_OFFSET_M = 0.138 - 0.131
+
+_NL = len(ROBOT_LINKS)
+_L = {name: i for i, name in enumerate(ROBOT_LINKS)}
+
+
+def _self_collision_pairs() -> tuple[tuple[int, int], ...]:
+    """Link pairs checked for self-collision.
+
+    Excluded: links that share a joint (consecutive in :data:`ROBOT_LINKS`), the base column vs the upper arm
+    (they meet at the shoulder housing), and wrist 2 vs the tool (the tool lies on the wrist-3 axis, which
+    stays at a constant distance from the wrist-2 housing, so the pair cannot change).
+    """
+    excluded = {(_L["base"], _L["upper_arm"]), (_L["wrist_2"], _L["tool"])}
+    return tuple((i, j) for i in range(_NL) for j in range(i + 2, _NL) if (i, j) not in excluded)
+
+
+#: Robot capsule index pairs (i, j) checked for self-collision.
+SELF_COLLISION_PAIRS: tuple[tuple[int, int], ...] = _self_collision_pairs()
+
+# ------------------------------------------------------------------------------------------ person geometry
+
+
+@dataclass(frozen=True)
+class HumanRadii:
+    """Radii (m) of the person's capsules, grouped by body part.
+
+    Attributes:
+        torso: Pelvis-spine and spine-chest.
+        shoulder: Chest to each shoulder.
+        neck: Chest-neck and neck-head.
+        head: The sphere around the head joint.
+        upper_arm, forearm, hand: Shoulder-elbow, elbow-wrist, wrist-hand.
+        hip, thigh, shin: Pelvis-hip, hip-knee, knee-ankle.
+    """
+
+    torso: float = 0.14
+    shoulder: float = 0.08
+    neck: float = 0.07
+    head: float = 0.11
+    upper_arm: float = 0.06
+    forearm: float = 0.05
+    hand: float = 0.06
+    hip: float = 0.11
+    thigh: float = 0.08
+    shin: float = 0.06
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not (0.0 < value <= 0.5):
+                raise ValueError(f"HumanRadii.{f.name} must be in (0, 0.5] m, got {value}")
+
+    def capsule_radii(self) -> np.ndarray:
+        """Radii (M,) in the order of :data:`HUMAN_CAPSULES`."""
+        return np.array([getattr(self, _BONE_GROUP[name]) for name in HUMAN_CAPSULES])
+
+
+def _bone_group(parent: str, child: str) -> str:
+    if child in ("spine", "chest"):
+        return "torso"
+    if child in ("neck", "head"):
+        return "neck"
+    suffix = child[2:]
+    return {
+        "shoulder": "shoulder",
+        "elbow": "upper_arm",
+        "wrist": "forearm",
+        "hand": "hand",
+        "hip": "hip",
+        "knee": "thigh",
+        "ankle": "shin",
+    }[suffix]
+
+
+#: Person capsules, in order: one per bone ``"parent-child"``, then ``"head"`` (a sphere).
+HUMAN_CAPSULES: tuple[str, ...] = (*(f"{JOINTS[p]}-{JOINTS[c]}" for p, c in BONES), "head")
+_BONE_GROUP: dict[str, str] = {
+    **{f"{JOINTS[p]}-{JOINTS[c]}": _bone_group(JOINTS[p], JOINTS[c]) for p, c in BONES},
+    "head": "head",
+}
+_HUMAN_A = np.array([*BONES[:, 0], JOINT_INDEX["head"]])
+_HUMAN_B = np.array([*BONES[:, 1], JOINT_INDEX["head"]])
+
+
+# ----------------------------------------------------------------------------------------- distance kernels
+
+_TINY = 1e-18  # m^4: below this the segments are treated as parallel (error below 1e-8 m, see _closest_sq)
+# Work arrays are kept below 128 KiB: larger ones are mmap-ed by glibc on every allocation and page-faulted on
+# first touch, which costs more than the arithmetic.
+_BLOCK_ELEMS = 12_000
+
+
+def _clip01(x: np.ndarray) -> None:
+    np.maximum(x, 0.0, out=x)
+    np.minimum(x, 1.0, out=x)
+
+
+def _closest_sq(
+    a: np.ndarray,
+    e: np.ndarray,
+    b: np.ndarray,
+    c: np.ndarray,
+    f: np.ndarray,
+    rr: np.ndarray,
+    inv_a: np.ndarray,
+    inv_e: np.ndarray,
+) -> np.ndarray:
+    """Squared distance between segments p1 + s d1 and p2 + t d2 (s, t in [0, 1]) from their dot products.
+
+    ``a = d1.d1, e = d2.d2, b = d1.d2, c = d1.r, f = d2.r, rr = r.r`` with ``r = p1 - p2``; ``inv_a`` and
+    ``inv_e`` are 1/a, 1/e (0 for a point). ``b, c, f, rr`` have the full shape, the others broadcast to it;
+    ``c``, ``f`` and ``rr`` are overwritten (``rr`` becomes the result). The squared distance is expanded in
+    dot products, so near contact its square root is precise to about sqrt(round-off) * |r|, a few 1e-8 m.
+
+    Closest points as in Ericson, Real-Time Collision Detection, 5.1.9, written without branches: the
+    unconstrained s clamped, the best t for it clamped, the best s for that t clamped. This is exact (a convex
+    problem; for (near-)parallel segments any clamped start gives the minimum up to |d1| * angle < 1e-8 m).
+    """
+    denom = np.multiply(a, e)
+    tmp = np.multiply(b, b)
+    denom -= tmp
+    np.maximum(denom, _TINY, out=denom)
+    s = np.multiply(b, f)
+    np.multiply(c, e, out=tmp)
+    s -= tmp
+    s /= denom
+    _clip01(s)
+    t = np.multiply(b, s, out=denom)
+    t += f
+    t *= inv_e
+    _clip01(t)
+    np.multiply(b, t, out=s)
+    s -= c
+    s *= inv_a
+    _clip01(s)
+    # |r + s d1 - t d2|^2 = rr + s (a s + 2 (c - t b)) + t (e t - 2 f)
+    np.multiply(t, b, out=tmp)
+    c -= tmp
+    c *= 2.0
+    np.multiply(a, s, out=tmp)
+    tmp += c
+    tmp *= s
+    rr += tmp
+    np.multiply(e, t, out=tmp)
+    f *= 2.0
+    tmp -= f
+    tmp *= t
+    rr += tmp
+    np.maximum(rr, 0.0, out=rr)
+    return rr
+
+
+def _inv(x: np.ndarray) -> np.ndarray:
+    return np.divide(1.0, x, out=np.zeros_like(x), where=x > _TINY)
+
+
+def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Distances between segments [p1, q1] and [p2, q2], all (..., 3) broadcastable; returns (...,) in m."""
+    p1, q1, p2, q2 = (np.asarray(v, dtype=float) for v in (p1, q1, p2, q2))
+    d1 = q1 - p1
+    d2 = q2 - p2
+    r = p1 - p2
+    dot = lambda u, v: np.einsum("...i,...i->...", u, v)  # noqa: E731
+    a, e, b, c, f, rr = dot(d1, d1), dot(d2, d2), dot(d1, d2), dot(d1, r), dot(d2, r), dot(r, r)
+    a, e, b, c, f, rr = np.broadcast_arrays(a, e, b, c, f, rr)
+    shape = a.shape
+    a, e, b, c, f, rr = (np.array(v, dtype=float).reshape(-1) for v in (a, e, b, c, f, rr))
+    return np.sqrt(_closest_sq(a, e, b, c, f, rr, _inv(a), _inv(e))).reshape(shape)
+
+
+def capsule_distance(
+    p1: np.ndarray, q1: np.ndarray, r1: np.ndarray, p2: np.ndarray, q2: np.ndarray, r2: np.ndarray
+) -> np.ndarray:
+    """Signed surface distance (...,) between capsules (segment endpoints (..., 3), radii (...,)), m."""
+    return segment_distance(p1, q1, p2, q2) - np.asarray(r1) - np.asarray(r2)
+
+
+def _cross_min_distance(
+    pa: np.ndarray,
+    pd: np.ndarray,
+    ra: np.ndarray,
+    ha: np.ndarray,
+    hd: np.ndarray,
+    rh: np.ndarray,
+) -> np.ndarray:
+    """Min signed distance between every robot configuration and every person pose.
+
+    Args:
+        pa, pd: Robot segment starts and directions (B, L, 3).
+        ra: Robot radii (L,).
+        ha, hd: Person segment starts and directions (H, M, 3).
+        rh: Person radii (M,).
+
+    Returns:
+        (B, H) minimum over the L x M capsule pairs.
+    """
+    B, L, _ = pa.shape
+    H, M, _ = ha.shape
+    out = np.empty((B, H))
+    hb = max(1, min(H, _BLOCK_ELEMS // (L * M)))  # poses per block
+    rows = max(1, _BLOCK_ELEMS // (L * M * hb))  # configurations per block
+    rsum = (ra[:, None] + rh[None, :])[:, None, :]  # (L, 1, M)
+    pa2 = pa.reshape(B * L, 3)
+    pd2 = pd.reshape(B * L, 3)
+    a_all = np.einsum("ij,ij->i", pd2, pd2)
+    dp1_all = np.einsum("ij,ij->i", pd2, pa2)
+    pp1_all = np.einsum("ij,ij->i", pa2, pa2)
+    inv_a_all = _inv(a_all)
+    for h0 in range(0, H, hb):
+        h1 = min(H, h0 + hb)
+        nh = (h1 - h0) * M
+        d2 = hd[h0:h1].reshape(nh, 3)
+        p2 = ha[h0:h1].reshape(nh, 3)
+        V = np.concatenate([d2, p2], axis=0).T.copy()  # (3, 2 nh)
+        e = np.einsum("ij,ij->i", d2, d2)[None, :]
+        dp2 = np.einsum("ij,ij->i", d2, p2)[None, :]
+        pp2 = np.einsum("ij,ij->i", p2, p2)[None, :]
+        inv_e = _inv(e)
+        for b0 in range(0, B, rows):
+            b1 = min(B, b0 + rows)
+            i0, i1 = b0 * L, b1 * L
+            n = i1 - i0
+            U = np.concatenate([pd2[i0:i1], pa2[i0:i1]], axis=0)  # (2n, 3)
+            G = U @ V  # (2n, 2nh): [d1.d2, d1.p2; p1.d2, p1.p2]
+            c = dp1_all[i0:i1, None] - G[:n, nh:]  # d1.(p1 - p2)
+            f = G[n:, :nh] - dp2  # d2.(p1 - p2)
+            rr = G[n:, nh:] * -2.0
+            rr += pp1_all[i0:i1, None]
+            rr += pp2
+            sq = _closest_sq(a_all[i0:i1, None], e, G[:n, :nh], c, f, rr, inv_a_all[i0:i1, None], inv_e)
+            dist = np.sqrt(sq, out=sq).reshape(b1 - b0, L, h1 - h0, M)
+            dist -= rsum
+            out[b0:b1, h0:h1] = dist.min(axis=(1, 3))
+    return out
+
+
+def _paired_min_distance(
+    pa: np.ndarray,
+    pd: np.ndarray,
+    ra: np.ndarray,
+    ha: np.ndarray,
+    hd: np.ndarray,
+    rh: np.ndarray,
+) -> np.ndarray:
+    """Min signed distance between robot configuration k and person pose k.
+
+    Args:
+        pa, pd: Robot segment starts and directions (K, L, 3).
+        ra: Robot radii (L,).
+        ha, hd: Person segment starts and directions (K, M, 3).
+        rh: Person radii (M,).
+
+    Returns:
+        (K,) minimum over the L x M capsule pairs of each k.
+    """
+    K, L, _ = pa.shape
+    M = ha.shape[1]
+    rsum = ra[:, None] + rh[None, :]  # (L, M)
+    a_all = np.einsum("kli,kli->kl", pd, pd)[:, :, None]
+    dp1_all = np.einsum("kli,kli->kl", pd, pa)[:, :, None]
+    pp1_all = np.einsum("kli,kli->kl", pa, pa)[:, :, None]
+    e_all = np.einsum("kmi,kmi->km", hd, hd)[:, None, :]
+    dp2_all = np.einsum("kmi,kmi->km", hd, ha)[:, None, :]
+    pp2_all = np.einsum("kmi,kmi->km", ha, ha)[:, None, :]
+    inv_a_all = _inv(a_all)
+    inv_e_all = _inv(e_all)
+    U_all = np.concatenate([pd, pa], axis=1)  # (K, 2L, 3)
+    V_all = np.concatenate([hd, ha], axis=1).transpose(0, 2, 1)  # (K, 3, 2M)
+    out = np.empty(K)
+    block = max(1, _BLOCK_ELEMS // (L * M))
+    for k0 in range(0, K, block):
+        k1 = min(K, k0 + block)
+        G = U_all[k0:k1] @ V_all[k0:k1]  # (k, 2L, 2M)
+        b = np.ascontiguousarray(G[:, :L, :M])
+        c = dp1_all[k0:k1] - G[:, :L, M:]
+        f = G[:, L:, :M] - dp2_all[k0:k1]
+        rr = pp1_all[k0:k1] + pp2_all[k0:k1]
+        rr -= 2.0 * G[:, L:, M:]
+        sq = _closest_sq(a_all[k0:k1], e_all[k0:k1], b, c, f, rr, inv_a_all[k0:k1], inv_e_all[k0:k1])
+        dist = np.sqrt(sq, out=sq)
+        dist -= rsum
+        out[k0:k1] = dist.reshape(k1 - k0, L * M).min(axis=1)
+    return out
+
+
+def _box_excess(x: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Signed excess of coordinates over the box slab: x - clip(x, -h, h), same shape."""
+    return x - np.minimum(np.maximum(x, -h), h)
+
+
+def segment_box_distance(p: np.ndarray, q: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Exact minimum over a segment of the signed distance field of an origin-centred, axis-aligned box.
+
+    Outside the box the squared distance Q(t) along the segment is convex and continuously differentiable,
+    with a derivative that is linear between the parameters where the segment crosses a face plane; its root
+    is found from the derivative's values at those knots (no iteration). Where the segment reaches the box,
+    the depth max_i(|x_i| - h_i) is convex and piecewise linear along the segment and is minimised over its
+    kinks (mid-plane crossings and equal-depth points).
+
+    Args:
+        p, q: Segment ends (N, 3) in the box frame (m).
+        half: Half extents (N, 3) or (3,) (m).
+
+    Returns:
+        (N,) signed distance (m): positive outside, minus the penetration depth inside.
+    """
+    p = np.asarray(p, dtype=float)
+    d = np.asarray(q, dtype=float) - p
+    h = np.broadcast_to(np.asarray(half, dtype=float), p.shape)
+    N = p.shape[0]
+    chunk = _BLOCK_ELEMS // 24
+    if chunk < N:
+        return np.concatenate(
+            [
+                segment_box_distance(p[i : i + chunk], p[i : i + chunk] + d[i : i + chunk], h[i : i + chunk])
+                for i in range(0, N, chunk)
+            ]
+        )
+    inv_d = np.divide(1.0, d, out=np.zeros_like(d), where=np.abs(d) > 1e-15)
+    # knots: 0, 1 and the face-plane crossings (clamped into [0, 1]), shape (N, 8)
+    knots = np.empty((N, 8))
+    knots[:, 0] = 0.0
+    knots[:, 1] = 1.0
+    np.multiply(-h - p, inv_d, out=knots[:, 2:5])
+    np.multiply(h - p, inv_d, out=knots[:, 5:8])
+    np.clip(knots, 0.0, 1.0, out=knots)
+    # Q'(t) / 2 = sum_i excess_i(t) d_i at every knot: monotone in t
+    x = p[:, None, :] + knots[:, :, None] * d[:, None, :]
+    dq = np.einsum("nkj,nj->nk", _box_excess(x, h[:, None, :]), d)
+    neg = dq < 0.0
+    t_lo = np.where(neg, knots, 0.0).max(axis=1)
+    t_hi = np.where(neg, 1.0, knots).min(axis=1)
+    dq_lo = np.einsum("nj,nj->n", _box_excess(p + t_lo[:, None] * d, h), d)
+    dq_hi = np.einsum("nj,nj->n", _box_excess(p + t_hi[:, None] * d, h), d)
+    span = dq_hi - dq_lo
+    t_root = t_lo - dq_lo * np.divide(t_hi - t_lo, span, out=np.zeros(N), where=span > 0.0)
+    t_star = np.where(dq_lo >= 0.0, t_lo, np.where(dq_hi < 0.0, t_hi, t_root))
+    excess = _box_excess(p + t_star[:, None] * d, h)
+    out = np.sqrt(np.einsum("nj,nj->n", excess, excess))
+    touching = np.nonzero(out < 1e-12)[0]  # reaches the box (up to round-off): the depth decides
+    if touching.size:
+        out[touching] = _segment_box_depth(p[touching], d[touching], h[touching], inv_d[touching])
+    return out
+
+
+def _segment_box_depth(p: np.ndarray, d: np.ndarray, h: np.ndarray, inv_d: np.ndarray) -> np.ndarray:
+    """min over t in [0, 1] of max_i(|x_i(t)| - h_i) (<= 0) for segments that reach the box, shape (N,)."""
+    N = p.shape[0]
+    cands = [np.zeros((N, 1)), np.ones((N, 1)), -p * inv_d]
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        for si in (1.0, -1.0):
+            for sj in (1.0, -1.0):
+                den = si * d[:, i] - sj * d[:, j]
+                num = h[:, i] - h[:, j] - si * p[:, i] + sj * p[:, j]
+                cands.append(np.divide(num, den, out=np.zeros(N), where=np.abs(den) > 1e-15)[:, None])
+    t = np.clip(np.concatenate(cands, axis=1), 0.0, 1.0)
+    depth = (np.abs(p[:, None, :] + t[:, :, None] * d[:, None, :]) - h[:, None, :]).max(axis=2)
+    return np.minimum(depth.min(axis=1), 0.0)
+
+
+# ---------------------------------------------------------------------------------------------- fcl helpers
+
+
+def _rotation_z_to(u: np.ndarray) -> np.ndarray:
+    """A rotation (3, 3) whose z column is the unit vector u."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, u)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(u, x), u])
+
+
+def fcl_capsule(p: np.ndarray, q: np.ndarray, radius: float) -> fcl.CollisionObject:
+    """A python-fcl object for the capsule around segment [p, q] (a sphere when p == q)."""
+    import fcl
+
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    length = float(np.linalg.norm(q - p))
+    center = 0.5 * (p + q)
+    if length < 1e-12:
+        return fcl.CollisionObject(fcl.Sphere(float(radius)), fcl.Transform(center))
+    R = _rotation_z_to((q - p) / length)
+    return fcl.CollisionObject(fcl.Capsule(float(radius), length), fcl.Transform(R, center))
+
+
+def fcl_box(box: Box) -> fcl.CollisionObject:
+    """A python-fcl object for a work-cell box."""
+    import fcl
+
+    T = box.transform()
+    return fcl.CollisionObject(fcl.Box(*box.size), fcl.Transform(T[:3, :3], T[:3, 3]))
+
+
+# ------------------------------------------------------------------------------------------------ the model
+
+
+def _radii_from(human_radii: HumanRadii | Mapping[str, float] | np.ndarray | None) -> np.ndarray:
+    if human_radii is None:
+        return HumanRadii().capsule_radii()
+    if isinstance(human_radii, HumanRadii):
+        return human_radii.capsule_radii()
+    if isinstance(human_radii, Mapping):
+        unknown = set(human_radii) - set(asdict(HumanRadii()))
+        if unknown:
+            raise ValueError(
+                f"unknown human radius group(s) {sorted(unknown)}; use {sorted(asdict(HumanRadii()))}"
+            )
+        return HumanRadii(**dict(human_radii)).capsule_radii()
+    arr = np.asarray(human_radii, dtype=float)
+    if arr.shape != (len(HUMAN_CAPSULES),) or not np.all(arr > 0):
+        raise ValueError(
+            f"human_radii as an array must have shape ({len(HUMAN_CAPSULES)},) with positive entries "
+            f"(one per HUMAN_CAPSULES), got shape {arr.shape}"
+        )
+    return arr.copy()
+
+
+class CollisionModel:
+    """Signed distances between the UR5e, the person and the static scene of a work cell.
+
+    Args:
+        cell: The work cell (robot mount, tool, static boxes).
+        kin: Kinematics to place the robot; default ``UR5e.from_workcell(cell)``.
+        human_radii: Person capsule radii: a :class:`HumanRadii`, a mapping of its field names to radii (m),
+            or an array (M,) in the order of :data:`HUMAN_CAPSULES`; default ``HumanRadii()``.
+
+    The model is immutable after construction; its methods allocate their own work arrays, so one instance may
+    be used from several threads.
+    """
+
+    def __init__(
+        self,
+        cell: WorkCell,
+        *,
+        kin: UR5e | None = None,
+        human_radii: HumanRadii | Mapping[str, float] | np.ndarray | None = None,
+    ) -> None:
+        self.cell = cell
+        self.kin = kin if kin is not None else UR5e.from_workcell(cell)
+        self.robot_radii = np.array([*(ROBOT_LINK_RADII[n] for n in ROBOT_LINKS[:-1]), cell.tool.radius_m])
+        self.human_radii = _radii_from(human_radii)
+        self.static_boxes: tuple[Box, ...] = tuple(cell.static_boxes)
+        T_box_world = []
+        for box in self.static_boxes:
+            T = box.transform()
+            Ti = np.eye(4)
+            Ti[:3, :3] = T[:3, :3].T
+            Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+            T_box_world.append(Ti)
+        self._T_box_world = np.array(T_box_world).reshape(-1, 4, 4)
+        self._box_half = np.array([np.asarray(b.size) / 2.0 for b in self.static_boxes]).reshape(-1, 3)
+        # Which (link, box) pairs count: the base column stands on the table (its mounting surface).
+        self.static_pairs = np.ones((_NL, len(self.static_boxes)), dtype=bool)
+        for k, box in enumerate(self.static_boxes):
+            if box is cell.table:
+                self.static_pairs[_L["base"], k] = False
+        self._static_link_idx, self._static_box_idx = np.nonzero(self.static_pairs)
+        pairs = np.array(SELF_COLLISION_PAIRS)
+        self._self_i, self._self_j = pairs[:, 0], pairs[:, 1]
+        for arr in (self.robot_radii, self.human_radii, self._T_box_world, self._box_half, self.static_pairs):
+            arr.setflags(write=False)
+
+    # ------------------------------------------------------------------ geometry
+    def _robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Robot segment starts and directions, each (B, L, 3)."""
+        p, z, p_tcp = self.kin.link_origins_and_axes(q)  # (7, 3, B), (7, 3, B), (3, B)
+        B = q.shape[0]
+        z1 = z[1]
+        a = np.empty((_NL, 3, B))
+        b = np.empty((_NL, 3, B))
+        a[0] = p[0]
+        b[0] = p[1]
+        a[1] = p[1]
+        b[1] = p[1] + SHOULDER_OFFSET_M * z1
+        a[2] = b[1]
+        b[2] = p[2] + SHOULDER_OFFSET_M * z1
+        a[3] = b[2]
+        b[3] = p[2] + FOREARM_OFFSET_M * z1
+        a[4] = b[3]
+        b[4] = p[3] + FOREARM_OFFSET_M * z1
+        a[5] = b[4]
+        b[5] = p[4]
+        a[6] = p[4]
+        b[6] = p[5]
+        a[7] = p[5]
+        b[7] = p[6]
+        a[8] = p[6]
+        b[8] = p_tcp
+        b -= a
+        return a.transpose(2, 0, 1), b.transpose(2, 0, 1)
+
+    def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Robot capsules for configurations q (B, 6).
+
+        Returns:
+            ``(a (B, L, 3), b (B, L, 3), r (L,))``: segment ends in the world frame (m) and radii (m), in the
+            order of :data:`ROBOT_LINKS`.
+        """
+        q = self._check_q(q, "robot_capsules")
+        a, d = self._robot_segments(q)
+        return a.copy(), a + d, self.robot_radii.copy()
+
+    def human_capsules(self, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Person capsules for poses (H, J, 3) in the canonical joint set.
+
+        Returns:
+            ``(a (H, M, 3), b (H, M, 3), r (M,))`` in the order of :data:`HUMAN_CAPSULES` (the last is the
+            head sphere, a == b).
+        """
+        joints = self._check_joints(joints, "human_capsules")
+        return joints[:, _HUMAN_A], joints[:, _HUMAN_B], self.human_radii.copy()
+
+    # ------------------------------------------------------------------ robot vs person
+    def distance_to_human(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """Minimum signed surface distance between each configuration and each person pose.
+
+        Args:
+            q: Configurations (B, 6), rad.
+            joints: Person poses (H, J, 3), world frame, m.
+
+        Returns:
+            (B, H) distances in m (negative: overlap).
+        """
+        q = self._check_q(q, "distance_to_human")
+        joints = self._check_joints(joints, "distance_to_human")
+        if q.shape[0] == 0 or joints.shape[0] == 0:
+            return np.empty((q.shape[0], joints.shape[0]))
+        pa, pd = self._robot_segments(q)
+        ha = joints[:, _HUMAN_A]
+        hd = joints[:, _HUMAN_B] - ha
+        return _cross_min_distance(pa, pd, self.robot_radii, ha, hd, self.human_radii)
+
+    def distance_to_human_paired(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """Minimum signed surface distance between configuration k and person pose k (time-sampled edges).
+
+        Args:
+            q: Configurations (K, 6), rad.
+            joints: Person poses (K, J, 3), world frame, m.
+
+        Returns:
+            (K,) distances in m (negative: overlap).
+        """
+        q = self._check_q(q, "distance_to_human_paired")
+        joints = self._check_joints(joints, "distance_to_human_paired")
+        if joints.shape[0] != q.shape[0]:
+            raise ValueError(
+                f"distance_to_human_paired: q (K, 6) and joints (K, J, 3) need the same K, "
+                f"got {q.shape[0]} and {joints.shape[0]}"
+            )
+        if q.shape[0] == 0:
+            return np.empty(0)
+        pa, pd = self._robot_segments(q)
+        ha = joints[:, _HUMAN_A]
+        hd = joints[:, _HUMAN_B] - ha
+        return _paired_min_distance(pa, pd, self.robot_radii, ha, hd, self.human_radii)
+
+    # ------------------------------------------------------------------ robot vs static scene
+    def _static_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Ends of the robot segments in the frames of the boxes they are checked against, and half extents.
+
+        Returns ``(a_box, b_box, half)`` each (B, P, 3) for the P (link, box) pairs of ``static_pairs``.
+        """
+        pa, pd = self._robot_segments(q)
+        li, bi = self._static_link_idx, self._static_box_idx
+        R = self._T_box_world[bi, :3, :3]  # (P, 3, 3)
+        t = self._T_box_world[bi, :3, 3]  # (P, 3)
+        a = pa[:, li]  # (B, P, 3)
+        b = a + pd[:, li]
+        a_box = np.einsum("pij,bpj->bpi", R, a) + t
+        b_box = np.einsum("pij,bpj->bpi", R, b) + t
+        return a_box, b_box, np.broadcast_to(self._box_half[bi], a_box.shape)
+
+    def static_distances(self, q: np.ndarray) -> np.ndarray:
+        """Signed distance of every robot capsule to every static box (exact for every pair).
+
+        Args:
+            q: Configurations (B, 6), rad.
+
+        Returns:
+            (B, L, NB) in m, ``+inf`` for excluded pairs (the base on its table), with
+            NB = ``len(cell.static_boxes)``.
+        """
+        q = self._check_q(q, "static_distances")
+        B = q.shape[0]
+        out = np.full((B, _NL, len(self.static_boxes)), np.inf)
+        if B == 0 or len(self._static_link_idx) == 0:
+            return out
+        a_box, b_box, half = self._static_segments(q)
+        P = a_box.shape[1]
+        sd = segment_box_distance(a_box.reshape(-1, 3), b_box.reshape(-1, 3), half.reshape(-1, 3))
+        out[:, self._static_link_idx, self._static_box_idx] = (
+            sd.reshape(B, P) - self.robot_radii[self._static_link_idx]
+        )
+        return out
+
+    def static_clearance(self, q: np.ndarray) -> np.ndarray:
+        """Minimum signed distance (B,) in m between the robot and the static scene (base vs table excluded).
+
+        Exact. Pairs that cannot hold the minimum are skipped: the box distance of a segment's midpoint, minus
+        the segment's half length, bounds the pair from below (the distance field is 1-Lipschitz), and the
+        midpoint's own distance bounds the configuration's minimum from above.
+        """
+        q = self._check_q(q, "static_clearance")
+        B = q.shape[0]
+        if B == 0 or len(self._static_link_idx) == 0:
+            return np.full(B, np.inf)
+        a_box, b_box, half = self._static_segments(q)
+        r = self.robot_radii[self._static_link_idx]
+        mid = 0.5 * (a_box + b_box)
+        half_len = 0.5 * np.sqrt(np.einsum("bpi,bpi->bp", b_box - a_box, b_box - a_box))
+        excess = _box_excess(np.abs(mid), half)  # |mid| - clip: outside part per axis (>= 0)
+        inside = np.minimum((np.abs(mid) - half).max(axis=2), 0.0)
+        sd_mid = np.sqrt(np.einsum("bpi,bpi->bp", excess, excess)) + inside - r
+        upper = sd_mid.min(axis=1)
+        kb, kp = np.nonzero(sd_mid - half_len <= upper[:, None])
+        exact = np.full(sd_mid.shape, np.inf)
+        exact[kb, kp] = segment_box_distance(a_box[kb, kp], b_box[kb, kp], half[kb, kp]) - r[kp]
+        return exact.min(axis=1)
+
+    def in_static_collision(self, q: np.ndarray, *, margin_m: float = 0.0) -> np.ndarray:
+        """Whether each configuration (B, 6) comes closer than ``margin_m`` to the static scene, (B,) bool."""
+        return self.static_clearance(q) < margin_m
+
+    def static_clearance_fcl(self, q: np.ndarray) -> np.ndarray:
+        """Reference implementation of :meth:`static_clearance` with python-fcl (slow; for tests).
+
+        Only meaningful for configurations free of the scene: fcl's distance query does not report a
+        penetration depth (such entries come back as 0 or negative).
+        """
+        import fcl
+
+        q = self._check_q(q, "static_clearance_fcl")
+        a, b, r = self.robot_capsules(q)
+        boxes = [fcl_box(box) for box in self.static_boxes]
+        out = np.full(q.shape[0], np.inf)
+        for k in range(q.shape[0]):
+            for li, bi in zip(self._static_link_idx, self._static_box_idx, strict=True):
+                cap = fcl_capsule(a[k, li], b[k, li], float(r[li]))
+                d = fcl.distance(cap, boxes[bi], fcl.DistanceRequest(), fcl.DistanceResult())
+                out[k] = min(out[k], d)
+        return out
+
+    # ------------------------------------------------------------------ self-collision
+    def self_distances(self, q: np.ndarray) -> np.ndarray:
+        """Signed distances (B, P) of the link pairs :data:`SELF_COLLISION_PAIRS`, m."""
+        q = self._check_q(q, "self_distances")
+        pa, pd = self._robot_segments(q)
+        i, j = self._self_i, self._self_j
+        return capsule_distance(
+            pa[:, i],
+            pa[:, i] + pd[:, i],
+            self.robot_radii[i],
+            pa[:, j],
+            pa[:, j] + pd[:, j],
+            self.robot_radii[j],
+        )
+
+    def self_clearance(self, q: np.ndarray) -> np.ndarray:
+        """Minimum signed distance (B,) between non-adjacent robot links, m."""
+        return self.self_distances(q).min(axis=1)
+
+    def self_collision(self, q: np.ndarray, *, margin_m: float = 0.0) -> np.ndarray:
+        """Whether non-adjacent robot links come closer than ``margin_m``, (B,) bool."""
+        return self.self_clearance(q) < margin_m
+
+    # ------------------------------------------------------------------ checks
+    @staticmethod
+    def _check_q(q: Any, name: str) -> np.ndarray:
+        q = np.asarray(q, dtype=float)
+        if q.ndim != 2 or q.shape[1] != 6:
+            raise ValueError(f"{name}: q must have shape (B, 6), got {q.shape}")
+        return q
+
+    @staticmethod
+    def _check_joints(joints: Any, name: str) -> np.ndarray:
+        joints = np.asarray(joints, dtype=float)
+        if joints.ndim != 3 or joints.shape[1:] != (NUM_JOINTS, 3):
+            raise ValueError(
+                f"{name}: joints must have shape (H, {NUM_JOINTS}, 3) in the canonical joint set, "
+                f"got {joints.shape}"
+            )
+        return joints
