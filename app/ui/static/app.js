@@ -27,6 +27,10 @@
     wsRetry: 0,
     wsTimer: null,
     latest: null,
+    latestText: null,
+    received: 0,
+    minT: -Infinity,
+    connText: "",
     dirty: false,
     lastTrialId: null,
     runningTrialId: null,
@@ -159,6 +163,15 @@
     refreshStudy().catch((err) => showError(describe(err, "Loading the study records")));
   }
 
+  // The 3D view renders continuously. Served from the same site (same host name) the browser would run it in
+  // the page's own renderer process, where software WebGL can starve the live stream; on a loopback address
+  // the other loopback name (127.0.0.1 <-> localhost) is a different site and gets its own process.
+  function viserHost(host) {
+    if (host === "127.0.0.1") return "localhost";
+    if (host === "localhost") return "127.0.0.1";
+    return host;
+  }
+
   function setupViser(port) {
     const frame = $("viser-frame");
     if (!port) {
@@ -166,7 +179,7 @@
       $("viser-empty").hidden = false;
       return;
     }
-    const url = `${location.protocol}//${location.hostname}:${port}/`;
+    const url = `${location.protocol}//${viserHost(location.hostname)}:${port}/`;
     if (frame.getAttribute("src") !== url) frame.setAttribute("src", url);
     $("viser-link").href = url;
   }
@@ -184,6 +197,7 @@
   }
 
   function setConn(text, cls) {
+    state.connText = text;
     $("conn-text").textContent = text;
     $("conn-pill").className = `pill ${cls}`;
   }
@@ -197,21 +211,22 @@
     ws.onopen = () => {
       ws.send(JSON.stringify({ token: state.token }));
     };
+    // Keep message handling cheap: snapshots arrive at up to 30 Hz and can be large (skeleton, forecast,
+    // plans), so only the newest text is kept here and parsed once per animation frame in render().
     ws.onmessage = (ev) => {
-      let msg;
-      try {
-        msg = JSON.parse(ev.data);
-      } catch (_e) {
+      const text = ev.data;
+      if (typeof text !== "string") return;
+      if (text.startsWith('{"type":"error"')) {
+        try {
+          const msg = JSON.parse(text);
+          showError(`Live stream: ${msg.detail || msg.code}`);
+        } catch (_e) {
+          /* not JSON: ignore */
+        }
         return;
       }
-      if (msg.type === "snapshot") {
-        if (state.wsRetry !== 0 || $("conn-text").textContent !== "live") setConn("live", "ok");
-        state.wsRetry = 0;
-        state.latest = msg;
-        state.dirty = true;
-      } else if (msg.type === "error") {
-        showError(`Live stream: ${msg.detail || msg.code}`);
-      }
+      state.latestText = text;
+      state.received += 1;
     };
     ws.onclose = (ev) => {
       state.ws = null;
@@ -241,8 +256,28 @@
   const fmt = (v, digits = 2, unit = "") =>
     v === null || v === undefined || !Number.isFinite(Number(v)) ? "–" : `${Number(v).toFixed(digits)}${unit}`;
 
+  function takeLatest() {
+    const text = state.latestText;
+    if (text === null) return;
+    state.latestText = null;
+    let msg;
+    try {
+      msg = JSON.parse(text);
+    } catch (_e) {
+      return;
+    }
+    if (msg.type !== "snapshot") return;
+    // A snapshot older than a state the server already confirmed (E-stop, reset) is stale: skip it.
+    if (Number.isFinite(msg.t) && msg.t < state.minT) return;
+    if (state.connText !== "live") setConn("live", "ok");
+    state.wsRetry = 0;
+    state.latest = msg;
+    state.dirty = true;
+  }
+
   function render() {
     requestAnimationFrame(render);
+    takeLatest();
     if (!state.dirty || !state.latest) return;
     state.dirty = false;
     const s = state.latest;
@@ -400,6 +435,15 @@
 
   // ------------------------------------------------------------------ robot
 
+  // A REST answer (E-stop, reset) carries the runtime state after the command: show it at once, and ignore
+  // live snapshots taken before it that may still be in flight.
+  function applyStatus(status) {
+    if (Number.isFinite(status.t)) state.minT = status.t;
+    state.latest = Object.assign({}, state.latest || {}, status);
+    state.latestText = null;
+    state.dirty = true;
+  }
+
   async function estop() {
     if (!state.token) {
       showError("Sign in first: the E-stop is sent to the server with the operator token.");
@@ -410,8 +454,7 @@
     try {
       const status = await api("/api/robot/estop", { method: "POST" });
       toast("E-stop sent: the robot is stopped.");
-      state.latest = Object.assign({}, state.latest || {}, status);
-      state.dirty = true;
+      applyStatus(status);
     } catch (err) {
       showError(describe(err, "E-stop"));
     } finally {
@@ -423,8 +466,7 @@
     try {
       const status = await api("/api/robot/reset", { method: "POST" });
       toast("Reset: the robot may run again.");
-      state.latest = Object.assign({}, state.latest || {}, status);
-      state.dirty = true;
+      applyStatus(status);
     } catch (err) {
       showError(describe(err, "Reset"));
     }
@@ -692,9 +734,12 @@
     const nt = summary.n_trials || {};
     if (!(nt.proactive || nt.reactive)) {
       img.hidden = true;
+      $("boxplots-empty").textContent = "No completed trials yet.";
       $("boxplots-empty").hidden = false;
       return;
     }
+    $("boxplots-empty").textContent = "Rendering the box plots…";
+    $("boxplots-empty").hidden = false;
     try {
       const res = await api(`/api/summary/boxplots.png${sessionQuery()}`, { raw: true });
       const blob = await res.blob();
@@ -705,6 +750,7 @@
       img.hidden = false;
       $("boxplots-empty").hidden = true;
     } catch (err) {
+      $("boxplots-empty").textContent = "The box plots could not be drawn.";
       showError(describe(err, "Loading the box plots"));
     }
   }
