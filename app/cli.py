@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from app.control.cli import cell_app
+from app.prediction.cli import hmp_app
 
 if TYPE_CHECKING:
     from app.study.repository import StudyRepository
@@ -58,6 +59,9 @@ def bench(
 
 
 app.add_typer(cell_app, name="cell")
+app.add_typer(hmp_app, name="hmp")
+
+
 # --- study records (app.study) --------------------------------------------------------------------------
 
 db_app = typer.Typer(help="Study database: migrations.", no_args_is_help=True)

@@ -1,0 +1,173 @@
+"""``hrc hmp``: train and evaluate the human motion predictor (registered in :mod:`app.cli`).
+
+Heavy modules (torch, the data loaders) are imported inside the command bodies so ``hrc --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+hmp_app = typer.Typer(
+    name="hmp",
+    help="Human motion prediction: train the Graph-Mixer, evaluate it against the baselines.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+
+
+def _fail(message: str) -> typer.Exit:
+    typer.echo(f"error: {message}", err=True)
+    return typer.Exit(2)
+
+
+@hmp_app.command("train")
+def train_cmd(
+    clips: Annotated[
+        Path | None,
+        typer.Option(help="Clip folder (npz); default: the shared CMU clips (their train split)."),
+    ] = None,
+    extra_clips: Annotated[
+        list[Path] | None,
+        typer.Option("--extra-clips", help="More clip folders to train on (all their clips)."),
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="Weights file to write; default: the shipped asset.")
+    ] = None,
+    checkpoint_dir: Annotated[
+        Path | None, typer.Option(help="Resumable checkpoints; default: var/hmp_checkpoints.")
+    ] = None,
+    val_clips: Annotated[
+        str | None,
+        typer.Option(help="Comma-separated clip names held out for validation (default: one per action)."),
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    steps: Annotated[int, typer.Option(help="Maximum optimiser steps.")] = 20000,
+    batch: Annotated[int, typer.Option(help="Windows per step.")] = 32,
+    lr: Annotated[float, typer.Option(help="Peak learning rate.")] = 2e-3,
+    max_minutes: Annotated[float, typer.Option(help="Wall-time budget (0: none).")] = 14.0,
+    patience: Annotated[int, typer.Option(help="Validations without improvement before stopping.")] = 10,
+    eval_every: Annotated[int, typer.Option(help="Steps between validations and checkpoints.")] = 250,
+    threads: Annotated[int, typer.Option(help="Torch CPU threads.")] = 1,
+    channels: Annotated[int, typer.Option(help="Hidden channels of the network.")] = 48,
+    blocks: Annotated[int, typer.Option(help="Mixer blocks.")] = 3,
+    resume: Annotated[bool, typer.Option(help="Continue from the last checkpoint.")] = False,
+    progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+) -> None:
+    """Train the Graph-Mixer on clips (CMU train split + your own); write weights, quantiles, model card."""
+    from app.prediction.data import DEFAULT_VAL_CLIPS, ClipError, load_clip_dir, require_cmu_dir, split_clips
+    from app.prediction.graphmixer import GraphMixerConfig
+    from app.prediction.predictor import DEFAULT_WEIGHTS
+    from app.prediction.train import TrainConfig, train
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        base_dir = require_cmu_dir(clips)
+        base = load_clip_dir(base_dir, split="train" if (base_dir / "train").is_dir() else None)
+        test = load_clip_dir(base_dir, split="test") if (base_dir / "test").is_dir() else []
+        names = tuple(n.strip() for n in val_clips.split(",")) if val_clips else DEFAULT_VAL_CLIPS
+        train_clips, val = split_clips(base, names)
+        if not val:
+            raise ClipError(
+                f"none of the validation clips {', '.join(names)} is in {base_dir}; pass --val-clips"
+            )
+        extra = [c for d in (extra_clips or []) for c in load_clip_dir(d)]
+    except ClipError as exc:
+        raise _fail(str(exc)) from exc
+    cfg = TrainConfig(
+        seed=seed,
+        steps=steps,
+        batch=batch,
+        lr=lr,
+        max_minutes=max_minutes or None,
+        patience=patience,
+        eval_every=eval_every,
+        threads=threads,
+        model=GraphMixerConfig(channels=channels, blocks=blocks),
+    )
+    note = f"Clip folder: {base_dir.name}" + (
+        f"; extra clips: {', '.join(c.name for c in extra)}" if extra else ""
+    )
+    result = train(
+        [*train_clips, *extra],
+        val,
+        cfg,
+        out=out or DEFAULT_WEIGHTS,
+        checkpoint_dir=checkpoint_dir or Path("var") / "hmp_checkpoints",
+        test_clips=test,
+        resume=resume,
+        progress=progress,
+        data_note=note,
+    )
+    typer.echo(
+        f"wrote {result.weights} ({result.steps} steps, kept step {result.best_step}, "
+        f"validation MPJPE {result.val_mpjpe_mm:.1f} mm, stopped by {result.stopped}, "
+        f"{result.minutes:.1f} min)"
+    )
+    typer.echo(f"model card: {result.card}; error quantiles: {result.quantiles}")
+
+
+@hmp_app.command("eval")
+def eval_cmd(
+    clips: Annotated[
+        Path | None, typer.Option(help="Clip folder (npz); default: the shared CMU clips.")
+    ] = None,
+    split: Annotated[str, typer.Option(help="Sub-folder / split to evaluate ('' for all clips).")] = "test",
+    weights: Annotated[
+        Path | None, typer.Option(help="Graph-Mixer weights; default: the shipped ones.")
+    ] = None,
+    stride: Annotated[int, typer.Option(help="Stride between evaluation windows.")] = 1,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+) -> None:
+    """MPJPE (mm) at 80..1000 ms of the Graph-Mixer and both baselines on clips (default: CMU test split)."""
+    import torch
+
+    from app.prediction.data import ClipError, load_clip_dir, require_cmu_dir
+    from app.prediction.evaluate import HORIZONS_MS, evaluate_clips
+    from app.prediction.predictor import MotionPredictor
+
+    torch.set_num_threads(1)
+    try:
+        directory = require_cmu_dir(clips)
+        clip_set = load_clip_dir(directory, split=split or None)
+    except ClipError as exc:
+        raise _fail(str(exc)) from exc
+    predictor = MotionPredictor(kind="graphmixer", weights=weights)
+    predictors = {
+        "constant_velocity": lambda obs, H: predictor.predict_batch(obs, kind="constant_velocity")[:, :H],
+        "zero_velocity": lambda obs, H: predictor.predict_batch(obs, kind="zero_velocity")[:, :H],
+    }
+    if predictor.model is not None:
+        predictors = {"graphmixer": lambda obs, H: predictor.predict_batch(obs, kind="graphmixer")[:, :H]} | (
+            predictors
+        )
+    try:
+        results = evaluate_clips(
+            clip_set,
+            predictors,
+            t_in=predictor.history,
+            horizon=predictor.horizon,
+            fps=predictor.fps,
+            stride=stride,
+        )
+    except ValueError as exc:
+        raise _fail(str(exc)) from exc
+    report = {
+        "clips": str(directory) + (f" ({split})" if split else ""),
+        "windows": next(iter(results.values()))["windows"],
+        "weights": str(weights or "shipped") if predictor.model is not None else None,
+        "mpjpe_mm": {k: v["mpjpe_mm"] for k, v in results.items()},
+    }
+    if as_json:
+        typer.echo(json.dumps(report))
+        return
+    typer.echo(f"{report['clips']}: {report['windows']} windows; MPJPE in mm")
+    typer.echo(f"{'predictor':<18}" + "".join(f"{ms:>8}" for ms in HORIZONS_MS))
+    for kind, row in report["mpjpe_mm"].items():
+        typer.echo(f"{kind:<18}" + "".join(f"{row[str(ms)]:>8.1f}" for ms in HORIZONS_MS))
+    if predictor.model is None:
+        typer.echo("(no usable Graph-Mixer weights: baselines only)")

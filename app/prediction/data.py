@@ -1,0 +1,268 @@
+"""Clips of joint positions for training and evaluating motion predictors, and their augmentation.
+
+A clip file is an ``.npz`` with ``positions`` (T, K, 3) in metres, z up, ``fps`` and ``joint_names`` (K,).
+Two joint sets are understood: the 38-joint CMU skeleton of the shared ``cmu_mocap`` clips (converted with
+:func:`~app.prediction.adapters.from_cmu38`, orientation fix included) and the canonical joint set itself
+(``joint_names == JOINTS``), which is the format users add their own recordings in. Clips at another frame
+rate are resampled to 30 Hz by linear interpolation.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from app.prediction.adapters import CMU38_NAMES, from_cmu38
+from app.prediction.skeleton import JOINTS, MIRROR_PERMUTATION, NUM_JOINTS
+
+log = logging.getLogger(__name__)
+
+FPS = 30.0
+
+#: Train-split clips held out for validation (early stopping and the shipped error quantiles):
+#: one clip of every action of the CMU train split.
+DEFAULT_VAL_CLIPS: tuple[str, ...] = (
+    "basketball_5",
+    "basketball_signal_5",
+    "directing_traffic_4",
+    "jumping_5",
+    "running_5",
+    "soccer_5",
+    "walking_5",
+)
+
+
+class ClipError(ValueError):
+    """A clip file or folder could not be used; the message says which and why."""
+
+
+@dataclass(frozen=True)
+class Clip:
+    """One recording in the canonical joint set.
+
+    Attributes:
+        name: Clip name (file stem, prefixed by its split folder where there is one).
+        positions: Joint positions (T, J, 3) in metres, z up, at :data:`FPS`.
+        action: Action label, or ``""``.
+    """
+
+    name: str
+    positions: np.ndarray
+    action: str = ""
+
+    def __post_init__(self) -> None:
+        if self.positions.ndim != 3 or self.positions.shape[1:] != (NUM_JOINTS, 3):
+            raise ClipError(
+                f"clip {self.name!r}: positions must be (T, {NUM_JOINTS}, 3), got {self.positions.shape}"
+            )
+
+    @property
+    def frames(self) -> int:
+        return int(self.positions.shape[0])
+
+
+def resample(positions: np.ndarray, factor: float) -> np.ndarray:
+    """Resample (T, J, 3) in time: output frame k is input time ``k * factor`` (linear interpolation).
+
+    ``factor > 1`` speeds the motion up (fewer frames), ``factor < 1`` slows it down.
+    """
+    T = positions.shape[0]
+    if factor <= 0:
+        raise ValueError(f"resample factor must be positive, got {factor}")
+    src = np.arange(0.0, T - 1 + 1e-9, factor)
+    i0 = np.clip(np.floor(src).astype(np.int64), 0, T - 1)
+    i1 = np.clip(i0 + 1, 0, T - 1)
+    w = (src - i0)[:, None, None]
+    return positions[i0] * (1.0 - w) + positions[i1] * w
+
+
+def load_clip(path: str | Path, *, name: str | None = None, action: str = "") -> Clip:
+    """Load one ``.npz`` clip and convert it to the canonical joint set at 30 Hz."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            positions = np.asarray(data["positions"], dtype=np.float64)
+            fps = float(data["fps"]) if "fps" in data else FPS
+            names = tuple(str(n) for n in data["joint_names"]) if "joint_names" in data else None
+    except (OSError, KeyError, ValueError) as exc:
+        raise ClipError(f"cannot read clip {path}: {exc} (need 'positions', 'fps', 'joint_names')") from exc
+    if positions.ndim != 3 or positions.shape[-1] != 3:
+        raise ClipError(f"clip {path}: positions must be (T, K, 3), got {positions.shape}")
+    if names == CMU38_NAMES:
+        joints = from_cmu38(positions)
+    elif names == JOINTS or (names is None and positions.shape[1] == NUM_JOINTS):
+        joints = positions
+    else:
+        raise ClipError(
+            f"clip {path}: unknown joint set with {positions.shape[1]} joints; use the CMU 38-joint names "
+            f"or the canonical JOINTS ({NUM_JOINTS})"
+        )
+    if not np.all(np.isfinite(joints)):
+        raise ClipError(f"clip {path}: positions contain NaN or infinite values")
+    if abs(fps - FPS) > 1e-6:
+        joints = resample(joints, fps / FPS)
+    return Clip(name=name or path.stem, positions=joints, action=action)
+
+
+def load_clip_dir(directory: str | Path, *, split: str | None = None) -> list[Clip]:
+    """All clips under ``directory`` (sorted by name), optionally only those of ``split`` (train/test).
+
+    With an ``index.json`` (as in the shared CMU folder) its entries are used; otherwise every ``*.npz`` below
+    the folder (a split selects the sub-folder of that name when there is one).
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise ClipError(f"clip folder {directory} does not exist")
+    clips: list[Clip] = []
+    index = directory / "index.json"
+    if index.is_file():
+        entries = json.loads(index.read_text())
+        for e in entries:
+            rel = Path(e["file"])
+            if split is not None and rel.parts[0] != split:
+                continue
+            clips.append(load_clip(directory / rel, name=rel.stem, action=str(e.get("action", ""))))
+    else:
+        root = directory / split if split is not None and (directory / split).is_dir() else directory
+        for p in sorted(root.rglob("*.npz")):
+            clips.append(load_clip(p, name=p.stem))
+    if not clips:
+        raise ClipError(f"no clips found in {directory}" + (f" for split {split!r}" if split else ""))
+    return sorted(clips, key=lambda c: c.name)
+
+
+def default_cmu_dir() -> Path | None:
+    """The shared CMU clips if present: ``$HRC_CMU_DIR``, or ``../shared/data/cmu_mocap`` by the repo."""
+    env = os.environ.get("HRC_CMU_DIR")
+    candidates = [Path(env)] if env else []
+    repo = Path(__file__).resolve().parents[2]
+    candidates += [
+        repo.parent / "shared" / "data" / "cmu_mocap",
+        Path.cwd().parent / "shared" / "data" / "cmu_mocap",
+    ]
+    for c in candidates:
+        if (c / "index.json").is_file() or (c.is_dir() and any(c.rglob("*.npz"))):
+            return c
+    return None
+
+
+def require_cmu_dir(path: str | Path | None) -> Path:
+    """``path`` if given, else the shared CMU clips; raises :class:`ClipError` with what to do if absent."""
+    if path is not None:
+        return Path(path)
+    found = default_cmu_dir()
+    if found is None:
+        raise ClipError(
+            "no clip set given and the CMU clips were not found (looked at $HRC_CMU_DIR and "
+            "../shared/data/cmu_mocap); pass --clips DIR with .npz clips (positions, fps, joint_names)"
+        )
+    return found
+
+
+def split_clips(clips: Sequence[Clip], val_names: Iterable[str]) -> tuple[list[Clip], list[Clip]]:
+    """(train, validation) by clip name."""
+    val_set = set(val_names)
+    train = [c for c in clips if c.name not in val_set]
+    val = [c for c in clips if c.name in val_set]
+    return train, val
+
+
+def windows(clips: Sequence[Clip], length: int, *, stride: int = 1) -> np.ndarray:
+    """Every window of ``length`` consecutive frames (stride ``stride``): (N, length, J, 3)."""
+    out = [c.positions[s : s + length] for c in clips for s in range(0, c.frames - length + 1, stride)]
+    if not out:
+        return np.zeros((0, length, NUM_JOINTS, 3))
+    return np.stack(out)
+
+
+def rotate_z(x: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Rotate poses (B, ..., 3) about the world z axis by ``yaw`` (B,) radians."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.zeros((yaw.shape[0], 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    flat = x.reshape(x.shape[0], -1, 3)
+    return np.einsum("bij,bnj->bni", R, flat).reshape(x.shape)
+
+
+def mirror(x: np.ndarray) -> np.ndarray:
+    """Mirror poses (..., J, 3) across the world x-z plane and swap left and right joints."""
+    y = x[..., MIRROR_PERMUTATION, :].copy()
+    y[..., 1] = -y[..., 1]
+    return y
+
+
+@dataclass(frozen=True)
+class Augmentation:
+    """Random augmentation of training windows.
+
+    Attributes:
+        rotate: Rotate about the vertical by a uniform angle in [-pi, pi).
+        translate_m: Uniform horizontal shift in [-translate_m, translate_m] (m) per axis.
+        mirror_p: Probability of mirroring (x-z plane, left and right swapped).
+        speed: Range of the playback speed factor (resampled by linear interpolation).
+        noise_m: Standard deviation of Gaussian noise (m) added to the observed frames only.
+    """
+
+    rotate: bool = True
+    translate_m: float = 2.0
+    mirror_p: float = 0.5
+    speed: tuple[float, float] = (0.8, 1.25)
+    noise_m: float = 0.0
+
+
+class WindowSampler:
+    """Draws augmented training windows (B, t_in + horizon, J, 3) from clips, seeded.
+
+    Args:
+        clips: Training clips (each at least long enough for one window at the fastest speed).
+        length: Frames per window (observed + predicted).
+        augmentation: What to randomise; ``None`` draws plain windows.
+        seed: Seed of the sampler's generator.
+    """
+
+    def __init__(
+        self, clips: Sequence[Clip], length: int, *, augmentation: Augmentation | None = None, seed: int = 0
+    ) -> None:
+        self.length = length
+        self.aug = augmentation
+        self.rng = np.random.default_rng(seed)
+        max_speed = augmentation.speed[1] if augmentation else 1.0
+        need = int(np.ceil((length - 1) * max_speed)) + 2
+        self.clips = [c for c in clips if c.frames >= need]
+        if not self.clips:
+            raise ClipError(f"no clip has the {need} frames one training window needs")
+        weights = np.array([c.frames - need + 1 for c in self.clips], dtype=np.float64)
+        self.p = weights / weights.sum()
+
+    def sample(self, batch: int) -> np.ndarray:
+        """A batch (B, length, J, 3) of windows, world frame, metres."""
+        out = np.empty((batch, self.length, NUM_JOINTS, 3))
+        aug = self.aug
+        idx = self.rng.choice(len(self.clips), size=batch, p=self.p)
+        for b, ci in enumerate(idx):
+            pos = self.clips[ci].positions
+            speed = self.rng.uniform(*aug.speed) if aug else 1.0
+            span = (self.length - 1) * speed
+            start = self.rng.uniform(0.0, pos.shape[0] - 1 - span)
+            t = start + speed * np.arange(self.length)
+            i0 = np.minimum(np.floor(t).astype(np.int64), pos.shape[0] - 2)
+            w = (t - i0)[:, None, None]
+            out[b] = pos[i0] * (1.0 - w) + pos[i0 + 1] * w
+        if aug is None:
+            return out
+        if aug.mirror_p > 0:
+            m = self.rng.random(batch) < aug.mirror_p
+            out[m] = mirror(out[m])
+        if aug.rotate:
+            out = rotate_z(out, self.rng.uniform(-np.pi, np.pi, size=batch))
+        if aug.translate_m > 0:
+            shift = self.rng.uniform(-aug.translate_m, aug.translate_m, size=(batch, 1, 1, 3))
+            shift[..., 2] = 0.0
+            out = out + shift
+        return out

@@ -1,0 +1,157 @@
+"""Evaluation of motion predictors on clips: MPJPE per horizon and per-horizon error quantiles.
+
+Protocol: every window of ``t_in`` observed + ``horizon`` future frames of every clip (stride 1 unless told
+otherwise), in the world frame. The error at a horizon in milliseconds that falls between two frames (80 ms is
+frame 2.4 at 30 Hz) is measured between the prediction and the ground truth, both linearly interpolated in
+time at that instant (index 0 being the last observed pose, where both coincide).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+
+from app.prediction.baselines import constant_velocity, zero_velocity
+from app.prediction.data import Clip, windows
+
+#: Horizons (ms) reported by ``hrc hmp eval`` and ``hrc bench hmp``.
+HORIZONS_MS: tuple[int, ...] = (80, 160, 320, 400, 560, 720, 880, 1000)
+
+#: Quantiles of the per-joint error stored with the weights ("p95" is the default margin).
+QUANTILES: tuple[int, ...] = (50, 90, 95, 99)
+
+PredictFn = Callable[[np.ndarray], np.ndarray]
+
+
+def interpolate_horizon(seq: np.ndarray, t_s: float, fps: float) -> np.ndarray:
+    """Poses (N, J, 3) at ``t_s`` after the last observation from ``seq`` (N, H + 1, J, 3) (index 0 = t 0)."""
+    x = t_s * fps
+    H = seq.shape[1] - 1
+    if not 0.0 <= x <= H + 1e-9:
+        raise ValueError(
+            f"horizon {t_s * 1000:.0f} ms is outside the forecast (0 .. {H / fps * 1000:.0f} ms)"
+        )
+    k0 = min(int(np.floor(x + 1e-9)), H - 1) if H > 0 else 0
+    w = x - k0
+    if H == 0:
+        return seq[:, 0]
+    return seq[:, k0] * (1.0 - w) + seq[:, k0 + 1] * w
+
+
+def mpjpe_at_horizons(
+    last_obs: np.ndarray,
+    pred: np.ndarray,
+    target: np.ndarray,
+    *,
+    fps: float,
+    horizons_ms: Sequence[int] = HORIZONS_MS,
+) -> dict[str, float]:
+    """MPJPE in millimetres at each horizon.
+
+    Args:
+        last_obs: Last observed poses (N, J, 3).
+        pred: Predicted future poses (N, H, J, 3), frame k at ``k / fps`` after the last observation.
+        target: True future poses (N, H, J, 3).
+        fps: Frame rate (Hz).
+        horizons_ms: Horizons to report (ms).
+
+    Returns:
+        ``{"80": mm, ...}`` keyed by the horizon in ms as a string.
+    """
+    if pred.shape != target.shape or pred.ndim != 4 or last_obs.shape != pred[:, 0].shape:
+        raise ValueError(
+            f"shape mismatch: last_obs {last_obs.shape}, pred {pred.shape}, target {target.shape}"
+        )
+    p = np.concatenate([last_obs[:, None], pred], axis=1)
+    g = np.concatenate([last_obs[:, None], target], axis=1)
+    out: dict[str, float] = {}
+    for ms in horizons_ms:
+        a = interpolate_horizon(p, ms / 1000.0, fps)
+        b = interpolate_horizon(g, ms / 1000.0, fps)
+        out[str(ms)] = float(np.linalg.norm(a - b, axis=-1).mean() * 1000.0)
+    return out
+
+
+def error_quantiles(pred: np.ndarray, target: np.ndarray) -> dict[str, list[float]]:
+    """Per-horizon-step quantiles (m) of the per-joint error, with a leading 0 for the observed pose.
+
+    Args:
+        pred: Predicted future poses (N, H, J, 3).
+        target: True future poses (N, H, J, 3).
+
+    Returns:
+        ``{"p50": [H + 1 values], "p90": ..., "p95": ..., "p99": ..., "max_p95": ...}``; ``max_p95`` is the
+        95th percentile over windows of the largest joint error of the pose.
+    """
+    err = np.linalg.norm(pred - target, axis=-1)  # (N, H, J)
+    out: dict[str, list[float]] = {}
+    for q in QUANTILES:
+        per_step = np.percentile(err.transpose(1, 0, 2).reshape(err.shape[1], -1), q, axis=1)
+        out[f"p{q}"] = [0.0, *(float(v) for v in per_step)]
+    out["max_p95"] = [0.0, *(float(v) for v in np.percentile(err.max(axis=2), 95, axis=0))]
+    return out
+
+
+def baseline_fns() -> dict[str, PredictFn]:
+    """The two baselines as ``obs (N, T, J, 3) -> pred (N, H, J, 3)`` with H bound at call time."""
+    return {"constant_velocity": constant_velocity, "zero_velocity": zero_velocity}
+
+
+def evaluate_windows(
+    data: np.ndarray,
+    predictors: Mapping[str, Callable[[np.ndarray, int], np.ndarray]],
+    *,
+    t_in: int,
+    fps: float,
+    horizons_ms: Sequence[int] = HORIZONS_MS,
+    with_quantiles: bool = False,
+) -> dict[str, dict]:
+    """Evaluate predictors on windows (N, t_in + H, J, 3).
+
+    Args:
+        data: Windows of consecutive frames (world frame, metres).
+        predictors: ``name -> fn(obs (N, t_in, J, 3), H) -> pred (N, H, J, 3)``.
+        t_in: Observed frames per window.
+        fps: Frame rate (Hz).
+        horizons_ms: Horizons to report.
+        with_quantiles: Also return the per-step error quantiles of each predictor.
+
+    Returns:
+        ``{name: {"mpjpe_mm": {"80": ...}, "quantiles_m": {...}?}}``.
+    """
+    if data.ndim != 4 or data.shape[1] <= t_in:
+        raise ValueError(f"windows must be (N, t_in + H, J, 3) with H >= 1, got {data.shape} for t_in={t_in}")
+    if data.shape[0] == 0:
+        raise ValueError("no evaluation windows: the clips are shorter than t_in + horizon frames")
+    obs, fut = data[:, :t_in], data[:, t_in:]
+    H = fut.shape[1]
+    results: dict[str, dict] = {}
+    for name, fn in predictors.items():
+        pred = np.asarray(fn(obs, H), dtype=np.float64)
+        entry: dict = {"mpjpe_mm": mpjpe_at_horizons(obs[:, -1], pred, fut, fps=fps, horizons_ms=horizons_ms)}
+        if with_quantiles:
+            entry["quantiles_m"] = error_quantiles(pred, fut)
+        results[name] = entry
+    return results
+
+
+def evaluate_clips(
+    clips: Sequence[Clip],
+    predictors: Mapping[str, Callable[[np.ndarray, int], np.ndarray]],
+    *,
+    t_in: int = 10,
+    horizon: int = 30,
+    fps: float = 30.0,
+    stride: int = 1,
+    horizons_ms: Sequence[int] = HORIZONS_MS,
+    with_quantiles: bool = False,
+) -> dict[str, dict]:
+    """:func:`evaluate_windows` on every window of ``clips``; also reports the ``windows`` count."""
+    data = windows(clips, t_in + horizon, stride=stride)
+    results = evaluate_windows(
+        data, predictors, t_in=t_in, fps=fps, horizons_ms=horizons_ms, with_quantiles=with_quantiles
+    )
+    for entry in results.values():
+        entry["windows"] = int(data.shape[0])
+    return results
