@@ -169,7 +169,7 @@ _HUMAN_B = np.array([*BONES[:, 1], JOINT_INDEX["head"]])
 _TINY = 1e-18  # m^4: below this the segments are treated as parallel (error below 1e-8 m, see _closest_sq)
 # Work arrays are kept below 128 KiB: larger ones are mmap-ed by glibc on every allocation and page-faulted on
 # first touch, which costs more than the arithmetic.
-_BLOCK_ELEMS = 12_000
+_BLOCK_ELEMS = 10_000
 
 
 def _clip01(x: np.ndarray) -> None:
@@ -178,76 +178,92 @@ def _clip01(x: np.ndarray) -> None:
 
 
 def _closest_sq(
-    a: np.ndarray,
-    e: np.ndarray,
     b: np.ndarray,
     c: np.ndarray,
     f: np.ndarray,
-    rr: np.ndarray,
+    rh: np.ndarray,
+    a: np.ndarray,
+    e: np.ndarray,
     inv_a: np.ndarray,
     inv_e: np.ndarray,
+    work: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
 ) -> np.ndarray:
     """Squared distance between segments p1 + s d1 and p2 + t d2 (s, t in [0, 1]) from their dot products.
 
-    ``a = d1.d1, e = d2.d2, b = d1.d2, c = d1.r, f = d2.r, rr = r.r`` with ``r = p1 - p2``; ``inv_a`` and
-    ``inv_e`` are 1/a, 1/e (0 for a point). ``b, c, f, rr`` have the full shape, the others broadcast to it;
-    ``c``, ``f`` and ``rr`` are overwritten (``rr`` becomes the result). The squared distance is expanded in
-    dot products, so near contact its square root is precise to about sqrt(round-off) * |r|, a few 1e-8 m.
+    ``b = d1.d2, c = d1.r, f = d2.r, rh = r.r / 2, a = d1.d1, e = d2.d2`` with ``r = p1 - p2``; ``inv_a`` and
+    ``inv_e`` are 1/a and 1/e (0 for a point). All broadcast to the shape of the four ``work`` arrays; the
+    result is written into ``work[0]`` and returned. The squared distance is expanded in dot products, so near
+    contact its square root is precise to about sqrt(round-off) * |r|, a few 1e-8 m.
 
     Closest points as in Ericson, Real-Time Collision Detection, 5.1.9, written without branches: the
     unconstrained s clamped, the best t for it clamped, the best s for that t clamped. This is exact (a convex
     problem; for (near-)parallel segments any clamped start gives the minimum up to |d1| * angle < 1e-8 m).
     """
-    denom = np.multiply(a, e)
-    tmp = np.multiply(b, b)
-    denom -= tmp
-    np.maximum(denom, _TINY, out=denom)
-    s = np.multiply(b, f)
-    np.multiply(c, e, out=tmp)
-    s -= tmp
-    s /= denom
+    w1, w2, s, t = work
+    np.multiply(a, e, out=w1)  # denominator a e - b^2
+    np.multiply(b, b, out=w2)
+    w1 -= w2
+    np.maximum(w1, _TINY, out=w1)
+    np.multiply(b, f, out=s)  # s = (b f - c e) / denominator
+    np.multiply(c, e, out=w2)
+    s -= w2
+    s /= w1
     _clip01(s)
-    t = np.multiply(b, s, out=denom)
+    np.multiply(b, s, out=t)  # t = (b s + f) / e
     t += f
     t *= inv_e
     _clip01(t)
-    np.multiply(b, t, out=s)
+    np.multiply(b, t, out=s)  # s = (b t - c) / a
     s -= c
     s *= inv_a
     _clip01(s)
-    # |r + s d1 - t d2|^2 = rr + s (a s + 2 (c - t b)) + t (e t - 2 f)
-    np.multiply(t, b, out=tmp)
-    c -= tmp
-    c *= 2.0
-    np.multiply(a, s, out=tmp)
-    tmp += c
-    tmp *= s
-    rr += tmp
-    np.multiply(e, t, out=tmp)
-    f *= 2.0
-    tmp -= f
-    tmp *= t
-    rr += tmp
-    np.maximum(rr, 0.0, out=rr)
-    return rr
+    # |r + s d1 - t d2|^2 = 2 rh + s (a s + 2 (c - t b)) + t (e t - 2 f)
+    np.multiply(t, b, out=w2)
+    np.subtract(c, w2, out=w2)
+    w2 *= 2.0
+    np.multiply(a, s, out=w1)
+    w1 += w2
+    w1 *= s
+    np.multiply(e, t, out=w2)
+    w2 -= f
+    w2 -= f
+    w2 *= t
+    w1 += w2
+    w1 += rh
+    w1 += rh
+    np.maximum(w1, 0.0, out=w1)
+    return w1
 
 
 def _inv(x: np.ndarray) -> np.ndarray:
     return np.divide(1.0, x, out=np.zeros_like(x), where=x > _TINY)
 
 
+def _work(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    return np.empty(shape), np.empty(shape), np.empty(shape), np.empty(shape)
+
+
 def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
     """Distances between segments [p1, q1] and [p2, q2], all (..., 3) broadcastable; returns (...,) in m."""
     p1, q1, p2, q2 = (np.asarray(v, dtype=float) for v in (p1, q1, p2, q2))
+    p1, q1, p2, q2 = np.broadcast_arrays(p1, q1, p2, q2)
+    shape = p1.shape[:-1]
+    # component-major (3, N): every product below is one contiguous pass
+    p1, q1, p2, q2 = (np.ascontiguousarray(v.reshape(-1, 3).T) for v in (p1, q1, p2, q2))
     d1 = q1 - p1
     d2 = q2 - p2
     r = p1 - p2
-    dot = lambda u, v: np.einsum("...i,...i->...", u, v)  # noqa: E731
-    a, e, b, c, f, rr = dot(d1, d1), dot(d2, d2), dot(d1, d2), dot(d1, r), dot(d2, r), dot(r, r)
-    a, e, b, c, f, rr = np.broadcast_arrays(a, e, b, c, f, rr)
-    shape = a.shape
-    a, e, b, c, f, rr = (np.array(v, dtype=float).reshape(-1) for v in (a, e, b, c, f, rr))
-    return np.sqrt(_closest_sq(a, e, b, c, f, rr, _inv(a), _inv(e))).reshape(shape)
+
+    def dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        out = u[0] * v[0]
+        out += u[1] * v[1]
+        out += u[2] * v[2]
+        return out
+
+    a, e = dot(d1, d1), dot(d2, d2)
+    rh = 0.5 * dot(r, r)
+    sq = _closest_sq(dot(d1, d2), dot(d1, r), dot(d2, r), rh, a, e, _inv(a), _inv(e), _work(a.shape))
+    return np.sqrt(sq).reshape(shape)
 
 
 def capsule_distance(
@@ -257,59 +273,107 @@ def capsule_distance(
     return segment_distance(p1, q1, p2, q2) - np.asarray(r1) - np.asarray(r2)
 
 
+# Every dot product of the segment-segment problem is one entry of a matrix product of augmented vectors:
+#   robot rows  D = [d1, d1.p1, 0, 0]       P = [p1, 0, 1, |p1|^2 / 2]
+#   person cols D = [d2, 0, -d2.p2, 0]      P = [-p2, 1, |p2|^2 / 2, 1]
+# gives D.D = b, D.P = c = d1.(p1 - p2), P.D = f = d2.(p1 - p2), P.P = |p1 - p2|^2 / 2.
+_FEATURES = 6
+
+
+def _robot_features(a_c: np.ndarray, d_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Augmented robot rows (K, 2L, 6) and a = d1.d1 (K, L) from component-major segments (L, 3, K)."""
+    L, _, K = a_c.shape
+    U = np.zeros((K, 2 * L, _FEATURES))
+    a = d_c[:, 0] * d_c[:, 0]
+    dp = d_c[:, 0] * a_c[:, 0]
+    pp = a_c[:, 0] * a_c[:, 0]
+    for i in range(3):
+        U[:, :L, i] = d_c[:, i].T
+        U[:, L:, i] = a_c[:, i].T
+        if i:
+            a += d_c[:, i] * d_c[:, i]
+            dp += d_c[:, i] * a_c[:, i]
+            pp += a_c[:, i] * a_c[:, i]
+    U[:, :L, 3] = dp.T
+    U[:, L:, 4] = 1.0
+    U[:, L:, 5] = 0.5 * pp.T
+    return U, np.ascontiguousarray(a.T)
+
+
+def _human_features(joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Augmented person columns (H, 6, 2M) and e = d2.d2 (H, M) for poses (H, J, 3)."""
+    jt = np.ascontiguousarray(joints.transpose(1, 2, 0))  # (J, 3, H)
+    p2 = jt[_HUMAN_A]  # (M, 3, H)
+    d2 = jt[_HUMAN_B]
+    d2 -= p2
+    M, _, H = p2.shape
+    V = np.zeros((H, _FEATURES, 2 * M))
+    e = d2[:, 0] * d2[:, 0]
+    dp = d2[:, 0] * p2[:, 0]
+    pp = p2[:, 0] * p2[:, 0]
+    for i in range(3):
+        V[:, i, :M] = d2[:, i].T
+        V[:, i, M:] = p2[:, i].T
+        if i:
+            e += d2[:, i] * d2[:, i]
+            dp += d2[:, i] * p2[:, i]
+            pp += p2[:, i] * p2[:, i]
+    np.negative(V[:, :3, M:], out=V[:, :3, M:])
+    V[:, 4, :M] = dp.T
+    np.negative(V[:, 4, :M], out=V[:, 4, :M])
+    V[:, 3, M:] = 1.0
+    V[:, 4, M:] = 0.5 * pp.T
+    V[:, 5, M:] = 1.0
+    return V, np.ascontiguousarray(e.T)
+
+
 def _cross_min_distance(
-    pa: np.ndarray,
-    pd: np.ndarray,
-    ra: np.ndarray,
-    ha: np.ndarray,
-    hd: np.ndarray,
-    rh: np.ndarray,
+    U: np.ndarray, a: np.ndarray, ra: np.ndarray, V: np.ndarray, e: np.ndarray, rh: np.ndarray
 ) -> np.ndarray:
     """Min signed distance between every robot configuration and every person pose.
 
     Args:
-        pa, pd: Robot segment starts and directions (B, L, 3).
+        U, a: Robot features (B, 2L, 6) and squared segment lengths (B, L) (:func:`_robot_features`).
         ra: Robot radii (L,).
-        ha, hd: Person segment starts and directions (H, M, 3).
+        V, e: Person features (H, 6, 2M) and squared segment lengths (H, M) (:func:`_human_features`).
         rh: Person radii (M,).
 
     Returns:
         (B, H) minimum over the L x M capsule pairs.
     """
-    B, L, _ = pa.shape
-    H, M, _ = ha.shape
+    B, L = a.shape
+    H, M = e.shape
     out = np.empty((B, H))
     hb = max(1, min(H, _BLOCK_ELEMS // (L * M)))  # poses per block
-    rows = max(1, _BLOCK_ELEMS // (L * M * hb))  # configurations per block
+    rows = max(1, min(B, _BLOCK_ELEMS // (L * M * hb)))  # configurations per block
     rsum = (ra[:, None] + rh[None, :])[:, None, :]  # (L, 1, M)
-    pa2 = pa.reshape(B * L, 3)
-    pd2 = pd.reshape(B * L, 3)
-    a_all = np.einsum("ij,ij->i", pd2, pd2)
-    dp1_all = np.einsum("ij,ij->i", pd2, pa2)
-    pp1_all = np.einsum("ij,ij->i", pa2, pa2)
-    inv_a_all = _inv(a_all)
+    inv_a = _inv(a)
+    inv_e = _inv(e)
+    work = _work((rows * L, hb * M))
     for h0 in range(0, H, hb):
         h1 = min(H, h0 + hb)
         nh = (h1 - h0) * M
-        d2 = hd[h0:h1].reshape(nh, 3)
-        p2 = ha[h0:h1].reshape(nh, 3)
-        V = np.concatenate([d2, p2], axis=0).T.copy()  # (3, 2 nh)
-        e = np.einsum("ij,ij->i", d2, d2)[None, :]
-        dp2 = np.einsum("ij,ij->i", d2, p2)[None, :]
-        pp2 = np.einsum("ij,ij->i", p2, p2)[None, :]
-        inv_e = _inv(e)
+        # columns [D of every pose, then P of every pose]
+        Vb = V[h0:h1].reshape(h1 - h0, _FEATURES, 2, M).transpose(1, 2, 0, 3).reshape(_FEATURES, 2 * nh)
+        eb = e[h0:h1].reshape(1, nh)
+        ieb = inv_e[h0:h1].reshape(1, nh)
         for b0 in range(0, B, rows):
             b1 = min(B, b0 + rows)
-            i0, i1 = b0 * L, b1 * L
-            n = i1 - i0
-            U = np.concatenate([pd2[i0:i1], pa2[i0:i1]], axis=0)  # (2n, 3)
-            G = U @ V  # (2n, 2nh): [d1.d2, d1.p2; p1.d2, p1.p2]
-            c = dp1_all[i0:i1, None] - G[:n, nh:]  # d1.(p1 - p2)
-            f = G[n:, :nh] - dp2  # d2.(p1 - p2)
-            rr = G[n:, nh:] * -2.0
-            rr += pp1_all[i0:i1, None]
-            rr += pp2
-            sq = _closest_sq(a_all[i0:i1, None], e, G[:n, :nh], c, f, rr, inv_a_all[i0:i1, None], inv_e)
+            n = (b1 - b0) * L
+            Ub = U[b0:b1].reshape(b1 - b0, 2, L, _FEATURES).transpose(1, 0, 2, 3).reshape(2 * n, _FEATURES)
+            G = Ub @ Vb  # (2n, 2nh): [b, c; f, rr / 2]
+            w = work if n == work[0].shape[0] and nh == work[0].shape[1] else _work((n, nh))
+            sq = _closest_sq(
+                G[:n, :nh],
+                G[:n, nh:],
+                G[n:, :nh],
+                G[n:, nh:],
+                a[b0:b1].reshape(n, 1),
+                eb,
+                inv_a[b0:b1].reshape(n, 1),
+                ieb,
+                w,
+            )
             dist = np.sqrt(sq, out=sq).reshape(b1 - b0, L, h1 - h0, M)
             dist -= rsum
             out[b0:b1, h0:h1] = dist.min(axis=(1, 3))
@@ -317,51 +381,83 @@ def _cross_min_distance(
 
 
 def _paired_min_distance(
-    pa: np.ndarray,
-    pd: np.ndarray,
-    ra: np.ndarray,
-    ha: np.ndarray,
-    hd: np.ndarray,
-    rh: np.ndarray,
+    a_c: np.ndarray, d_c: np.ndarray, ra: np.ndarray, joints: np.ndarray, rh: np.ndarray
 ) -> np.ndarray:
     """Min signed distance between robot configuration k and person pose k.
 
     Args:
-        pa, pd: Robot segment starts and directions (K, L, 3).
+        a_c, d_c: Robot segment starts and directions, component-major (L, 3, K).
         ra: Robot radii (L,).
-        ha, hd: Person segment starts and directions (K, M, 3).
+        joints: Person poses (K, J, 3).
         rh: Person radii (M,).
 
     Returns:
         (K,) minimum over the L x M capsule pairs of each k.
     """
-    K, L, _ = pa.shape
-    M = ha.shape[1]
-    rsum = ra[:, None] + rh[None, :]  # (L, M)
-    a_all = np.einsum("kli,kli->kl", pd, pd)[:, :, None]
-    dp1_all = np.einsum("kli,kli->kl", pd, pa)[:, :, None]
-    pp1_all = np.einsum("kli,kli->kl", pa, pa)[:, :, None]
-    e_all = np.einsum("kmi,kmi->km", hd, hd)[:, None, :]
-    dp2_all = np.einsum("kmi,kmi->km", hd, ha)[:, None, :]
-    pp2_all = np.einsum("kmi,kmi->km", ha, ha)[:, None, :]
-    inv_a_all = _inv(a_all)
-    inv_e_all = _inv(e_all)
-    U_all = np.concatenate([pd, pa], axis=1)  # (K, 2L, 3)
-    V_all = np.concatenate([hd, ha], axis=1).transpose(0, 2, 1)  # (K, 3, 2M)
+    L, _, K = a_c.shape
+    M = len(rh)
+    # per-segment scalars, component-major (long contiguous rows)
+    jt = np.ascontiguousarray(joints.transpose(1, 2, 0))  # (J, 3, K)
+    p2 = jt[_HUMAN_A]  # (M, 3, K)
+    d2 = jt[_HUMAN_B]
+    d2 -= p2
+
+    def dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        out = u[:, 0] * v[:, 0]
+        out += u[:, 1] * v[:, 1]
+        out += u[:, 2] * v[:, 2]
+        return out
+
+    a, dp1, pp1 = dot(d_c, d_c), dot(d_c, a_c), dot(a_c, a_c)  # (L, K)
+    e, dp2, pp2 = dot(d2, d2), dot(d2, p2), dot(p2, p2)  # (M, K)
+    pp1 *= 0.5
+    pp2 *= 0.5
+    np.negative(dp2, out=dp2)
+    inv_a = _inv(a)
+    inv_e = _inv(e)
+
+    block = max(1, min(K, _BLOCK_ELEMS // (L * M)))
+    rsum = np.broadcast_to(ra[:, None] + rh[None, :], (block, L, M)).copy()
     out = np.empty(K)
-    block = max(1, _BLOCK_ELEMS // (L * M))
+    # augmented rows/columns (see _FEATURES); the constant entries are written once
+    U = np.zeros((block, 2 * L, _FEATURES))
+    V = np.zeros((block, _FEATURES, 2 * M))
+    U[:, L:, 4] = 1.0
+    V[:, 3, M:] = 1.0
+    V[:, 5, M:] = 1.0
+    G = np.empty((block, 2 * L, 2 * M))
+    shape = (block, L, M)
+    b, c, f, A, E, IA, IE = (np.empty(shape) for _ in range(7))
+    work = _work(shape)
     for k0 in range(0, K, block):
         k1 = min(K, k0 + block)
-        G = U_all[k0:k1] @ V_all[k0:k1]  # (k, 2L, 2M)
-        b = np.ascontiguousarray(G[:, :L, :M])
-        c = dp1_all[k0:k1] - G[:, :L, M:]
-        f = G[:, L:, :M] - dp2_all[k0:k1]
-        rr = pp1_all[k0:k1] + pp2_all[k0:k1]
-        rr -= 2.0 * G[:, L:, M:]
-        sq = _closest_sq(a_all[k0:k1], e_all[k0:k1], b, c, f, rr, inv_a_all[k0:k1], inv_e_all[k0:k1])
+        m = k1 - k0
+        if m != block:
+            U, V, G = U[:m], V[:m], G[:m]
+            b, c, f, A, E, IA, IE = (x[:m] for x in (b, c, f, A, E, IA, IE))
+            work = tuple(w[:m] for w in work)  # type: ignore[assignment]
+        for i in range(3):
+            U[:, :L, i] = d_c[:, i, k0:k1].T
+            U[:, L:, i] = a_c[:, i, k0:k1].T
+            V[:, i, :M] = d2[:, i, k0:k1].T
+            np.negative(p2[:, i, k0:k1].T, out=V[:, i, M:])
+        U[:, :L, 3] = dp1[:, k0:k1].T
+        U[:, L:, 5] = pp1[:, k0:k1].T
+        V[:, 4, :M] = dp2[:, k0:k1].T
+        V[:, 4, M:] = pp2[:, k0:k1].T
+        np.matmul(U, V, out=G)
+        # the products used more than once are copied out of their quadrants into contiguous arrays
+        np.copyto(b, G[:, :L, :M])
+        np.copyto(c, G[:, :L, M:])
+        np.copyto(f, G[:, L:, :M])
+        np.copyto(A, a[:, k0:k1].T[:, :, None])
+        np.copyto(E, e[:, k0:k1].T[:, None, :])
+        np.copyto(IA, inv_a[:, k0:k1].T[:, :, None])
+        np.copyto(IE, inv_e[:, k0:k1].T[:, None, :])
+        sq = _closest_sq(b, c, f, G[:, L:, M:], A, E, IA, IE, work)
         dist = np.sqrt(sq, out=sq)
-        dist -= rsum
-        out[k0:k1] = dist.reshape(k1 - k0, L * M).min(axis=1)
+        dist -= rsum[:m]
+        out[k0:k1] = dist.reshape(m, L * M).min(axis=1)
     return out
 
 
@@ -545,6 +641,11 @@ class CollisionModel:
     # ------------------------------------------------------------------ geometry
     def _robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Robot segment starts and directions, each (B, L, 3)."""
+        a, d = self._robot_segments_cm(q)
+        return a.transpose(2, 0, 1), d.transpose(2, 0, 1)
+
+    def _robot_segments_cm(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Robot segment starts and directions, component-major, each (L, 3, B)."""
         p, z, p_tcp = self.kin.link_origins_and_axes(q)  # (7, 3, B), (7, 3, B), (3, B)
         B = q.shape[0]
         z1 = z[1]
@@ -569,7 +670,7 @@ class CollisionModel:
         a[8] = p[6]
         b[8] = p_tcp
         b -= a
-        return a.transpose(2, 0, 1), b.transpose(2, 0, 1)
+        return a, b
 
     def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Robot capsules for configurations q (B, 6).
@@ -607,10 +708,9 @@ class CollisionModel:
         joints = self._check_joints(joints, "distance_to_human")
         if q.shape[0] == 0 or joints.shape[0] == 0:
             return np.empty((q.shape[0], joints.shape[0]))
-        pa, pd = self._robot_segments(q)
-        ha = joints[:, _HUMAN_A]
-        hd = joints[:, _HUMAN_B] - ha
-        return _cross_min_distance(pa, pd, self.robot_radii, ha, hd, self.human_radii)
+        U, a = _robot_features(*self._robot_segments_cm(q))
+        V, e = _human_features(joints)
+        return _cross_min_distance(U, a, self.robot_radii, V, e, self.human_radii)
 
     def distance_to_human_paired(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """Minimum signed surface distance between configuration k and person pose k (time-sampled edges).
@@ -631,10 +731,8 @@ class CollisionModel:
             )
         if q.shape[0] == 0:
             return np.empty(0)
-        pa, pd = self._robot_segments(q)
-        ha = joints[:, _HUMAN_A]
-        hd = joints[:, _HUMAN_B] - ha
-        return _paired_min_distance(pa, pd, self.robot_radii, ha, hd, self.human_radii)
+        a_c, d_c = self._robot_segments_cm(q)
+        return _paired_min_distance(a_c, d_c, self.robot_radii, joints, self.human_radii)
 
     # ------------------------------------------------------------------ robot vs static scene
     def _static_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
