@@ -381,14 +381,22 @@ def _cross_min_distance(
 
 
 def _paired_min_distance(
-    a_c: np.ndarray, d_c: np.ndarray, ra: np.ndarray, joints: np.ndarray, rh: np.ndarray
+    a_c: np.ndarray,
+    d_c: np.ndarray,
+    ra: np.ndarray,
+    jt: np.ndarray,
+    ia: np.ndarray,
+    ib: np.ndarray,
+    rh: np.ndarray,
 ) -> np.ndarray:
     """Min signed distance between robot configuration k and person pose k.
 
     Args:
-        a_c, d_c: Robot segment starts and directions, component-major (L, 3, K).
+        a_c, d_c: Robot segment starts and directions, component-major (L, 3, K); segment l must have the
+            same length in every configuration (a rigid robot).
         ra: Robot radii (L,).
-        joints: Person poses (K, J, 3).
+        jt: Person poses, component-major (J, 3, K).
+        ia, ib: Joint indices (M,) of the person capsules' ends.
         rh: Person radii (M,).
 
     Returns:
@@ -396,10 +404,8 @@ def _paired_min_distance(
     """
     L, _, K = a_c.shape
     M = len(rh)
-    # per-segment scalars, component-major (long contiguous rows)
-    jt = np.ascontiguousarray(joints.transpose(1, 2, 0))  # (J, 3, K)
-    p2 = jt[_HUMAN_A]  # (M, 3, K)
-    d2 = jt[_HUMAN_B]
+    p2 = jt[ia]  # (M, 3, K)
+    d2 = jt[ib]
     d2 -= p2
 
     def dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -418,6 +424,9 @@ def _paired_min_distance(
 
     block = max(1, min(K, _BLOCK_ELEMS // (L * M)))
     rsum = np.broadcast_to(ra[:, None] + rh[None, :], (block, L, M)).copy()
+    # The robot's links are rigid: their squared lengths are the same for every configuration.
+    A = np.broadcast_to(a[:, :1].T[:, :, None], (block, L, M)).copy()
+    IA = np.broadcast_to(inv_a[:, :1].T[:, :, None], (block, L, M)).copy()
     out = np.empty(K)
     # augmented rows/columns (see _FEATURES); the constant entries are written once
     U = np.zeros((block, 2 * L, _FEATURES))
@@ -427,14 +436,14 @@ def _paired_min_distance(
     V[:, 5, M:] = 1.0
     G = np.empty((block, 2 * L, 2 * M))
     shape = (block, L, M)
-    b, c, f, A, E, IA, IE = (np.empty(shape) for _ in range(7))
+    b, c, f, E = (np.empty(shape) for _ in range(4))
     work = _work(shape)
     for k0 in range(0, K, block):
         k1 = min(K, k0 + block)
         m = k1 - k0
         if m != block:
             U, V, G = U[:m], V[:m], G[:m]
-            b, c, f, A, E, IA, IE = (x[:m] for x in (b, c, f, A, E, IA, IE))
+            b, c, f, E, A, IA = (x[:m] for x in (b, c, f, E, A, IA))
             work = tuple(w[:m] for w in work)  # type: ignore[assignment]
         for i in range(3):
             U[:, :L, i] = d_c[:, i, k0:k1].T
@@ -450,11 +459,8 @@ def _paired_min_distance(
         np.copyto(b, G[:, :L, :M])
         np.copyto(c, G[:, :L, M:])
         np.copyto(f, G[:, L:, :M])
-        np.copyto(A, a[:, k0:k1].T[:, :, None])
         np.copyto(E, e[:, k0:k1].T[:, None, :])
-        np.copyto(IA, inv_a[:, k0:k1].T[:, :, None])
-        np.copyto(IE, inv_e[:, k0:k1].T[:, None, :])
-        sq = _closest_sq(b, c, f, G[:, L:, M:], A, E, IA, IE, work)
+        sq = _closest_sq(b, c, f, G[:, L:, M:], A, E, IA, inv_e[:, k0:k1].T[:, None, :], work)
         dist = np.sqrt(sq, out=sq)
         dist -= rsum[:m]
         out[k0:k1] = dist.reshape(m, L * M).min(axis=1)
@@ -732,7 +738,8 @@ class CollisionModel:
         if q.shape[0] == 0:
             return np.empty(0)
         a_c, d_c = self._robot_segments_cm(q)
-        return _paired_min_distance(a_c, d_c, self.robot_radii, joints, self.human_radii)
+        jt = np.ascontiguousarray(joints.transpose(1, 2, 0))  # (J, 3, K)
+        return _paired_min_distance(a_c, d_c, self.robot_radii, jt, _HUMAN_A, _HUMAN_B, self.human_radii)
 
     # ------------------------------------------------------------------ robot vs static scene
     def _static_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
