@@ -1,0 +1,193 @@
+"""End-to-end fixtures: a real ``hrc serve`` subprocess and a real headless Chromium driven by Playwright.
+
+The server runs on free ports with a temporary data directory (its own SQLite database) and a known token;
+the browser is Debian's Chromium (``/usr/bin/chromium``, or ``HRC_CHROMIUM``), never a downloaded one. Tests
+skip with a clear reason when the browser or Playwright is missing. Screenshots go to ``test-artifacts/``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+ARTIFACTS = REPO_ROOT / "test-artifacts"
+TOKEN = "e2e-operator-token-0123456789abcdef"
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    # WebGL in software (SwiftShader) for the viser 3D view on machines without a GPU.
+    "--enable-unsafe-swiftshader",
+    "--use-angle=swiftshader",
+]
+#: Longest wait for the server's first health answer (migrations, roadmap build or cache load, runtime start).
+SERVER_START_TIMEOUT_S = 180.0
+
+
+def _chromium_path() -> str | None:
+    configured = os.environ.get("HRC_CHROMIUM")
+    if configured:
+        return configured if Path(configured).is_file() else None
+    for candidate in ("/usr/bin/chromium", "/usr/bin/chromium-browser"):
+        if Path(candidate).is_file():
+            return candidate
+    return shutil.which("chromium")
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass(frozen=True)
+class HrcServer:
+    """A running ``hrc serve``: where it listens, its token and its log."""
+
+    base_url: str
+    port: int
+    viser_port: int
+    token: str
+    data_dir: Path
+    log_path: Path
+    process: subprocess.Popen[bytes]
+
+    @property
+    def headers(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"}
+
+    def api(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        """A REST call with the token (for set-up and for checks beside the browser)."""
+        headers = {**self.headers, **kwargs.pop("headers", {})}
+        return httpx.request(method, f"{self.base_url}{path}", headers=headers, timeout=30.0, **kwargs)
+
+    def log_tail(self, n: int = 60) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-n:])
+        except OSError:
+            return "<no log>"
+
+
+@pytest.fixture(scope="session")
+def chromium_path() -> str:
+    path = _chromium_path()
+    if path is None:
+        pytest.skip(
+            "Chromium not found at /usr/bin/chromium (install Debian's 'chromium' or set HRC_CHROMIUM)"
+        )
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        pytest.skip("playwright (python) is not installed; pip install -e '.[dev]'")
+    return path
+
+
+@pytest.fixture(scope="session")
+def artifacts_dir() -> Path:
+    ARTIFACTS.mkdir(exist_ok=True)
+    return ARTIFACTS
+
+
+@pytest.fixture(scope="session")
+def hrc_server(tmp_path_factory: pytest.TempPathFactory, chromium_path: str) -> Iterator[HrcServer]:
+    """``hrc serve`` on free ports (simulated robot and person) until the end of the session."""
+    work = tmp_path_factory.mktemp("hrc-e2e")
+    data_dir = work / "data"
+    port, viser_port = _free_port(), _free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HRC_")}
+    env.update(
+        HRC_API_TOKEN=TOKEN,
+        HRC_DATA_DIR=str(data_dir),
+        HRC_HOST="127.0.0.1",
+        HRC_PORT=str(port),
+        HRC_VISER_PORT=str(viser_port),
+        HRC_ROBOT="sim",
+        HRC_HUMAN_SOURCE="sim",
+        OMP_NUM_THREADS="1",
+        MKL_NUM_THREADS="1",
+        PYTHONUNBUFFERED="1",
+    )
+    log_path = work / "server.log"
+    log = log_path.open("wb")
+    # cwd = the temporary directory, so that a developer's .env does not leak into the test server.
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "serve", "--log-level", "info"],
+        cwd=work,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    server = HrcServer(f"http://127.0.0.1:{port}", port, viser_port, TOKEN, data_dir, log_path, proc)
+    try:
+        deadline = time.monotonic() + SERVER_START_TIMEOUT_S
+        while True:
+            if proc.poll() is not None:
+                pytest.fail(
+                    f"hrc serve exited ({proc.returncode}) before it was healthy:\n{server.log_tail()}"
+                )
+            with contextlib.suppress(httpx.HTTPError):
+                if httpx.get(f"{server.base_url}/api/health", timeout=2.0).status_code == 200:
+                    break
+            if time.monotonic() > deadline:
+                pytest.fail(
+                    f"hrc serve was not healthy within {SERVER_START_TIMEOUT_S:.0f} s:\n{server.log_tail()}"
+                )
+            time.sleep(0.5)
+        yield server
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=10)
+        log.close()
+        if ARTIFACTS.is_dir():
+            with contextlib.suppress(OSError):
+                shutil.copy(log_path, ARTIFACTS / "e2e-server.log")
+
+
+@pytest.fixture(scope="session")
+def browser(chromium_path: str) -> Iterator[Any]:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=chromium_path, args=CHROMIUM_ARGS)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture()
+def page(browser: Any) -> Iterator[Any]:
+    """A fresh browser context (empty sessionStorage) with a desktop viewport; page errors fail the test."""
+    context = browser.new_context(viewport={"width": 1440, "height": 900}, accept_downloads=True)
+    p = context.new_page()
+    p.set_default_timeout(30_000)
+    errors: list[str] = []
+    p.on("pageerror", lambda exc: errors.append(str(exc)))
+    try:
+        yield p
+    finally:
+        context.close()
+    assert not errors, f"JavaScript errors on the page: {errors}"

@@ -1,0 +1,237 @@
+"""The operator dashboard in a real headless Chromium against a real ``hrc serve`` (simulated cell).
+
+One operator session: sign in, add a participant and a session, run a short trial to its end, start the next
+trial, watch the live state change, press the E-stop and see the robot stop, reset, open the results and
+download a CSV; every API error on the way is shown with its ``detail``. Screenshots of the dashboard and of
+the viser 3D view are written to ``test-artifacts/`` (and to ``docs/screenshot-dashboard.png`` when
+``HRC_UPDATE_DOCS_SCREENSHOT=1``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.e2e
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+#: Generous bounds for a loaded CI machine (software WebGL next to the server and the browser).
+UI_TIMEOUT_MS = 30_000
+
+
+def expect(locator: Any) -> Any:
+    from playwright.sync_api import expect as _expect
+
+    return _expect(locator)
+
+
+def sign_in(page: Any, server: Any) -> None:
+    page.goto(f"{server.base_url}/")
+    page.get_by_test_id("login-token").fill(server.token)
+    page.get_by_test_id("login-submit").click()
+    expect(page.get_by_test_id("app-view")).to_be_visible()
+    expect(page.get_by_test_id("conn-pill")).to_contain_text("live", timeout=UI_TIMEOUT_MS)
+
+
+def wait_until(cond: Any, what: str, *, timeout_s: float = 30.0) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = cond()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+        time.sleep(0.25)
+
+
+def wait_for_3d_view(frame: Any, page: Any) -> None:
+    """Wait until the embedded viser client is connected and its scene has faded in; close its
+    software-rendering notice so that screenshots show the cell."""
+    expect(frame.locator("canvas").first).to_be_visible(timeout=UI_TIMEOUT_MS)
+    expect(frame.get_by_text("Connected").first).to_be_visible(timeout=UI_TIMEOUT_MS)
+    close = frame.locator("#webgl-software-rendering .mantine-Notification-closeButton")
+    with contextlib.suppress(Exception):  # only shown where WebGL runs in software
+        close.click(timeout=5_000)
+    page.wait_for_timeout(8_000)  # the viewer fades the scene in; software rendering is slow
+
+
+def latest_trial(server: Any) -> dict[str, Any]:
+    trials = server.api("GET", "/api/trials").json()
+    assert trials, "no trial in the database"
+    return max(trials, key=lambda t: t["id"])
+
+
+def test_sign_in_shows_why_a_token_is_refused(page: Any, hrc_server: Any) -> None:
+    page.goto(f"{hrc_server.base_url}/")
+    expect(page.get_by_test_id("login-view")).to_be_visible()
+    expect(page.get_by_test_id("estop-button")).to_be_visible()  # the E-stop is always on screen
+    page.get_by_test_id("login-token").fill("not-the-operator-token-000")
+    page.get_by_test_id("login-submit").click()
+    refused = hrc_server.api(
+        "GET", "/api/info", headers={"Authorization": "Bearer not-the-operator-token-000"}
+    )
+    assert refused.status_code == 401
+    expect(page.get_by_test_id("login-error")).to_contain_text(refused.json()["detail"])
+    expect(page.get_by_test_id("app-view")).to_be_hidden()
+
+    page.get_by_test_id("login-token").fill(hrc_server.token)
+    page.get_by_test_id("login-submit").click()
+    expect(page.get_by_test_id("app-view")).to_be_visible()
+    # The token lives in sessionStorage: a reload keeps the operator signed in, signing out forgets it.
+    assert page.evaluate("sessionStorage.getItem('hrc.operatorToken')") == hrc_server.token
+    page.reload()
+    expect(page.get_by_test_id("app-view")).to_be_visible()
+    page.get_by_test_id("logout-button").click()
+    expect(page.get_by_test_id("login-view")).to_be_visible()
+    assert page.evaluate("sessionStorage.getItem('hrc.operatorToken')") is None
+
+
+def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: Path) -> None:
+    server = hrc_server
+    sign_in(page, server)
+    live_state = page.get_by_test_id("live-state")
+    expect(live_state).not_to_have_text("–", timeout=UI_TIMEOUT_MS)  # the first snapshot arrived
+
+    # --- participants and sessions --------------------------------------------------------------------
+    page.get_by_test_id("tab-study").click()
+    page.get_by_test_id("participant-code").fill("E2E01")
+    page.get_by_test_id("participant-age").fill("34")
+    page.get_by_test_id("participant-create").click()
+    expect(page.get_by_test_id("participants-table")).to_contain_text("E2E01")
+    participant = next(p for p in server.api("GET", "/api/participants").json() if p["code"] == "E2E01")
+    expect(page.get_by_test_id("trial-participant")).to_have_value(str(participant["id"]))
+    order = server.api("GET", f"/api/participants/{participant['id']}/method-order").json()["methods"]
+    hint = page.get_by_test_id("method-order")
+    expect(hint).to_contain_text(f"1. {order[0]}")
+    expect(hint).to_contain_text(f"2. {order[1]}")
+    expect(page.get_by_test_id("trial-method")).to_have_value(order[0])
+
+    # A duplicate code: the API's 409 detail is shown as it is.
+    page.get_by_test_id("participant-code").fill("E2E01")
+    page.get_by_test_id("participant-create").click()
+    conflict = server.api("POST", "/api/participants", json={"code": "E2E01"})
+    assert conflict.status_code == 409
+    expect(page.get_by_test_id("alert")).to_contain_text("HTTP 409")
+    expect(page.get_by_test_id("alert")).to_contain_text(conflict.json()["detail"])
+
+    page.get_by_test_id("session-name").fill("E2E session")
+    page.get_by_test_id("session-create").click()
+    expect(page.get_by_test_id("sessions-table")).to_contain_text("E2E session")
+    expect(page.get_by_test_id("alert")).to_be_hidden()
+
+    # --- a short trial, run to its end -----------------------------------------------------------------
+    state_before = live_state.inner_text()
+    page.get_by_test_id("trial-duration").fill("4")
+    page.get_by_test_id("trial-start").click()
+    expect(page.get_by_test_id("view-live")).to_be_visible()
+    first = latest_trial(server)
+    assert first["method"] == order[0] and first["participant_id"] == participant["id"]
+    expect(page.get_by_test_id("trial-pill")).to_contain_text(f"trial #{first['id']}", timeout=UI_TIMEOUT_MS)
+    expect(page.get_by_test_id("trial-time")).to_contain_text("of 4 s", timeout=UI_TIMEOUT_MS)
+    wait_until(lambda: live_state.inner_text() != state_before, "the supervisor state to change in the page")
+    wait_until(
+        lambda: server.api("GET", f"/api/trials/{first['id']}").json()["status"] != "running",
+        "the first trial to end",
+        timeout_s=60,
+    )
+    expect(page.get_by_test_id("trial-pill")).to_have_text("no trial", timeout=UI_TIMEOUT_MS)
+
+    # --- the next trial in the counterbalanced order; E-stop during it ---------------------------------
+    page.get_by_test_id("tab-study").click()
+    expect(page.get_by_test_id("trial-method")).to_have_value(order[1], timeout=UI_TIMEOUT_MS)
+    page.get_by_test_id("trial-duration").fill("60")
+    page.get_by_test_id("trial-start").click()
+    expect(page.get_by_test_id("view-live")).to_be_visible()
+    second = latest_trial(server)
+    assert second["id"] > first["id"] and second["method"] == order[1]
+    expect(page.get_by_test_id("trial-pill")).to_contain_text(f"trial #{second['id']}", timeout=UI_TIMEOUT_MS)
+    wait_until(
+        lambda: page.get_by_test_id("trial-progress").evaluate("e => parseFloat(e.style.width) > 0"),
+        "the trial progress bar to move",
+    )
+
+    frame = page.frame_locator("[data-testid=viser-frame]")
+    wait_for_3d_view(frame, page)
+    shot = artifacts_dir / "dashboard-live.png"
+    page.screenshot(path=str(shot))
+    if os.environ.get("HRC_UPDATE_DOCS_SCREENSHOT") == "1":
+        shutil.copy(shot, REPO_ROOT / "docs" / "screenshot-dashboard.png")
+
+    page.get_by_test_id("estop-button").click()
+    expect(live_state).to_have_text("E-STOP", timeout=UI_TIMEOUT_MS)
+    expect(page.get_by_test_id("toast")).to_contain_text("E-stop")
+    robot = server.api("GET", "/api/robot").json()
+    assert robot["estopped"] is True
+    # The robot stops: its configuration no longer changes.
+    time.sleep(1.0)
+    q1 = np.array(server.api("GET", "/api/robot").json()["q"])
+    time.sleep(1.0)
+    q2 = np.array(server.api("GET", "/api/robot").json()["q"])
+    assert np.allclose(q1, q2, atol=1e-6), f"the robot still moves after the E-stop: {q1} -> {q2}"
+    wait_until(
+        lambda: server.api("GET", f"/api/trials/{second['id']}").json()["status"] != "running",
+        "the E-stop to end the running trial",
+    )
+    expect(page.get_by_test_id("trial-pill")).to_have_text("no trial", timeout=UI_TIMEOUT_MS)
+    page.screenshot(path=str(artifacts_dir / "dashboard-estop.png"))
+
+    # While E-stopped a trial cannot start: the page shows the API's reason.
+    page.get_by_test_id("tab-study").click()
+    page.get_by_test_id("trial-start").click()
+    expect(page.get_by_test_id("alert")).to_contain_text("Starting the trial failed (HTTP 409)")
+
+    page.get_by_test_id("reset-button").click()
+    expect(live_state).not_to_have_text("E-STOP", timeout=UI_TIMEOUT_MS)
+    assert server.api("GET", "/api/robot").json()["estopped"] is False
+
+    # --- trials table, results and downloads -----------------------------------------------------------
+    page.get_by_test_id("trials-refresh").click()
+    table = page.get_by_test_id("trials-table")
+    expect(table.locator(f"tr[data-trial-id='{first['id']}']")).to_contain_text("E2E01")
+    expect(table.locator(f"tr[data-trial-id='{second['id']}']")).to_contain_text(order[1])
+
+    page.get_by_test_id("tab-results").click()
+    summary = server.api("GET", "/api/summary").json()
+    rows = page.get_by_test_id("results-table").locator("tbody tr")
+    expect(rows).to_have_count(len(summary["metrics"]), timeout=UI_TIMEOUT_MS)
+    expect(page.get_by_test_id("results-table")).to_contain_text("Completed tasks")
+    expect(page.get_by_test_id("results-note")).to_contain_text("completed trials")
+    if summary["n_trials"]["proactive"] or summary["n_trials"]["reactive"]:
+        expect(page.get_by_test_id("boxplots")).to_be_visible(timeout=60_000)
+
+    with page.expect_download() as download_info:
+        page.get_by_test_id("download-trials").click()
+    download = download_info.value
+    assert download.suggested_filename == "trials.csv"
+    path = artifacts_dir / "e2e-trials.csv"
+    download.save_as(str(path))
+    records = list(csv.DictReader(io.StringIO(path.read_text(encoding="utf-8"))))
+    by_id = {int(r["trial_id"]): r for r in records}
+    assert {first["id"], second["id"]} <= set(by_id)
+    assert by_id[first["id"]]["participant_code"] == "E2E01"
+    page.screenshot(path=str(artifacts_dir / "dashboard-results.png"), full_page=True)
+
+
+def test_3d_view_shows_the_cell(page: Any, hrc_server: Any, artifacts_dir: Path) -> None:
+    """The viser page on its own: the scene tree holds the cell, the robot, the person and the layers."""
+    info = hrc_server.api("GET", "/api/info").json()
+    page.goto(f"http://127.0.0.1:{info['viser_port']}/")
+    wait_for_3d_view(page, page)
+    expect(page.get_by_text("State:").first).to_be_visible()
+    expect(page.get_by_text("Forecast ghosts").first).to_be_visible()
+    path = artifacts_dir / "viser-3d.png"
+    page.screenshot(path=str(path))
+    from PIL import Image
+
+    img = np.asarray(Image.open(path).convert("RGB"), dtype=float)
+    # Not a blank page: the rendered cell has clearly different colours (table, robot, person, floor grid).
+    assert img.std() > 12.0, "the 3D view screenshot looks blank"
