@@ -465,6 +465,7 @@
   async function reset() {
     try {
       const status = await api("/api/robot/reset", { method: "POST" });
+      clearError();
       toast("Reset: the robot may run again.");
       applyStatus(status);
     } catch (err) {
