@@ -21,9 +21,10 @@ How the parts of the app use this module:
 
 - The supervisor applies the full ``S_p`` to the *current* pose of the person and scales the robot's speed
   with :func:`speed_scale` (the paper's *Nominal Execution*).
-- The planner replaces the worst-case ``S_h`` term by the *forecast* of the person over the horizon, plus
-  the forecast's own error margin (see :class:`app.planning.search.PlannerConfig`), and requires
-  :func:`robot_clearance` = ``S_r + S_s + C + Z_d + Z_r`` at every sampled instant of a motion.
+- The planner replaces the worst-case ``S_h`` term by the *forecast* of the person over the horizon and
+  requires :func:`forecast_clearance` = ``S_r + S_s + C + Z_r + max(Z_d, margin)`` from the forecast pose
+  at every sampled instant of a motion, ``margin`` being the forecast's own error margin at that instant
+  (see :mod:`app.planning.search`).
 
 All lengths in metres, speeds in m/s, times in seconds.
 """
@@ -110,6 +111,26 @@ def robot_clearance(v_robot_mps: float | np.ndarray, params: SSMParams) -> float
     """
     v = np.maximum(v_robot_mps, 0.0)
     out = v * params.robot_time_s + params.constant_m
+    return float(out) if np.ndim(out) == 0 else out
+
+
+def forecast_clearance(
+    v_robot_mps: float | np.ndarray, margin_m: float | np.ndarray, params: SSMParams
+) -> float | np.ndarray:
+    """The separation (m) the planner requires from a *forecast* pose whose error margin is ``margin_m``.
+
+    ``S_r + S_s + C + Z_r + max(Z_d, margin)``: the forecast replaces ``S_h``, and its margin (the error
+    of tracking plus prediction at that horizon, see :class:`app.prediction.forecast.HumanForecast`) takes
+    the place of the sensing uncertainty ``Z_d`` where it is larger (both describe where the person may be
+    instead of where they are reported; adding them would count the tracking error twice). Element-wise.
+    """
+    v = np.maximum(v_robot_mps, 0.0)
+    out = (
+        v * params.robot_time_s
+        + params.intrusion_m
+        + params.z_robot_m
+        + np.maximum(params.z_human_m, np.asarray(margin_m, dtype=np.float64))
+    )
     return float(out) if np.ndim(out) == 0 else out
 
 

@@ -153,7 +153,8 @@ def fit_knots(
     """Fit C1 cubic Hermite knots through timed waypoints within velocity and acceleration limits.
 
     Args:
-        times: Waypoint times (K,), non-decreasing (duplicates are merged).
+        times: Waypoint times (K,), non-decreasing (a waypoint less than 1 ms after the previous one is
+            dropped).
         q: Waypoints (K, 6) in radians.
         qd0: Joint velocity (6,) at ``times[0]`` (rad/s); default at rest.
         qd_max: Velocity limits (6,) in rad/s. qdd_max: acceleration limits (6,) in rad/s^2.
@@ -174,10 +175,9 @@ def fit_knots(
     qd0 = np.zeros(6) if qd0 is None else np.clip(np.asarray(qd0, dtype=np.float64), -qd_max, qd_max)
     if qd0.shape != (6,):
         raise TrajectoryError(f"qd0 must have shape (6,), got {qd0.shape}")
-    # Merge waypoints that coincide in time (keep the later one: the configuration the plan continues from).
+    # Merge waypoints that coincide in time (keep the earlier one: the start is where the robot is).
     keep = np.ones(times.shape[0], dtype=bool)
-    keep[:-1] = np.diff(times) > _MIN_SEGMENT_S
-    keep[0] = True
+    keep[1:] = np.diff(times) > _MIN_SEGMENT_S
     if keep.sum() < times.shape[0]:
         idx = np.flatnonzero(keep)
         times, q = times[idx], q[idx]
