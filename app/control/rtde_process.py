@@ -372,11 +372,34 @@ class _Worker:
             int(r.getRobotMode()),
         )
 
-    def run_connected(self) -> None:
+    def first_state(self) -> tuple[float, np.ndarray, np.ndarray, int, int]:
+        """Wait for the first data package after connecting (ur_rtde returns before it arrives)."""
         cfg = self.cfg
-        ts, q, qd, safety, robot_mode = self.read()
-        if q.shape != (6,) or not np.all(np.isfinite(q)):
-            raise _LostError(f"the controller at {cfg.host} sent no valid joint positions")
+        deadline = self.clock.now() + max(1.0, 5.0 * cfg.watchdog_s)
+        while True:
+            ts, q, qd, safety, robot_mode = self.read()
+            if ts > 0.0 and q.shape == (6,) and np.all(np.isfinite(q)):
+                break
+            if self.clock.now() > deadline:
+                raise RobotConnectionError(
+                    f"the controller at {cfg.host} accepted the RTDE set-up but sent no state "
+                    f"(joint positions) within {max(1.0, 5.0 * cfg.watchdog_s):.1f} s"
+                )
+            time.sleep(0.002)
+        with self.state.get_lock():
+            st = self.state
+            st[S_HEARTBEAT] = st[S_T] = self.clock.now()
+            st[S_Q : S_Q + 6] = q.tolist()
+            st[S_QD : S_QD + 6] = qd.tolist()
+            st[S_SCALE] = self.scale
+            st[S_PSTOP] = 1.0 if self.pstop else 0.0
+            st[S_ROBOT_PSTOP] = 0.0 if safety in SAFE_MODES else 1.0
+            st[S_SAFETY], st[S_ROBOT_MODE], st[S_ROBOT_TS] = safety, robot_mode, ts
+        return ts, q, qd, safety, robot_mode
+
+    def run_connected(self, first: tuple[float, np.ndarray, np.ndarray, int, int]) -> None:
+        cfg = self.cfg
+        ts, q, qd, safety, robot_mode = first
         tracker = JointTracker(q, self.limits, max_substep_s=1.0 / cfg.rate_hz)
         loop = RateLoop(self.clock, cfg.rate_hz)
         dt = loop.period_s
@@ -448,6 +471,7 @@ class _Worker:
             while True:
                 try:
                     self.open()
+                    first = self.first_state()
                 except RobotConnectionError as exc:
                     self.shutdown(moving=False)
                     if self.connects == 0 or attempts_left <= 0:
@@ -465,7 +489,7 @@ class _Worker:
                 self.set_phase(PHASE_CONNECTED, connected=True)
                 self.emit("connected" if self.connects == 1 else "reconnected", cfg.host)
                 try:
-                    self.run_connected()
+                    self.run_connected(first)
                 except _LostError as exc:
                     # Stop first, report, then latch the protective stop: after a reconnection the arm does
                     # not jump to a stale set-point; the supervisor must reset it.

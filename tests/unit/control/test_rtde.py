@@ -110,8 +110,8 @@ def test_receive_round_trip_with_ur_rtde(fake: FakeController) -> None:
     assert not robot.state().connected  # nothing happens before connect()
     robot.connect()
     try:
-        wait_for(lambda: robot.state().connected and robot.state().t > 0, what="first state")
-        st = robot.state()
+        st = robot.state()  # connect() returns once the first state has arrived
+        assert st.connected
         np.testing.assert_allclose(st.q, Q0)
         np.testing.assert_allclose(st.qd, 0.0)
         assert not st.protective_stop and st.fault is None
