@@ -281,6 +281,9 @@ class StreamSource:
         offset_window: Messages over which the clock offset is estimated.
     """
 
+    #: Frames are validated on push (see :class:`~app.control.validation.ValidatedSource`).
+    validates_frames = True
+
     def __init__(
         self,
         *,

@@ -282,7 +282,9 @@ class ValidatedSource:
     """A human source behind a :class:`FrameValidator` and a :class:`StaleWatchdog`.
 
     :meth:`frame_at` returns the newest *valid* frame at or before ``t``; each distinct frame of the inner
-    source is checked once (asking again for the same frame is not a duplicate). :meth:`poll` is the
+    source is checked once (asking again for the same frame is not a duplicate). A source with
+    ``validates_frames = True`` (the stream source, which validates every pushed message) is not checked
+    again: its frames only feed the watchdog, and :attr:`counters` are its own. :meth:`poll` is the
     runtime's per-tick call: it returns a frame only when a new valid one arrived.
 
     Args:
@@ -301,6 +303,9 @@ class ValidatedSource:
         self.source = source
         self.validator = validator if validator is not None else FrameValidator()
         self.watchdog = watchdog if watchdog is not None else StaleWatchdog()
+        # A source that validates its own frames (StreamSource: it must answer the sender) is not checked
+        # twice; its counters are reported instead.
+        self._prevalidated = bool(getattr(source, "validates_frames", False))
         self._seen: HumanFrame | None = None
         self._valid: HumanFrame | None = None
         self.last_rejection: FrameRejected | None = None
@@ -324,6 +329,10 @@ class ValidatedSource:
             and np.array_equal(frame.joints, self._valid.joints)
         ):
             return  # the same frame, rebuilt by the inner source: not a new one
+        if self._prevalidated:
+            self._valid = frame
+            self.watchdog.feed(max(now, frame.t))
+            return
         try:
             self._valid = self.validator.check(frame)
             self.watchdog.feed(max(now, frame.t) if math.isfinite(frame.t) else now)
@@ -347,4 +356,7 @@ class ValidatedSource:
 
     @property
     def counters(self) -> dict[str, int]:
+        """The validation counters (those of a self-validating source such as the stream source)."""
+        if self._prevalidated:
+            return dict(self.source.counters)  # type: ignore[attr-defined]
         return self.validator.counters

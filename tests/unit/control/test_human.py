@@ -406,3 +406,20 @@ def test_replay_client_example_builds_placed_timed_messages(tmp_path: Path) -> N
         src.push(json.dumps(m), t_received=100.0 + k / FPS)  # every message is valid, in order
     assert src.counters["accepted"] == 60
     assert [m["t"] for m in msgs[28:32]] == pytest.approx([28 / 30, 29 / 30, 1.0, 31 / 30])
+
+
+def test_a_validated_stream_is_not_checked_twice() -> None:
+    from app.control.validation import StaleWatchdog, ValidatedSource
+
+    stream = StreamSource(validator=FrameValidator.for_workcell(CELL))
+    wrapped = ValidatedSource(stream, validator=FrameValidator.for_workcell(CELL), watchdog=StaleWatchdog())
+    pose = _canonical_pose()
+    assert wrapped.poll(0.0) is None and wrapped.is_stale(0.0)
+    stream.push(make_message(pose), t_received=0.0)
+    with pytest.raises(FrameRejected):
+        stream.push(make_message(pose + 10.0), t_received=0.01)
+    assert wrapped.poll(0.02).t == 0.0
+    assert wrapped.poll(0.03) is None  # nothing new
+    assert not wrapped.is_stale(0.1) and wrapped.is_stale(0.2)
+    counters = wrapped.counters
+    assert counters["accepted"] == 1 and counters["rejected_out_of_range"] == 1 and counters["received"] == 2
