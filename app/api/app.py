@@ -151,10 +151,11 @@ def create_app(
         repository = repo
         if repository is None:
             repository, engine = _open_repository(settings)
-        with contextlib.suppress(AttributeError):
-            n = repository.abort_interrupted_trials()
-            if n:
-                logger.warning("marked %s trial(s) left running by an earlier process as aborted", n)
+        abort_interrupted = getattr(repository, "abort_interrupted_trials", None)
+        if abort_interrupted is not None:
+            ids = abort_interrupted()
+            if ids:
+                logger.warning("trials %s were left running by an earlier process: marked aborted", list(ids))
         rt = runtime if runtime is not None else _make_runtime(settings)
         recorder = TrialRecorder(repository)
         recorder.start()
@@ -259,7 +260,7 @@ def _install_error_handlers(app: FastAPI) -> None:
             content={"detail": f"invalid request: {detail}", "errors": errors},
         )
 
-    from sqlalchemy.exc import OperationalError
+    from sqlalchemy.exc import DataError, OperationalError
 
     from app.study.repository import ConflictError, NotFoundError, TrialStateError
 
@@ -271,6 +272,15 @@ def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(TrialStateError)
     async def _conflict(_request: Request, exc: Exception) -> JSONResponse:
         return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={"detail": str(exc)})
+
+    @app.exception_handler(DataError)
+    async def _bad_value(request: Request, exc: DataError) -> JSONResponse:
+        # e.g. PostgreSQL refuses NUL characters in text: the value, not the server, is at fault
+        logger.info("database refused a value on %s %s: %s", request.method, request.url.path, exc.orig)
+        return JSONResponse(
+            status_code=status.HTTP_422_UNPROCESSABLE_CONTENT,
+            content={"detail": f"the database cannot store a value of this request: {exc.orig}"},
+        )
 
     @app.exception_handler(OperationalError)
     async def _database_down(request: Request, exc: OperationalError) -> JSONResponse:
