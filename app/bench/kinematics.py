@@ -15,8 +15,10 @@ Measured in one run, on the default work cell (its tool included):
   querying the 171 capsule pairs one by one). Rotations and centres are precomputed outside the timing.
 * ``static_us_per_config``: :meth:`CollisionModel.static_clearance` (robot vs table, conveyor, boxes).
 
-Times are medians over repeats (``*_p95`` the 95th percentile). Correctness is checked on the way: the largest
-round-trip error of the IK and the largest difference to fcl's distances are reported too.
+Times are medians of wall-clock time over repeats (``*_p95`` the 95th percentile); ``*_cpu`` are medians of
+the thread's CPU time, which a busy shared machine disturbs much less (the ``*_speedup_*_cpu`` ratios use
+them). Correctness is checked on the way: the largest round-trip error of the IK and the largest difference
+to fcl's distances are reported too.
 """
 
 from __future__ import annotations
@@ -40,15 +42,18 @@ def _log(progress: bool, msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
 
-def _time(fn: Callable[[], object], repeats: int) -> np.ndarray:
-    """Seconds per call, one sample per repeat (after one warm-up call)."""
+def _time(fn: Callable[[], object], repeats: int) -> tuple[np.ndarray, np.ndarray]:
+    """Wall-clock and this thread's CPU seconds per call, one sample per repeat (after one warm-up call)."""
     fn()
-    out = np.empty(repeats)
+    wall = np.empty(repeats)
+    cpu = np.empty(repeats)
     for i in range(repeats):
+        c0 = time.thread_time()
         t0 = time.perf_counter()
         fn()
-        out[i] = time.perf_counter() - t0
-    return out
+        wall[i] = time.perf_counter() - t0
+        cpu[i] = time.thread_time() - c0
+    return wall, cpu
 
 
 def _people(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -86,9 +91,14 @@ def _people(rng: np.random.Generator, n: int) -> np.ndarray:
     return out
 
 
-def _stats(samples_s: np.ndarray, per: int, scale: float) -> tuple[float, float]:
-    per_item = samples_s / per * scale
-    return float(np.median(per_item)), float(np.percentile(per_item, 95))
+def _record(
+    out: dict[str, Any], key: str, samples: tuple[np.ndarray, np.ndarray], per: int, scale: float
+) -> None:
+    """``key`` (median wall time per item), ``key_p95`` and ``key_cpu`` (median CPU time per item)."""
+    wall, cpu = (x / per * scale for x in samples)
+    out[key] = float(np.median(wall))
+    out[f"{key}_p95"] = float(np.percentile(wall, 95))
+    out[f"{key}_cpu"] = float(np.median(cpu))
 
 
 def _fcl_pairs(model: Any, q: np.ndarray, joints: np.ndarray) -> Callable[[], np.ndarray]:
@@ -193,8 +203,7 @@ def run(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
         np.max(np.linalg.norm(reached[:, :3, 3] - target[:, :3, 3], axis=-1))
     )
     out["ik_valid_branches_per_pose"] = float(valid.sum(axis=1).mean())
-    med, p95 = _stats(_time(lambda: kin.ik(T), repeats), IK_BATCH, 1e6)
-    out["ik_us_per_pose"], out["ik_us_per_pose_p95"] = med, p95
+    _record(out, "ik_us_per_pose", _time(lambda: kin.ik(T), repeats), IK_BATCH, 1e6)
     tcp = np.ascontiguousarray(kin.T_flange_tcp)
     poses = [np.ascontiguousarray(t) for t in T]
     ref_ik = ur_analytic_ik.ur5e.inverse_kinematics_with_tcp
@@ -204,29 +213,38 @@ def run(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
             ref_ik(pose, tcp)
 
     ref_repeats = max(3, repeats // 5)
-    med, p95 = _stats(_time(reference, ref_repeats), IK_BATCH, 1e6)
-    out["ik_reference_us_per_pose"], out["ik_reference_us_per_pose_p95"] = med, p95
+    _record(out, "ik_reference_us_per_pose", _time(reference, ref_repeats), IK_BATCH, 1e6)
     out["ik_speedup_vs_reference"] = out["ik_reference_us_per_pose"] / out["ik_us_per_pose"]
+    out["ik_speedup_vs_reference_cpu"] = out["ik_reference_us_per_pose_cpu"] / out["ik_us_per_pose_cpu"]
     _log(
         progress, f"ik: {out['ik_us_per_pose']:.3f} us/pose, reference {out['ik_reference_us_per_pose']:.3f}"
     )
 
     # ---- FK
     qf = rng.uniform(kin.q_min, kin.q_max, size=(FK_BATCH, 6))
-    med, p95 = _stats(_time(lambda: kin.fk(qf), repeats), FK_BATCH, 1e6)
-    out["fk_us_per_config"], out["fk_us_per_config_p95"] = med, p95
+    _record(out, "fk_us_per_config", _time(lambda: kin.fk(qf), repeats), FK_BATCH, 1e6)
     _log(progress, f"fk: {out['fk_us_per_config']:.3f} us/config")
 
     # ---- robot vs person distances
     qd = rng.uniform(-math.pi, math.pi, size=(PAIRS, 6))
     joints = _people(rng, PAIRS)
     ours = model.distance_to_human_paired(qd, joints)
-    med, p95 = _stats(_time(lambda: model.distance_to_human_paired(qd, joints), repeats), PAIRS, 1e9)
     out["distance_pairs"] = PAIRS
-    out["distance_ns_per_pair"], out["distance_ns_per_pair_p95"] = med, p95
+    _record(
+        out,
+        "distance_ns_per_pair",
+        _time(lambda: model.distance_to_human_paired(qd, joints), repeats),
+        PAIRS,
+        1e9,
+    )
     qc, jc = qd[:32], joints[:32]
-    med, p95 = _stats(_time(lambda: model.distance_to_human(qc, jc), repeats), 32 * 32, 1e9)
-    out["distance_cross_ns_per_pair"], out["distance_cross_ns_per_pair_p95"] = med, p95
+    _record(
+        out,
+        "distance_cross_ns_per_pair",
+        _time(lambda: model.distance_to_human(qc, jc), repeats),
+        32 * 32,
+        1e9,
+    )
     _log(
         progress, f"distance: {out['distance_ns_per_pair']:.0f} ns/pair; running python-fcl on the same pairs"
     )
@@ -236,13 +254,18 @@ def run(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
     separated = ours > 1e-6
     out["distance_max_abs_diff_vs_fcl_m"] = float(np.max(np.abs(ours[separated] - theirs[separated])))
     out["distance_collisions_agree_with_fcl"] = bool(np.all((ours < -1e-6) <= (theirs <= 0.0)))
-    med, p95 = _stats(_time(fcl_run, fcl_repeats), PAIRS, 1e9)
-    out["fcl_distance_ns_per_pair"], out["fcl_distance_ns_per_pair_p95"] = med, p95
+    _record(out, "fcl_distance_ns_per_pair", _time(fcl_run, fcl_repeats), PAIRS, 1e9)
     out["distance_speedup_vs_fcl"] = out["fcl_distance_ns_per_pair"] / out["distance_ns_per_pair"]
+    out["distance_speedup_vs_fcl_cpu"] = out["fcl_distance_ns_per_pair_cpu"] / out["distance_ns_per_pair_cpu"]
     _log(progress, f"fcl: {out['fcl_distance_ns_per_pair']:.0f} ns/pair")
 
     # ---- static scene (roadmap construction)
     qs = rng.uniform(-math.pi, math.pi, size=(1000, 6))
-    med, p95 = _stats(_time(lambda: model.static_clearance(qs), max(3, repeats // 3)), 1000, 1e6)
-    out["static_us_per_config"], out["static_us_per_config_p95"] = med, p95
+    _record(
+        out,
+        "static_us_per_config",
+        _time(lambda: model.static_clearance(qs), max(3, repeats // 3)),
+        1000,
+        1e6,
+    )
     return out

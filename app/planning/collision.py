@@ -19,8 +19,11 @@ segment distance minus both radii, exact; for a capsule and a box it is the mini
 box's signed distance field minus the radius).
 
 Performance: :meth:`CollisionModel.distance_to_human` and :meth:`CollisionModel.distance_to_human_paired` are
-the planner's hot path. They rewrite every dot product of the segment-segment problem as one matrix product
-(BLAS), then run a branch-free closest-point computation on contiguous blocks small enough to stay in cache.
+the planner's hot path. Both run a branch-free closest-point computation (no Python loop over pairs) on blocks
+small enough to stay in cache and to avoid fresh page-faulted allocations. The cross version (B x H) gets
+every dot product of the segment-segment problem from one matrix product of augmented vectors (BLAS); the
+paired version (K) lays the pairs out as (robot capsule, person capsule, configuration) so that every pass
+runs over contiguous rows. ``hrc bench kinematics`` compares them with python-fcl.
 """
 
 from __future__ import annotations
@@ -170,6 +173,7 @@ _TINY = 1e-18  # m^4: below this the segments are treated as parallel (error bel
 # Work arrays are kept below 128 KiB: larger ones are mmap-ed by glibc on every allocation and page-faulted on
 # first touch, which costs more than the arithmetic.
 _BLOCK_ELEMS = 10_000
+_PAIRED_BLOCK = 128  # configurations per block of the paired kernel (9 x 19 x 128 pairs)
 
 
 def _clip01(x: np.ndarray) -> None:
@@ -391,9 +395,11 @@ def _paired_min_distance(
 ) -> np.ndarray:
     """Min signed distance between robot configuration k and person pose k.
 
+    Works in an (L, M, k) layout, configurations innermost: every robot quantity (L, 1, k) and person quantity
+    (1, M, k) broadcasts along an outer axis, so each numpy pass runs over contiguous rows.
+
     Args:
-        a_c, d_c: Robot segment starts and directions, component-major (L, 3, K); segment l must have the
-            same length in every configuration (a rigid robot).
+        a_c, d_c: Robot segment starts and directions, component-major (L, 3, K).
         ra: Robot radii (L,).
         jt: Person poses, component-major (J, 3, K).
         ia, ib: Joint indices (M,) of the person capsules' ends.
@@ -404,66 +410,50 @@ def _paired_min_distance(
     """
     L, _, K = a_c.shape
     M = len(rh)
-    p2 = jt[ia]  # (M, 3, K)
-    d2 = jt[ib]
-    d2 -= p2
-
-    def dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        out = u[:, 0] * v[:, 0]
-        out += u[:, 1] * v[:, 1]
-        out += u[:, 2] * v[:, 2]
-        return out
-
-    a, dp1, pp1 = dot(d_c, d_c), dot(d_c, a_c), dot(a_c, a_c)  # (L, K)
-    e, dp2, pp2 = dot(d2, d2), dot(d2, p2), dot(p2, p2)  # (M, K)
-    pp1 *= 0.5
-    pp2 *= 0.5
-    np.negative(dp2, out=dp2)
+    kb = max(1, min(K, _PAIRED_BLOCK))
+    a = np.einsum("lik,lik->lk", d_c, d_c)
     inv_a = _inv(a)
-    inv_e = _inv(e)
-
-    block = max(1, min(K, _BLOCK_ELEMS // (L * M)))
-    rsum = np.broadcast_to(ra[:, None] + rh[None, :], (block, L, M)).copy()
-    # The robot's links are rigid: their squared lengths are the same for every configuration.
-    A = np.broadcast_to(a[:, :1].T[:, :, None], (block, L, M)).copy()
-    IA = np.broadcast_to(inv_a[:, :1].T[:, :, None], (block, L, M)).copy()
+    rsum = (ra[:, None] + rh[None, :])[:, :, None]
     out = np.empty(K)
-    # augmented rows/columns (see _FEATURES); the constant entries are written once
-    U = np.zeros((block, 2 * L, _FEATURES))
-    V = np.zeros((block, _FEATURES, 2 * M))
-    U[:, L:, 4] = 1.0
-    V[:, 3, M:] = 1.0
-    V[:, 5, M:] = 1.0
-    G = np.empty((block, 2 * L, 2 * M))
-    shape = (block, L, M)
-    b, c, f, E = (np.empty(shape) for _ in range(4))
+    shape = (L, M, kb)
+    b, c, f, rr, tmp = (np.empty(shape) for _ in range(5))
     work = _work(shape)
-    for k0 in range(0, K, block):
-        k1 = min(K, k0 + block)
+    for k0 in range(0, K, kb):
+        k1 = min(K, k0 + kb)
         m = k1 - k0
-        if m != block:
-            U, V, G = U[:m], V[:m], G[:m]
-            b, c, f, E, A, IA = (x[:m] for x in (b, c, f, E, A, IA))
-            work = tuple(w[:m] for w in work)  # type: ignore[assignment]
+        if m != kb:
+            b, c, f, rr, tmp = (x[:, :, :m] for x in (b, c, f, rr, tmp))
+            work = tuple(w[:, :, :m] for w in work)  # type: ignore[assignment]
+        d1 = d_c[:, :, None, k0:k1]  # (L, 3, 1, m)
+        p1 = a_c[:, :, None, k0:k1]
+        p2 = jt[ia, :, k0:k1]  # (M, 3, m)
+        d2 = jt[ib, :, k0:k1]
+        d2 -= p2
+        e = np.einsum("mik,mik->mk", d2, d2)[None]  # (1, M, m)
+        d2 = d2.transpose(1, 0, 2)[:, None]  # (3, 1, M, m)
+        p2 = p2.transpose(1, 0, 2)[:, None]
+        r = work[0]
+        np.multiply(d1[:, 0], d2[0], out=b)
         for i in range(3):
-            U[:, :L, i] = d_c[:, i, k0:k1].T
-            U[:, L:, i] = a_c[:, i, k0:k1].T
-            V[:, i, :M] = d2[:, i, k0:k1].T
-            np.negative(p2[:, i, k0:k1].T, out=V[:, i, M:])
-        U[:, :L, 3] = dp1[:, k0:k1].T
-        U[:, L:, 5] = pp1[:, k0:k1].T
-        V[:, 4, :M] = dp2[:, k0:k1].T
-        V[:, 4, M:] = pp2[:, k0:k1].T
-        np.matmul(U, V, out=G)
-        # the products used more than once are copied out of their quadrants into contiguous arrays
-        np.copyto(b, G[:, :L, :M])
-        np.copyto(c, G[:, :L, M:])
-        np.copyto(f, G[:, L:, :M])
-        np.copyto(E, e[:, k0:k1].T[:, None, :])
-        sq = _closest_sq(b, c, f, G[:, L:, M:], A, E, IA, inv_e[:, k0:k1].T[:, None, :], work)
+            np.subtract(p1[:, i], p2[i], out=r)  # r = p1 - p2, one component
+            if i:
+                np.multiply(d1[:, i], d2[i], out=tmp)
+                b += tmp
+                np.multiply(d1[:, i], r, out=tmp)
+                c += tmp
+                np.multiply(d2[i], r, out=tmp)
+                f += tmp
+                np.multiply(r, r, out=tmp)
+                rr += tmp
+            else:
+                np.multiply(d1[:, 0], r, out=c)
+                np.multiply(d2[0], r, out=f)
+                np.multiply(r, r, out=rr)
+        rr *= 0.5
+        sq = _closest_sq(b, c, f, rr, a[:, None, k0:k1], e, inv_a[:, None, k0:k1], _inv(e), work)
         dist = np.sqrt(sq, out=sq)
-        dist -= rsum[:m]
-        out[k0:k1] = dist.reshape(m, L * M).min(axis=1)
+        dist -= rsum
+        out[k0:k1] = dist.min(axis=(0, 1))
     return out
 
 
