@@ -981,13 +981,17 @@ class Planner:
             batch: list[int] = []
             seen: set[int] = set()
             while heap and len(batch) < workers:
-                _, _, sid = heapq.heappop(heap)
+                entry = heapq.heappop(heap)
+                sid = entry[2]
                 node = int(states.node[sid])
                 if node >= 0 and (states.t[sid] > AT[node] + _EPS_T or node in seen):
                     continue  # superseded by a better arrival
                 if (goal is not None and node == goal) or (
                     stop_time is not None and states.t[sid] >= stop_time
                 ):
+                    if batch:  # states popped before it (f <= its f) may still improve it: expand them first
+                        heapq.heappush(heap, entry)
+                        break
                     return self._reconstruct(states, sid), expanded, "ok"
                 seen.add(node)
                 batch.append(sid)
@@ -1336,6 +1340,10 @@ class Planner:
             chain.append(s)
             s = int(states.parent[s])
         chain.reverse()
+        if len(chain) > 1:
+            a, b = chain[0], chain[1]
+            if states.t[b] <= states.t[a] + _EPS_T and np.allclose(states.q[a], states.q[b], atol=1e-12):
+                chain = chain[1:]  # the start is a roadmap node: one waypoint, labelled with the node
         times, qs, nodes = [], [], []
         for i, s in enumerate(chain):
             if i > 0:

@@ -1,0 +1,306 @@
+"""Time-variant A* on small hand-built roadmaps with known answers.
+
+The "robot" is a ball (radius 5 cm) at ``q[:3]`` (metres; the other joints only select branches), the person
+a set of balls at its joints, so every answer can be worked out by hand. The validity check at the end of
+each test is written independently of the planner: it samples the trajectory at 100 Hz, differentiates it
+itself and computes point distances itself.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+
+import numpy as np
+import pytest
+
+from app.planning.roadmap import Roadmap
+from app.planning.safety import SSMParams, forecast_clearance
+from app.planning.search import Planner, PlannerConfig
+from app.planning.trajectory import Trajectory
+from app.prediction.forecast import HumanForecast
+from app.prediction.skeleton import BONES, NUM_JOINTS
+
+R_ROBOT = 0.05
+R_HUMAN = 0.05
+SSM = SSMParams(t_reaction_s=0.01, t_stop_s=0.0, intrusion_m=0.0, z_human_m=0.1, z_robot_m=0.0)
+Q_LIM = 3.0
+
+
+class PointRobot:
+    """A ball robot at q[:3]; a person of balls at the joints (bones of length 0); boxes as static scene."""
+
+    def __init__(self, boxes: list[tuple[tuple[float, ...], tuple[float, ...]]] | None = None) -> None:
+        self.boxes = boxes or []
+        self.distance_calls = 0
+
+    def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        q = np.asarray(q, dtype=float).reshape(-1, 6)
+        return q[:, None, :3].copy(), q[:, None, :3].copy(), np.array([R_ROBOT])
+
+    def human_capsules(self, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        joints = np.asarray(joints, dtype=float)
+        return joints[:, BONES[:, 0]], joints[:, BONES[:, 1]], np.full(len(BONES), R_HUMAN)
+
+    def distance_to_human_paired(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        self.distance_calls += 1
+        d = np.linalg.norm(np.asarray(joints) - np.asarray(q)[:, None, :3], axis=-1).min(axis=1)
+        return d - R_ROBOT - R_HUMAN
+
+    def in_static_collision(self, q: np.ndarray, *, margin_m: float = 0.0) -> np.ndarray:
+        q = np.asarray(q, dtype=float).reshape(-1, 6)
+        hit = np.zeros(q.shape[0], dtype=bool)
+        for lo, hi in self.boxes:
+            g = np.maximum(np.maximum(np.asarray(lo) - q[:, :3], q[:, :3] - np.asarray(hi)), 0.0)
+            hit |= np.linalg.norm(g, axis=1) < R_ROBOT + margin_m
+        return hit
+
+    def self_collision(self, q: np.ndarray) -> np.ndarray:
+        return np.zeros(np.asarray(q).reshape(-1, 6).shape[0], dtype=bool)
+
+
+def config(**kw: object) -> PlannerConfig:
+    base = dict(
+        ssm=SSM,
+        q_min=(-Q_LIM,) * 6,
+        q_max=(Q_LIM,) * 6,
+        qd_max=(1.0,) * 6,
+        qdd_max=(1000.0,) * 6,
+        speed_fraction=0.5,
+        accel_fraction=1.0,
+        corridor_margin_m=0.0,
+        slow_speed_fractions=(),
+        start_neighbors=1,
+        goal_hold_s=0.2,
+        fallback_slack_s=0.0,
+        lever_arm_m=1.0,
+    )
+    base.update(kw)
+    return PlannerConfig(**base)  # type: ignore[arg-type]
+
+
+def roadmap(points: list[tuple[float, float]], edges: list[tuple[int, int]], **stations: int) -> Roadmap:
+    pts = np.array([[x, y, 0.0] for x, y in points])
+    ik = np.zeros((len(pts), 8, 6))
+    ik[:, 0, :3] = pts
+    valid = np.zeros((len(pts), 8), dtype=bool)
+    valid[:, 0] = True
+    return Roadmap.from_arrays(pts, ik, valid, np.array(edges), station_nodes=stations)
+
+
+def person(times: list[float], spots: list[tuple[float, float]], *, growth: float = 0.0) -> HumanForecast:
+    """A person of balls all at one spot per sample (z = 0), margin 0."""
+    joints = np.array([np.tile([x, y, 0.0], (NUM_JOINTS, 1)) for x, y in spots])
+    return HumanForecast(
+        t0=times[0], times=np.array(times), joints=joints, margins=np.zeros(len(times)), growth_mps=growth
+    )
+
+
+def q_of(x: float, y: float) -> np.ndarray:
+    return np.array([x, y, 0.0, 0.0, 0.0, 0.0])
+
+
+def assert_valid(
+    traj: Trajectory, forecast: HumanForecast | None, *, hold_s: float, ssm: SSMParams = SSM
+) -> None:
+    """Independent check: 100 Hz samples within the joint limits and at least the required separation."""
+    t = np.arange(traj.t_start, traj.t_end + hold_s + 1e-9, 0.01)
+    q = traj.q(t)
+    assert np.all(np.abs(q) <= Q_LIM + 1e-9)
+    if forecast is None:
+        return
+    eps = 1e-5
+    v = np.linalg.norm(traj.q(t + eps)[:, :3] - traj.q(t - eps)[:, :3], axis=1) / (2 * eps)
+    joints, margins = forecast.poses_at(t)
+    d = np.linalg.norm(joints - q[:, None, :3], axis=-1).min(axis=1) - R_ROBOT - R_HUMAN
+    need = forecast_clearance(v, margins, ssm)
+    worst = int(np.argmin(d - need))
+    assert d[worst] >= need[worst] - 1e-9, (
+        f"violation at t={t[worst]:.3f}: {d[worst]:.4f} < {need[worst]:.4f}"
+    )
+
+
+def dijkstra(rm: Roadmap, start: int, goal: int, speed: float) -> tuple[list[int], float]:
+    """Plain shortest path with edge time = max-norm joint distance / speed (the planner's cruise model)."""
+    dist = {start: 0.0}
+    prev: dict[int, int] = {}
+    heap = [(0.0, start)]
+    while heap:
+        d, u = heapq.heappop(heap)
+        if u == goal:
+            break
+        if d > dist[u]:
+            continue
+        for v in rm.neighbors(u).tolist():
+            nd = d + float(np.max(np.abs(rm.ik[v, 0] - rm.ik[u, 0]))) / speed
+            if nd < dist.get(v, np.inf):
+                dist[v] = nd
+                prev[v] = u
+                heapq.heappush(heap, (nd, v))
+    path = [goal]
+    while path[-1] != start:
+        path.append(prev[path[-1]])
+    return path[::-1], dist[goal]
+
+
+def path_time(rm: Roadmap, nodes: list[int]) -> float:
+    return sum(float(np.max(np.abs(rm.ik[b, 0] - rm.ik[a, 0]))) / 0.5 for a, b in itertools.pairwise(nodes))
+
+
+def random_graph(seed: int, n: int = 30) -> Roadmap:
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(0.0, 2.0, size=(n, 2))
+    pts[0], pts[1] = (0.0, 0.0), (2.0, 2.0)
+    edges = [(i, j) for i, j in itertools.combinations(range(n), 2) if np.linalg.norm(pts[i] - pts[j]) < 0.7]
+    return roadmap([tuple(p) for p in pts], edges, s=0, g=1)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_without_a_person_the_search_is_plain_a_star(seed: int) -> None:
+    rm = random_graph(seed)
+    before = {
+        k: getattr(rm, k).copy() for k in ("nodes", "ik", "valid", "indptr", "indices", "edge_branches")
+    }
+    planner = Planner(rm, PointRobot(), config=config())
+    _, cost = dijkstra(rm, 0, 1, speed=0.5)
+    for workers in (1, 4):
+        res = planner.plan(q_start=rm.ik[0, 0], t_start=0.0, goal="g", forecast=None, workers=workers)
+        assert res.ok, res.reason
+        nodes = res.plan.nodes.tolist()
+        assert nodes[0] == 0 and nodes[-1] == 1
+        # a path of the graph, as short as the plain shortest path (max-norm costs can tie)
+        for a, b in itertools.pairwise(nodes):
+            assert b in rm.neighbors(a).tolist()
+        assert path_time(rm, nodes) == pytest.approx(cost, abs=1e-9)
+        # cruise model plus the (tiny) acceleration ramps at start and end
+        assert res.plan.t_end == pytest.approx(cost, abs=3e-3)
+        assert_valid(res.trajectory, None, hold_s=0.0)
+    for k, arr in before.items():
+        np.testing.assert_array_equal(getattr(rm, k), arr)  # the search never writes into the roadmap
+        assert not getattr(rm, k).flags.writeable
+
+
+def test_a_person_crossing_an_edge_makes_the_robot_wait() -> None:
+    # a corridor 0 - 0.2 - ... - 1.0; the person stands next to x = 0.6 between t = 0.8 and 1.6 only
+    rm = roadmap([(0.2 * i, 0.0) for i in range(6)], [(i, i + 1) for i in range(5)], s=0, g=5)
+    fc = person(
+        [0.0, 0.7, 0.75, 1.6, 1.65, 4.0],
+        [(0.6, 3.0), (0.6, 3.0), (0.6, 0.15), (0.6, 0.15), (0.6, 3.0), (0.6, 3.0)],
+    )
+    planner = Planner(rm, PointRobot(), config=config(max_wait_s=1.5))
+    static = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None)
+    res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc)
+    assert static.ok and res.ok, res.reason
+    q = res.plan.q
+    waits = [i for i in range(len(q) - 1) if np.allclose(q[i], q[i + 1])]
+    assert waits, "expected a wait in the plan"
+    # the robot passes x = 0.6 only after the person has left (0.15 m away needs 0.2 m + speed term)
+    traj = res.trajectory
+    t = np.arange(traj.t_start, traj.t_end, 0.01)
+    near = np.abs(traj.q(t)[:, 0] - 0.6) < 0.11
+    assert np.all((t[near] < 0.75) | (t[near] > 1.6))
+    assert res.plan.t_end > static.plan.t_end + 0.3
+    assert_valid(traj, fc, hold_s=0.2)
+
+
+def test_a_person_standing_on_the_short_way_makes_the_robot_detour() -> None:
+    # short way s - m - g (2 s); the long way s - d1 - d2 - g (4.4 s); the person stands at m
+    rm = roadmap(
+        [(0.0, 0.0), (0.5, 0.0), (1.0, 0.0), (0.0, 0.6), (1.0, 0.6)],
+        [(0, 1), (1, 2), (0, 3), (3, 4), (4, 2)],
+        s=0,
+        g=2,
+    )
+    fc = person([0.0], [(0.5, -0.1)])
+    planner = Planner(rm, PointRobot(), config=config())
+    static = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None)
+    assert [n for n in static.plan.nodes.tolist() if n >= 0] == [0, 1, 2]
+    for workers in (1, 3):
+        res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc, workers=workers)
+        assert res.ok, res.reason
+        assert [n for n in res.plan.nodes.tolist() if n >= 0] == [0, 3, 4, 2]
+        assert_valid(res.trajectory, fc, hold_s=0.2)
+
+
+def test_an_unreachable_goal_is_a_clear_failure() -> None:
+    rm = roadmap([(0.0, 0.0), (0.3, 0.0), (1.5, 1.5)], [(0, 1)], s=0, g=2)
+    planner = Planner(rm, PointRobot(), config=config())
+    res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None)
+    assert not res.ok and res.plan is None and res.trajectory is None
+    assert "unreachable" in res.reason
+
+
+def test_a_person_staying_at_the_goal_fails_instead_of_returning_an_unchecked_path() -> None:
+    rm = roadmap([(0.0, 0.0), (0.4, 0.0), (0.8, 0.0)], [(0, 1), (1, 2)], s=0, g=2)
+    fc = person([0.0, 1.0], [(2.0, 2.0), (0.8, 0.05)])  # walks up to the goal and stays
+    planner = Planner(rm, PointRobot(), config=config(max_wait_s=0.5))
+    res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc)
+    assert not res.ok and res.plan is None
+    assert res.reason
+
+
+def test_start_in_violation_and_unknown_goal() -> None:
+    rm = roadmap([(0.0, 0.0), (0.4, 0.0)], [(0, 1)], s=0, g=1)
+    planner = Planner(rm, PointRobot(), config=config())
+    res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=person([0.0], [(0.05, 0.0)]))
+    assert not res.ok and "start" in res.reason
+    from app.planning.roadmap import RoadmapError
+
+    with pytest.raises(RoadmapError, match="unknown station"):
+        planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="nowhere", forecast=None)
+
+
+def test_the_nearest_branch_is_taken_first() -> None:
+    # every node has two branches at the same position: joint 4 at 0 or at 1 (the ball ignores it)
+    pts = [(0.0, 0.0), (0.3, 0.0), (0.6, 0.0)]
+    rm0 = roadmap(pts, [(0, 1), (1, 2)], s=0, g=2)
+    ik = rm0.ik.copy()
+    valid = rm0.valid.copy()
+    ik[:, 1] = ik[:, 0]
+    ik[:, 1, 3] = 1.0
+    valid[:, 1] = True
+    rm = Roadmap.from_arrays(rm0.nodes, ik, valid, rm0.edge_list(), station_nodes={"g": 2})
+    planner = Planner(rm, PointRobot(), config=config())
+    for j4 in (0.0, 1.0):
+        start = np.array([0.0, 0.0, 0.0, j4, 0.0, 0.0])
+        res = planner.plan(q_start=start, t_start=0.0, goal="g", forecast=None)
+        assert res.ok
+        np.testing.assert_allclose(res.plan.q[:, 3], j4)
+
+
+def test_deadline_uses_the_injected_clock() -> None:
+    ticks = itertools.count()
+    rm = random_graph(0)
+    planner = Planner(rm, PointRobot(), config=config(), timer=lambda: float(next(ticks)))
+    res = planner.plan(q_start=rm.ik[0, 0], t_start=0.0, goal="g", forecast=None, deadline_s=2.5)
+    assert not res.ok and res.reason == "deadline"
+
+
+def test_emergency_stays_when_safe_and_escapes_when_not() -> None:
+    rm = roadmap([(0.0, 0.0), (0.3, 0.0), (0.6, 0.0), (0.9, 0.0)], [(0, 1), (1, 2), (2, 3)], g=3)
+    planner = Planner(rm, PointRobot(), config=config(emergency_hold_s=0.2))
+    far = person([0.0, 1.0], [(3.0, 3.0), (2.0, 2.0)])
+    res = planner.emergency(q_start=q_of(0.3, 0.0), t_start=0.0, forecast=far, horizon_s=0.15)
+    assert res.ok and res.reason == "stay"
+    np.testing.assert_allclose(res.trajectory.q(0.1), q_of(0.3, 0.0))
+    # the person comes to stand 0.18 m from the robot (needs 0.2 m): the robot backs away from them
+    near = person([0.0, 1.0], [(0.42, 0.1), (0.0, 0.0)])
+    res = planner.emergency(q_start=q_of(0.3, 0.0), t_start=0.0, forecast=near, horizon_s=0.15)
+    assert res.ok and res.reason == "ok", res.reason
+    end = res.trajectory.q(res.trajectory.t_end)
+    assert end[0] < 0.3  # moved away from the person (x = 0.42)
+    assert res.trajectory.t_end >= 0.15
+    d = np.linalg.norm(
+        res.trajectory.q(np.linspace(0, res.trajectory.t_end, 50))[:, :2] - [0.42, 0.1], axis=1
+    )
+    assert np.all(np.diff(d) >= -1e-9)  # never closer than it started
+
+
+def test_static_obstacles_block_start_connections() -> None:
+    # the start is connected to its 2 nearest nodes; a box lies between the start and the nearer one
+    rm = roadmap([(0.3, 0.0), (0.0, 0.5), (0.6, 0.6)], [(0, 2), (1, 2)], g=2)
+    model = PointRobot(boxes=[((0.12, -0.2, -0.2), (0.18, 0.2, 0.2))])
+    planner = Planner(rm, model, config=config(start_neighbors=2))
+    res = planner.plan(q_start=q_of(0.0, 0.0), t_start=0.0, goal="g", forecast=None)
+    assert res.ok
+    assert [n for n in res.plan.nodes.tolist() if n >= 0] == [1, 2]
