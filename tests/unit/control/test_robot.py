@@ -217,3 +217,19 @@ def test_tracker_reference_extrapolates_then_holds() -> None:
     q, qd = tracker.reference(5.0)
     np.testing.assert_allclose(q, HOME + 0.02)
     np.testing.assert_array_equal(qd, 0.0)
+
+
+def test_sim_robot_steps_on_the_wall_clock_without_a_thread() -> None:
+    from app.control.clock import WallClock
+
+    clock = WallClock()
+    robot = SimRobot(clock, q0=HOME)
+    first = robot.state()
+    robot.servo(HOME + 0.5, np.zeros(6), clock.now())
+    for _ in range(200):  # bounded: the arm moves as real time passes
+        st = robot.state()
+        if np.any(st.q != HOME):
+            break
+        clock.sleep_until(clock.now() + 0.005)
+    assert st.t > first.t
+    assert np.all(st.q >= HOME) and np.any(st.q > HOME)
