@@ -166,11 +166,12 @@ def test_segment_box_distance_is_exact(p: np.ndarray, q: np.ndarray, half: np.nd
     assert ours <= sdf.min() + 1e-12
     # sampling resolution (the field is 1-Lipschitz)
     assert ours >= sdf.min() - np.linalg.norm(q - p) / 4000 - 1e-12
-    # python-fcl agrees on the sign, and on the value within its GJK tolerance (about 1e-4 m for capsule-box)
+    # python-fcl agrees on the sign, and on the value within its GJK tolerance (its capsule-box distances are
+    # off by up to about 0.2 %, always on the high side; the brute force above is the exact reference)
     cap = fcl_capsule(p, q, r)
     box = fcl.CollisionObject(fcl.Box(*(2 * half)), fcl.Transform())
     if ours - r > 1e-3:
-        assert ours - r == pytest.approx(_fcl_distance(cap, box), abs=5e-4)
+        assert ours - r == pytest.approx(_fcl_distance(cap, box), rel=5e-3, abs=1e-3)
         assert not _fcl_collide(cap, box)
     elif ours - r < -1e-3:
         assert _fcl_collide(cap, box)
@@ -367,7 +368,8 @@ def test_static_clearance_matches_fcl_and_exhaustive(model: CollisionModel) -> N
     np.testing.assert_allclose(clearance, exhaustive, atol=0)
     free = np.nonzero(clearance > 1e-3)[0][:40]
     assert len(free) >= 20
-    np.testing.assert_allclose(model.static_clearance_fcl(q[free]), clearance[free], atol=5e-4)
+    # fcl's GJK capsule-box distance is within about 0.2 % (exactness is shown against brute force above)
+    np.testing.assert_allclose(model.static_clearance_fcl(q[free]), clearance[free], rtol=5e-3, atol=1e-3)
     hit = np.nonzero(clearance < -1e-3)[0][:20]
     assert len(hit) >= 5
     a, b, r = model.robot_capsules(q[hit])
