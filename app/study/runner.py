@@ -25,9 +25,10 @@ from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
+from sqlalchemy.exc import SQLAlchemyError
 
 from app.control.metrics import TrialEvent
-from app.study.repository import RecordedFrames, StudyRepository, settings_snapshot
+from app.study.repository import RecordedFrames, StudyRepository, TrialStateError, settings_snapshot
 from app.study.schemas import ParticipantCreate, StudySessionCreate
 
 log = logging.getLogger(__name__)
@@ -52,8 +53,9 @@ class TrialJob:
 
 @dataclass(frozen=True)
 class TrialOutcome:
-    """What a worker sends back: the trial's metrics (``TrialMetrics`` fields), events and frames, or the
-    error that ended it."""
+    """What a worker sends back: the trial's metrics (``TrialMetrics`` fields), events and frames, how it
+    ended (``status`` ``completed`` or ``aborted`` with the runtime's ``reason``), or the error that broke
+    it (then ``metrics`` is None)."""
 
     trial_id: int
     metrics: dict[str, Any] | None
@@ -62,6 +64,8 @@ class TrialOutcome:
     error: str | None = None
     started_at: datetime | None = None
     wall_s: float = 0.0
+    status: str = "completed"
+    reason: str | None = None
 
 
 @dataclass(frozen=True)
@@ -147,7 +151,11 @@ def run_trial_job(job: TrialJob) -> TrialOutcome:
     t0 = time.perf_counter()
     try:
         from app.config import Settings
-        from app.control.runtime import run_headless_trial
+
+        try:
+            from app.control.runtime import run_headless_trial
+        except ImportError:  # the runtime module re-exports it; fall back to where it is defined
+            from app.control.headless import run_headless_trial
 
         if "torch" in sys.modules:
             sys.modules["torch"].set_num_threads(1)
@@ -170,6 +178,8 @@ def run_trial_job(job: TrialJob) -> TrialOutcome:
             frames=frames,
             started_at=started_at,
             wall_s=time.perf_counter() - t0,
+            status=str(getattr(result, "status", "completed")),
+            reason=getattr(result, "reason", None),
         )
     except Exception as exc:
         tb = traceback.format_exc(limit=8)
@@ -280,6 +290,17 @@ def _store(repo: StudyRepository, outcome: TrialOutcome) -> bool:
             started_at=outcome.started_at,
         )
         return False
+    if outcome.status != "completed":  # the runtime ended it early (e.g. a robot fault): kept, not analysed
+        repo.finish_trial(
+            outcome.trial_id,
+            status="aborted",
+            reason=f"the runtime ended the trial: {outcome.reason or outcome.status}",
+            metrics=outcome.metrics,
+            events=outcome.events,
+            frames=outcome.frames,
+            started_at=outcome.started_at,
+        )
+        return False
     repo.finish_trial(
         outcome.trial_id,
         status="completed",
@@ -360,25 +381,26 @@ def run_study(
                 outcome = TrialOutcome(job.trial_id, None, error=f"worker process died: {exc}")
             except Exception as exc:
                 outcome = TrialOutcome(job.trial_id, None, error=f"{type(exc).__name__}: {exc}")
-            if _store(repo, outcome):
+            ok = _store(repo, outcome)
+            pending.discard(job.trial_id)
+            if ok:
                 completed += 1
             else:
                 aborted += 1
+                why = (outcome.error or outcome.reason or outcome.status).splitlines()[0]
                 log.warning(
-                    "trial %d (%s, %s) aborted: %s",
-                    job.trial_id,
-                    job.participant_code,
-                    job.method,
-                    (outcome.error or "").splitlines()[0],
+                    "trial %d (%s, %s) aborted: %s", job.trial_id, job.participant_code, job.method, why
                 )
-            pending.discard(job.trial_id)
             bar.update(1)
             bar.set_postfix(completed=completed, aborted=aborted)
     finally:
         bar.close()
         executor.shutdown(wait=not pending, cancel_futures=True)
         for trial_id in sorted(pending):  # interrupted (Ctrl-C) or failed before all results came back
-            repo.finish_trial(trial_id, status="aborted", reason="the study run was interrupted")
+            try:
+                repo.finish_trial(trial_id, status="aborted", reason="the study run was interrupted")
+            except (TrialStateError, SQLAlchemyError) as exc:
+                log.error("could not mark trial %d aborted: %s", trial_id, exc)
             aborted += 1
     return StudyRunResult(
         session_id=session_id,

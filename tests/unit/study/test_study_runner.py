@@ -52,6 +52,7 @@ def fake_trial(job: TrialJob) -> TrialOutcome:
     """A picklable stand-in for run_trial_job (used inline and in worker processes)."""
     if job.participant_code.endswith("p03") and job.method == "reactive":
         return TrialOutcome(job.trial_id, None, error="RuntimeError: simulated crash")
+    ended_early = job.participant_code.endswith("p04") and job.method == "reactive"
     n = 45
     frames = RecordedFrames(
         t=np.arange(n) / 30.0, q=np.full((n, 6), job.trial_seed % 3, float), skeleton=None
@@ -63,6 +64,8 @@ def fake_trial(job: TrialJob) -> TrialOutcome:
             TrialEvent(t=0.0, kind="trial_started", payload={"method": job.method, "seed": job.trial_seed})
         ],
         frames=frames if job.record_frames else None,
+        status="aborted" if ended_early else "completed",
+        reason="robot_fault" if ended_early else "duration",
     )
 
 
@@ -71,6 +74,8 @@ class FakeTrialResult:
     metrics: TrialMetrics
     events: list[TrialEvent]
     frames: Any
+    status: str = "completed"
+    reason: str = "duration"
 
 
 @pytest.fixture
@@ -122,6 +127,10 @@ def _check_study(repo: StudyRepository, session_id: int, n: int) -> None:
         for t in ts:
             if code.endswith("p03") and t.method == "reactive":
                 assert t.status == "aborted" and "simulated crash" in (t.abort_reason or "")
+                assert t.metrics is None
+            elif code.endswith("p04") and t.method == "reactive":  # ended early by the runtime: kept
+                assert t.status == "aborted" and "robot_fault" in (t.abort_reason or "")
+                assert t.metrics is not None and repo.count_events(t.id) == 1
             else:
                 assert t.status == "completed" and t.metrics is not None
                 assert (
@@ -147,7 +156,7 @@ def test_inline_study_is_counterbalanced_and_stored(db: tuple[str, StudyReposito
         progress=False,
         trial_fn=fake_trial,
     )
-    assert (result.completed, result.aborted, len(result.trial_ids)) == (7, 1, 8)
+    assert (result.completed, result.aborted, len(result.trial_ids)) == (6, 2, 8)
     _check_study(repo, result.session_id, 4)
     again = run_study(
         participants=4,
@@ -175,7 +184,7 @@ def test_study_in_worker_processes(db: tuple[str, StudyRepository]) -> None:
         progress=False,
         trial_fn=fake_trial,
     )
-    assert (result.completed, result.aborted) == (7, 1)
+    assert (result.completed, result.aborted) == (6, 2)
     _check_study(repo, result.session_id, 4)
 
 
@@ -223,6 +232,14 @@ def test_run_trial_job_calls_the_runtime_contract(monkeypatch: pytest.MonkeyPatc
     def broken(**kwargs: Any) -> FakeTrialResult:
         raise RuntimeError("planner exploded")
 
+    def faulted(**kwargs: Any) -> FakeTrialResult:
+        return FakeTrialResult(fake_metrics("reactive", 1), [], None, status="aborted", reason="robot_fault")
+
+    fake_runtime.run_headless_trial = faulted  # type: ignore[attr-defined]
+    early = run_trial_job(job)
+    assert (early.status, early.reason, early.error) == ("aborted", "robot_fault", None)
+    assert early.metrics is not None and early.frames is None
+
     fake_runtime.run_headless_trial = broken  # type: ignore[attr-defined]
     failed = run_trial_job(job)
     assert failed.metrics is None and failed.error is not None and "planner exploded" in failed.error
@@ -246,7 +263,8 @@ def test_cli_study_report_export(
     r = cli_runner.invoke(cli, ["report", "--json", "--url", url])
     assert r.exit_code == 0, r.output
     report = json.loads(r.stdout)
-    assert report["session_id"] == session_id and report["n_participants"] == 3  # p03 lost its reactive trial
+    # p03 and p04 have no completed reactive trial: two pairs are left
+    assert report["session_id"] == session_id and report["n_participants"] == 2
     for method in ("proactive", "reactive"):
         for metric in (
             "completed_tasks",
@@ -272,3 +290,28 @@ def test_cli_study_report_export(
         "participants.csv",
         "trials.csv",
     ]
+
+
+def interrupting_trial(job: TrialJob) -> TrialOutcome:
+    if job.participant_code.endswith("p02"):
+        raise KeyboardInterrupt
+    return fake_trial(job)
+
+
+def test_an_interrupted_study_leaves_no_running_trials(db: tuple[str, StudyRepository]) -> None:
+    _, repo = db
+    with pytest.raises(KeyboardInterrupt):
+        run_study(
+            participants=2,
+            duration_s=5.0,
+            seed=1,
+            repo=repo,
+            settings=Settings(),
+            max_workers=0,
+            progress=False,
+            trial_fn=interrupting_trial,
+        )
+    trials = repo.list_trials()
+    assert len(trials) == 4 and not [t for t in trials if t.status == "running"]
+    interrupted = [t for t in trials if t.status == "aborted"]
+    assert interrupted and all("interrupted" in (t.abort_reason or "") for t in interrupted)
