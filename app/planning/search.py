@@ -99,6 +99,8 @@ class PlannerConfig:
         wait_step_s, max_wait_s: Waiting at a node (nearest branch only): step and longest wait (s);
             ``max_wait_s = 0`` disables it.
         max_branch_tries: How many IK branches of a successor are tried (nearest first).
+        heuristic_weight: ``w`` of the key ``t + w h``: 1 is A* (time-optimal among the checked moves);
+            ``w > 1`` is weighted A* (plans at most ``w`` times longer, usually far fewer expansions).
         slow_speed_fractions: When every branch is blocked at the cruise speed, the nearest one is tried
             again at these lower cruise speeds (a slower robot needs less ``S_r + S_s``) before waiting.
         goal_hold_s: After arriving at the goal the robot must be able to stand there this long (s).
@@ -106,6 +108,8 @@ class PlannerConfig:
         check_step_rad: Largest joint step (rad) between configurations checked against the static scene.
         static_margin_m: Clearance (m) from the static scene for on-the-fly checks (as the roadmap's).
         max_expansions: Bound on expanded states per search.
+        max_plan_s: Plans that cannot reach the goal within this long (s, by the admissible heuristic) are
+            not searched for (the supervisor replans every frame; a longer detour is not worth the time).
         verify_dt_s: Time step (s) of the fitted trajectory's verification.
         fallback_slack_s: Extra time window (s) of the time-robust re-search after a failed verification.
         emergency_hold_s: An emergency plan's final configuration must be safe this long (s).
@@ -126,12 +130,14 @@ class PlannerConfig:
     wait_step_s: float = 0.1
     max_wait_s: float = 0.6
     max_branch_tries: int = 2
+    heuristic_weight: float = 1.0
     slow_speed_fractions: tuple[float, ...] = (0.2,)
     goal_hold_s: float = 0.3
     start_neighbors: int = 8
     check_step_rad: float = 0.05
     static_margin_m: float = 0.0
     max_expansions: int = 20000
+    max_plan_s: float = 8.0
     verify_dt_s: float = 0.01
     fallback_slack_s: float = 0.3
     emergency_hold_s: float = 0.3
@@ -151,6 +157,8 @@ class PlannerConfig:
                 raise ValueError(f"PlannerConfig.{name} must be > 0, got {getattr(self, name)}")
         if self.max_branch_tries < 1 or self.start_neighbors < 1:
             raise ValueError("PlannerConfig.max_branch_tries and start_neighbors must be >= 1")
+        if self.heuristic_weight < 1.0:
+            raise ValueError(f"PlannerConfig.heuristic_weight must be >= 1, got {self.heuristic_weight}")
         if self.speed_factor < 1.0:
             raise ValueError(f"PlannerConfig.speed_factor must be >= 1, got {self.speed_factor}")
 
@@ -174,44 +182,6 @@ class PlanResult:
     expanded: int
     compute_s: float
     trajectory: Trajectory | None = None
-
-
-class _States:
-    """Immutable state records of one search, in growable arrays (owned by the search, never the roadmap)."""
-
-    __slots__ = ("branch", "cen", "dep", "n", "node", "parent", "pts", "q", "rad", "t", "u")
-
-    _FIELDS = ("node", "branch", "t", "u", "q", "parent", "dep", "pts", "cen", "rad")
-
-    def __init__(self, capacity: int, n_pts: int, n_caps: int) -> None:
-        self.n = 0
-        self.node = np.empty(capacity, dtype=np.int64)
-        self.branch = np.empty(capacity, dtype=np.int64)
-        self.t = np.empty(capacity)
-        self.u = np.empty(capacity)
-        self.q = np.empty((capacity, 6))
-        self.parent = np.empty(capacity, dtype=np.int64)
-        self.dep = np.empty(capacity)
-        self.pts = np.empty((capacity, n_pts, 3))
-        self.cen = np.empty((capacity, n_caps, 3))
-        self.rad = np.empty((capacity, n_caps))
-
-    def add(self, **cols: np.ndarray) -> np.ndarray:
-        k = cols["node"].shape[0]
-        cap = self.node.shape[0]
-        if self.n + k > cap:
-            new = max(self.n + k, 2 * cap)
-            for name in self._FIELDS:
-                old = getattr(self, name)
-                arr = np.empty((new, *old.shape[1:]), dtype=old.dtype)
-                arr[: self.n] = old[: self.n]
-                setattr(self, name, arr)
-        sl = slice(self.n, self.n + k)
-        for name in self._FIELDS:
-            getattr(self, name)[sl] = cols[name]
-        ids = np.arange(self.n, self.n + k)
-        self.n += k
-        return ids
 
 
 def _profile(
@@ -310,12 +280,15 @@ def _person_parts(model: RobotModel) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 class _Separation:
-    """Pass/fail of robot samples against a forecast person.
+    """Pass/fail of robot samples (and whole moves) against a forecast person.
 
-    Two stages, both conservative: (1) a bounding sphere per robot capsule (known without forward
-    kinematics from the move's end configurations, see :meth:`Planner._moves_ok`) against a box per body
-    part; (2) for the (sample, robot capsule, part) triples still close, the exact distance between the robot
-    capsule and each person capsule of the part (:func:`app.planning.collision.segment_distance`).
+    Three conservative stages: (0) a whole move: one sphere per robot capsule that contains it during the move
+    against the body-part boxes over the move's time window; (1) each sample: a sphere per robot capsule
+    (known without forward kinematics, see :meth:`Planner._moves_ok`) against the part boxes at that time;
+    (2) for the (sample, robot capsule, part) triples still close, the exact distance between the robot
+    capsule and each person capsule of the part (:func:`app.planning.collision.segment_distance`). The part
+    boxes are precomputed at the forecast's own samples (a pose between two samples is a blend of them, so
+    it lies in the union of their boxes; beyond the horizon the last pose is held).
     """
 
     def __init__(
@@ -338,7 +311,72 @@ class _Separation:
         self.floor_m = floor_m
         self.samples = 0
         self.exact_pairs = 0
-        self._human_r: np.ndarray | None = None
+        if forecast is None:
+            return
+        joints = forecast.joints  # (H, J, 3)
+        self._human_r = np.asarray(model.human_capsules(joints[:1])[2], dtype=np.float64)
+        P = self.member.shape[0]
+        part_r = np.array(
+            [
+                self._human_r[self.caps_flat[self.caps_start[p] : self.caps_start[p + 1]]].max(initial=0.0)
+                for p in range(P)
+            ]
+        )
+        m4 = self.member[None, :, :, None]
+        lo = np.where(m4, joints[:, None], np.inf).min(axis=2) - part_r[:, None]  # (H, P, 3)
+        hi = np.where(m4, joints[:, None], -np.inf).max(axis=2) + part_r[:, None]
+        # sparse table of unions over index ranges [i, i + 2^k)
+        self._lo_tab, self._hi_tab = [lo], [hi]
+        k = 1
+        while (1 << k) <= lo.shape[0]:
+            plo, phi = self._lo_tab[-1], self._hi_tab[-1]
+            half = 1 << (k - 1)
+            self._lo_tab.append(np.minimum(plo[:-half], plo[half:]))
+            self._hi_tab.append(np.maximum(phi[:-half], phi[half:]))
+            k += 1
+        self._times = forecast.times
+
+    def _boxes(self, t0: np.ndarray, t1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Part boxes (n, P, 3) x 2 that contain the person over each window [t0, t1] (t0 <= t1)."""
+        times = self._times
+        H = times.shape[0]
+        i0 = np.clip(np.searchsorted(times, t0, side="right") - 1, 0, H - 1)
+        i1 = np.clip(np.searchsorted(times, t1, side="left"), 0, H - 1)
+        i1 = np.maximum(i1, i0)
+        span = i1 - i0 + 1
+        k = np.floor(np.log2(span)).astype(np.int64)
+        lo = np.empty((t0.shape[0], *self._lo_tab[0].shape[1:]))
+        hi = np.empty_like(lo)
+        for kk in np.unique(k).tolist():
+            sel = np.flatnonzero(k == kk)
+            a, b = i0[sel], i1[sel] - (1 << kk) + 1
+            lo[sel] = np.minimum(self._lo_tab[kk][a], self._lo_tab[kk][b])
+            hi[sel] = np.maximum(self._hi_tab[kk][a], self._hi_tab[kk][b])
+        return lo, hi
+
+    def _required(self, v: np.ndarray, t: np.ndarray) -> np.ndarray:
+        _, margins = self.forecast.poses_at(t) if self.forecast is not None else (None, np.zeros(t.shape))
+        req = forecast_clearance(v, margins, self.ssm) + self.extra_m
+        return req if self.floor_m is None else np.minimum(req, self.floor_m)
+
+    def near_moves(
+        self, cen: np.ndarray, rad: np.ndarray, t0: np.ndarray, t1: np.ndarray, v: np.ndarray
+    ) -> np.ndarray:
+        """Stage 0: (M,) bool, False where a move certainly keeps the separation.
+
+        ``cen`` (M, L, 3) / ``rad`` (M, L): spheres that contain each robot capsule during the whole move,
+        which lasts from ``t0`` to ``t1`` at robot speed ``v`` (m/s)."""
+        M = cen.shape[0]
+        if self.forecast is None or M == 0:
+            return np.zeros(M, dtype=bool)
+        lo_off, hi_off = min(self.offsets), max(self.offsets)
+        lo, hi = self._boxes(t0 + lo_off, t1 + hi_off)
+        # the margin only grows with time: the window's end needs the most
+        req = np.maximum(self._required(v, t1 + hi_off), self._required(np.zeros(M), t0 + lo_off))
+        c = cen[:, :, None, :]
+        g = np.maximum(np.maximum(lo[:, None] - c, c - hi[:, None]), 0.0)  # (M, L, P, 3)
+        gap = np.sqrt(np.einsum("mlpk,mlpk->mlp", g, g)) - rad[:, :, None]
+        return (gap < req[:, None, None]).any(axis=(1, 2))
 
     def check(
         self,
@@ -365,29 +403,17 @@ class _Separation:
                 rad = np.broadcast_to(rad, (n_off, *rad.shape)).reshape(-1, rad.shape[1])
         elif self.offsets[0] != 0.0:
             t = t + self.offsets[0]
-        joints, margins = self.forecast.poses_at(t)
-        req = forecast_clearance(v, margins, self.ssm) + self.extra_m
-        if self.floor_m is not None:
-            req = np.minimum(req, self.floor_m)
+        req = self._required(v, t)
         n = q.shape[0]
         self.samples += n
-        if self._human_r is None:
-            self._human_r = np.asarray(self.model.human_capsules(joints[:1])[2], dtype=np.float64)
         hr = self._human_r
-        P = self.member.shape[0]
         if cen is not None and rad is not None:
-            L = cen.shape[1]
-            close = np.empty((n, L, P), dtype=bool)
-            for p in range(P):
-                pj = joints[:, self.member[p]]
-                r_p = float(hr[self.caps_flat[self.caps_start[p] : self.caps_start[p + 1]]].max(initial=0.0))
-                plo = pj.min(axis=1)[:, None, :] - r_p
-                phi = pj.max(axis=1)[:, None, :] + r_p
-                g = np.maximum(np.maximum(plo - cen, cen - phi), 0.0)
-                close[:, :, p] = np.sqrt(np.einsum("slk,slk->sl", g, g)) - rad < req[:, None]
-            si, li, pi = np.nonzero(close)
+            lo, hi = self._boxes(t, t)
+            c = cen[:, :, None, :]  # (n, L, 1, 3)
+            g = np.maximum(np.maximum(lo[:, None] - c, c - hi[:, None]), 0.0)  # (n, L, P, 3)
+            gap = np.sqrt(np.einsum("nlpk,nlpk->nlp", g, g)) - rad[:, :, None]
+            si, li, pi = np.nonzero(gap < req[:, None, None])
         else:
-            L = -1
             si = li = pi = None
         ok = np.ones(n, dtype=bool)
         if si is not None and si.size == 0:
@@ -395,8 +421,9 @@ class _Separation:
         from app.planning.collision import segment_distance
 
         us, inv = np.unique(np.arange(n) if si is None else si, return_inverse=True)
+        joints, _ = self.forecast.poses_at(t[us])
         ra, rb, rr = self.model.robot_capsules(q[us])
-        ha, hb, _ = self.model.human_capsules(joints[us])
+        ha, hb, _ = self.model.human_capsules(joints)
         if si is None:  # every (capsule, person capsule) pair
             L, M = ra.shape[1], ha.shape[1]
             k = np.repeat(np.arange(us.size), L * M)
@@ -423,22 +450,6 @@ class _Separation:
             bad = d < req[us[k]]
             ok[us[k[bad]]] = False
         return ok.reshape(n_off, S).all(axis=0) if n_off > 1 else ok
-
-
-@dataclass
-class _Query:
-    """Per-query context (the search's own state lives in :class:`_States` and ``AT``)."""
-
-    sep: _Separation
-    goal: int | None
-    stop_time: float | None
-    hold_s: float
-    f: float
-    A: float
-    AT: np.ndarray
-    states: _States
-    h_tab: np.ndarray | None
-    wait_safe_until: dict[int, float] = field(default_factory=dict)
 
 
 class Planner:
@@ -500,6 +511,10 @@ class Planner:
         self._static_boxes = self._static_box_bounds()
         self._h_cache: dict[int, np.ndarray] = {}
         self._static_memo: dict[tuple[int, int, int, int], int] = {}
+        self._succ_memo: dict[int, list[tuple[int, list[tuple[int, float, bool]]]]] = {}
+        for node in roadmap.station_nodes.values():
+            if self._valid[node].any():
+                self._heuristic_table(node)
 
     # ------------------------------------------------------------------------------------------ set-up
     def _points_and_spheres(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -625,23 +640,22 @@ class Planner:
 
     def _static_cached(
         self,
-        st: _States,
-        par: np.ndarray,
+        u: np.ndarray,
+        bu: np.ndarray,
         cv: np.ndarray,
         b: np.ndarray,
         q_par: np.ndarray,
         target: np.ndarray,
     ) -> np.ndarray:
-        """Static check (1 free, -1 blocked) of moves the roadmap did not check, memoised per
+        """Static check (1 free, -1 blocked) of moves q_par -> target that the roadmap did not check, from
+        node ``u`` at branch ``bu`` (-1: the start) to node ``cv`` at branch ``b``; memoised per
         (node, branch, node, branch) when the move is the one between the stored branch configurations.
 
         The memo belongs to the planner (never the roadmap) and only ever gains entries that are pure
         functions of the roadmap, so concurrent queries may share it.
         """
-        out = np.zeros(par.shape[0], dtype=np.int8)
-        u = st.node[par]
-        bu = st.branch[par]
-        keys: list[tuple[int, int, int, int] | None] = [None] * par.shape[0]
+        out = np.zeros(u.shape[0], dtype=np.int8)
+        keys: list[tuple[int, int, int, int] | None] = [None] * u.shape[0]
         on = np.flatnonzero(u >= 0)
         if on.size:
             ref = self._ik[u[on], bu[on]]
@@ -818,13 +832,24 @@ class Planner:
         )
         hold_s = max(cfg.emergency_hold_s, 0.0)
         t_stop = t_start + max(horizon_s, 0.0)
-        # 1. Standing still (braking from qd0) when that is safe.
-        stay = Plan(times=np.array([t_start]), q=q_start[None], nodes=np.array([-1]))
-        traj = self._fit(stay, qd0)
-        if traj is not None and self._verify(traj, held, t_start, max(t_stop, traj.t_end) + hold_s) is None:
-            return PlanResult(True, traj.to_plan(), "stay", 0, self._timer() - t0, traj)
-        # 2. Moving: search until t_stop; escape mode if the start already violates.
         d0 = float(self.collision.distance_to_human_paired(q_start[None], joints[None])[0])
+        # 1. Standing still (braking from qd0) when that is safe.
+        at_rest = qd0 is None or not np.any(np.asarray(qd0) != 0.0)
+        if at_rest:
+            # the distance to a held person is constant; the requirement only grows with the margin
+            _, m_end = held.pose_at(t_stop + hold_s)
+            if d0 >= float(forecast_clearance(0.0, m_end, cfg.ssm)) and self._within_limits(q_start[None])[0]:
+                traj = Trajectory(np.array([t_start]), q_start[None], np.zeros((1, 6)))
+                return PlanResult(True, traj.to_plan(), "stay", 0, self._timer() - t0, traj)
+        else:
+            stay = Plan(times=np.array([t_start]), q=q_start[None], nodes=np.array([-1]))
+            traj = self._fit(stay, qd0)
+            if (
+                traj is not None
+                and self._verify(traj, held, t_start, max(t_stop, traj.t_end) + hold_s) is None
+            ):
+                return PlanResult(True, traj.to_plan(), "stay", 0, self._timer() - t0, traj)
+        # 2. Moving: search until t_stop; escape mode if the start already violates.
         req0 = float(forecast_clearance(0.0, margin, cfg.ssm))
         floor = d0 - 1e-3 if d0 < req0 else None
         sep = self._separation(held, extra_m=cfg.corridor_margin_m, floor_m=floor)
@@ -923,6 +948,27 @@ class Planner:
         return traj.to_plan(_map_nodes(waypoints, traj)), traj
 
     # ------------------------------------------------------------------------------------------ search
+    def _succ(self, u: int, b: int) -> list[tuple[int, list[tuple[int, float, bool]]]]:
+        """Successors of node ``u`` at branch ``b``: (node, [(branch, length, roadmap-checked)] nearest
+        first, at most ``max_branch_tries``), from the precomputed tables; memoised per planner."""
+        key = u * NUM_BRANCHES + b
+        got = self._succ_memo.get(key)
+        if got is None:
+            rm = self.roadmap
+            a, z = int(rm.indptr[u]), int(rm.indptr[u + 1])
+            order = self._ord_tab[a:z, b].tolist()
+            length = self._L_tab[a:z, b].astype(np.float64).tolist()
+            same = self._same_tab[a:z, b].tolist()
+            got = []
+            for i, v in enumerate(rm.indices[a:z].tolist()):
+                opts = [
+                    (o, ln, s) for o, ln, s in zip(order[i], length[i], same[i], strict=True) if ln < math.inf
+                ]
+                if opts:
+                    got.append((v, opts))
+            self._succ_memo[key] = got
+        return got
+
     def _search(
         self,
         q_start: np.ndarray,
@@ -935,43 +981,44 @@ class Planner:
         workers: int,
         deadline: float | None,
     ) -> tuple[Plan | None, int, str]:
-        """The time-variant A*. Returns (waypoints or None, expanded states, reason)."""
+        """Lazy time-variant A*. Returns (waypoints or None, validated expansions, reason).
+
+        Successor moves are generated in plain Python from the precomputed tables and pushed unchecked,
+        timed by the path-speed profile; a move is checked (static scene where the roadmap did not check it,
+        forecast person, wait, goal hold) only when its state is popped, ``workers`` states at a time in one
+        vectorised check. A failed move pushes its alternatives: the next branches, the slower speeds, the
+        waits. The f-values of unchecked states are their times + the heuristic, so the order and the
+        result are those of A* over the checked moves.
+        """
         cfg = self.config
         N = self.roadmap.num_nodes
-        workers = max(int(workers), 1)
-        states = _States(256, self._n_pts, self._n_caps)
-        pts0, cen0, rad0 = self._points_and_spheres(q_start[None])
-        one = np.ones(1)
-        sid0 = int(
-            states.add(
-                node=-one.astype(np.int64),
-                branch=-one.astype(np.int64),
-                t=one * t_start,
-                u=one * 0.0,
-                q=q_start[None],
-                parent=-one.astype(np.int64),
-                dep=one * t_start,
-                pts=pts0,
-                cen=cen0,
-                rad=rad0,
-            )[0]
-        )
-        Q = _Query(
-            sep=sep,
-            goal=goal,
-            stop_time=stop_time,
-            hold_s=hold_s,
-            f=cfg.speed_fraction,
-            A=self._A,
-            AT=np.full(N, np.inf),
-            states=states,
-            h_tab=None if goal is None else self._heuristic_table(goal),
-        )
-        h0 = 0.0 if goal is None else float(self._heuristic(q_start[None], goal)[0])
-        if stop_time is not None:
-            h0 = max(stop_time - t_start, 0.0)
-        heap: list[tuple[float, float, int]] = [(t_start + h0, -t_start, sid0)]
-        AT = Q.AT
+        f = cfg.speed_fraction
+        W = max(int(workers), 1)
+        run = _Run(self, q_start, t_start, sep, goal=goal, stop_time=stop_time, hold_s=hold_s)
+        h_tab = None if goal is None else self._heuristic_table(goal).tolist()
+
+        w_h = cfg.heuristic_weight
+
+        def heur(node: int, branch: int, t: float) -> float:
+            if stop_time is not None:
+                return max(stop_time - t, 0.0)
+            return 0.0 if h_tab is None else w_h * h_tab[node][branch]
+
+        # the latest arrival after which the person blocks the goal for good (an admissible prune: with a
+        # heuristic weight w > 1 the pushed key t + w h >= t + h, so compare t + h itself)
+        t_last = math.inf if goal is None else self._latest_goal_arrival(sep, goal, t_start, hold_s)
+        t_last = min(t_last, t_start + cfg.max_plan_s)
+        AT = [math.inf] * N
+        heap: list[tuple[float, float, int]] = []
+
+        def push(sid: int) -> None:
+            t = run.t[sid]
+            hv = heur(run.node[sid], run.branch[sid], t)
+            if t + hv / w_h <= t_last:
+                heapq.heappush(heap, (t + hv, -t, sid))
+
+        for sid in run.start_options():
+            push(sid)
         expanded = 0
         while heap:
             if deadline is not None and self._timer() > deadline:
@@ -979,231 +1026,88 @@ class Planner:
             if expanded >= cfg.max_expansions:
                 return None, expanded, f"no plan within {cfg.max_expansions} expansions"
             batch: list[int] = []
-            seen: set[int] = set()
-            while heap and len(batch) < workers:
+            while heap and len(batch) < W:
                 entry = heapq.heappop(heap)
                 sid = entry[2]
-                node = int(states.node[sid])
-                if node >= 0 and (states.t[sid] > AT[node] + _EPS_T or node in seen):
-                    continue  # superseded by a better arrival
-                if (goal is not None and node == goal) or (
-                    stop_time is not None and states.t[sid] >= stop_time
-                ):
-                    if batch:  # states popped before it (f <= its f) may still improve it: expand them first
-                        heapq.heappush(heap, entry)
-                        break
-                    return self._reconstruct(states, sid), expanded, "ok"
-                seen.add(node)
+                node = run.node[sid]
+                if run.t[sid] >= AT[node] - _EPS_T:
+                    continue  # a checked state reached this node no later
+                final = (node == goal) or (stop_time is not None and run.t[sid] >= stop_time)
+                if final and batch:  # states popped before it (f <= its f) may still improve it
+                    heapq.heappush(heap, entry)
+                    break
                 batch.append(sid)
+                if final:
+                    break
             if not batch:
                 break
-            expanded += len(batch)
-            new = self._expand(Q, np.array(batch, dtype=np.int64))
-            if new.size:
-                tv = states.t[new]
-                if stop_time is not None:
-                    hv = np.maximum(stop_time - tv, 0.0)
-                elif Q.h_tab is not None:
-                    hv = Q.h_tab[states.node[new], states.branch[new]]
-                else:
-                    hv = np.zeros(new.size)
-                for sid, fv, tt in zip(new.tolist(), (tv + hv).tolist(), tv.tolist(), strict=True):
-                    heapq.heappush(heap, (fv, -tt, sid))
+            ok = run.check(batch)
+            for sid, good in zip(batch, ok, strict=True):
+                node = run.node[sid]
+                if not good:
+                    for alt in run.alternatives(sid, AT):
+                        push(alt)
+                    continue
+                if run.t[sid] >= AT[node] - _EPS_T:
+                    continue
+                AT[node] = run.t[sid]
+                expanded += 1
+                if node == goal or (stop_time is not None and run.t[sid] >= stop_time):
+                    return run.reconstruct(sid), expanded, "ok"
+                for child in run.children(sid, AT, f):
+                    push(child)
+        if goal is not None and t_last < t_start + cfg.max_plan_s and not expanded:
+            if t_last < t_start:
+                return None, expanded, "goal blocked by the person for good"
+            return None, expanded, f"goal blocked by the person from t={t_last - t_start:+.2f} s on"
         what = "goal" if goal is not None else "the emergency horizon"
         return None, expanded, f"{what} unreachable: no safe path found after {expanded} expansions"
 
-    def _candidates(
-        self, Q: _Query, batch: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Candidate moves of a batch: (parent state (M,), node (M,), branches (M, R), lengths (M, R),
-        roadmap-checked (M, R))."""
-        st = Q.states
-        nodes = st.node[batch]
-        on = batch[nodes >= 0]
-        parts = []
-        if on.size:
-            rm = self.roadmap
-            u = st.node[on]
-            starts = rm.indptr[u]
-            cnt = rm.indptr[u + 1] - starts
-            par = np.repeat(on, cnt)
-            offs = np.cumsum(cnt) - cnt
-            e = np.repeat(starts - offs, cnt) + np.arange(int(cnt.sum()))
-            bpar = st.branch[par]
-            parts.append(
-                (
-                    par,
-                    rm.indices[e],
-                    self._ord_tab[e, bpar].astype(np.int64),
-                    self._L_tab[e, bpar].astype(np.float64),
-                    self._same_tab[e, bpar],
-                )
-            )
-        for sid in batch[nodes < 0].tolist():
-            q = st.q[sid]
-            aligned = self._align(self._ik, q[None, None, :])
-            L = np.where(self._valid, self._metric(aligned - q), np.inf)
-            best = L.min(axis=1)
-            k = min(self.config.start_neighbors, int(np.isfinite(best).sum()))
-            if k == 0:
-                continue
-            cv = np.argpartition(best, k - 1)[:k]
-            order = np.argsort(L[cv], axis=1, kind="stable")[:, : self._R]
-            parts.append(
-                (
-                    np.full(k, sid),
-                    cv,
-                    order,
-                    np.take_along_axis(L[cv], order, axis=1),
-                    np.zeros(order.shape, bool),
-                )
-            )
-        if not parts:
-            z = np.zeros(0, dtype=np.int64)
-            return (
-                z,
-                z,
-                np.zeros((0, self._R), np.int64),
-                np.zeros((0, self._R)),
-                np.zeros((0, self._R), bool),
-            )
-        return tuple(np.concatenate(x) for x in zip(*parts, strict=True))  # type: ignore[return-value]
-
-    def _expand(self, Q: _Query, batch: np.ndarray) -> np.ndarray:
-        """Expand a batch of states; returns the ids of the new states."""
+    def _latest_goal_arrival(self, sep: _Separation, goal: int, t_start: float, hold_s: float) -> float:
+        """The latest arrival at the goal from which the robot could stand there for ``hold_s``, when the
+        forecast person blocks every goal branch for good after some time (their last pose is held and the
+        margin stops growing at its cap); +inf when some branch stays free or without a forecast."""
+        fc = sep.forecast
+        if fc is None:
+            return math.inf
         cfg = self.config
-        st = Q.states
-        par, cv, order, L, same = self._candidates(Q, batch)
-        M = cv.shape[0]
-        if M == 0:
-            return np.zeros(0, dtype=np.int64)
-        R = order.shape[1]
-        t_par = st.t[par]
-        end_rest = np.zeros(M, dtype=bool) if Q.goal is None else (cv == Q.goal)
-        u0 = np.broadcast_to(st.u[par][:, None], (M, R))
-        finite = np.isfinite(L)
-        Lf = np.where(finite, L, 0.0)
-        h, u_end, peak = _profile(u0, Lf, Q.f, Q.A, end_rest[:, None])
-        h = np.where(Lf > 1e-12, np.maximum(h, cfg.min_edge_s), 0.0)
-        arrival = t_par[:, None] + h
-        alive = finite & (arrival < Q.AT[cv][:, None] - _EPS_T)
-        resolved = ~alive.any(axis=1)
-        static_state = np.where(same, 1, 0).astype(np.int8)  # 1 free, 0 unknown, -1 blocked
-        acc: list[tuple[np.ndarray, ...]] = []
-        for r in range(R):
-            idx = np.flatnonzero(~resolved & alive[:, r])
-            if idx.size == 0:
-                continue
-            b = order[idx, r]
-            q_par = st.q[par[idx]]
-            target = self._align(self._ik[cv[idx], b], q_par)
-            ss = static_state[idx, r]
-            chk = np.flatnonzero(ss == 1)
-            if chk.size:  # the roadmap checked the move from its own representative: the same move?
-                ref = self._ik[st.node[par[idx[chk]]], b[chk]]
-                ref_t = self._align(self._ik[cv[idx[chk]], b[chk]], ref)
-                diff = np.abs((ref_t - ref) - (target[chk] - q_par[chk])).max(axis=1) > 1e-6
-                ss[chk[diff]] = 0
-            unk = np.flatnonzero(ss == 0)
-            if unk.size:
-                ss[unk] = self._static_cached(
-                    st, par[idx[unk]], cv[idx[unk]], b[unk], q_par[unk], target[unk]
-                )
-            static_state[idx, r] = ss
-            keep = ss == 1
-            if not np.any(keep):
-                continue
-            idx, b, target = idx[keep], b[keep], target[keep]
-            ok = self._moves_ok(
-                Q,
-                par[idx],
-                cv[idx],
-                b,
-                target,
-                t_par[idx],
-                h[idx, r],
-                u0[idx, r],
-                Lf[idx, r],
-                end_rest[idx],
-                peak[idx, r],
-            )
-            good = np.flatnonzero(ok)
-            if good.size:
-                g = idx[good]
-                acc.append((par[g], cv[g], b[good], target[good], arrival[g, r], u_end[g, r], t_par[g]))
-                resolved[g] = True
-        # slower: the nearest statically free branch at a lower cruise speed (a smaller S_r + S_s)
-        if Q.sep.forecast is not None:
-            for f_slow in cfg.slow_speed_fractions:
-                idx = np.flatnonzero(~resolved & alive[:, 0] & (static_state[:, 0] == 1))
-                if idx.size == 0 or f_slow >= Q.f:
+        m_end = float(fc.margins[-1])
+        cap = max(fc.max_margin_m, float(fc.margins.max()))
+        t_sat = fc.horizon_end + (max(cap - m_end, 0.0) / fc.growth_mps if fc.growth_mps > 0 else 0.0)
+        t_sat = max(t_sat, t_start) + hold_s
+        n = max(math.ceil((t_sat - t_start) / cfg.sample_dt_s), 1)
+        ts = t_start + (t_sat - t_start) * np.arange(n + 1) / n
+        branches = np.flatnonzero(self._valid[goal])
+        nb = branches.size
+        rep = np.repeat(branches, n + 1)
+        ok = sep.check(
+            self._ik[goal, rep],
+            np.tile(ts, nb),
+            np.zeros(rep.size),
+            self._cen_all[goal, rep],
+            self._rad_all[goal, rep],
+        ).reshape(nb, n + 1)
+        if np.any(ok[:, -1]):
+            return math.inf
+        k_hold = math.ceil(hold_s / ((t_sat - t_start) / n) - 1e-9)
+        best = -math.inf
+        for row in ok:
+            # latest i with row[i .. i + k_hold] all safe
+            run = 0
+            for i in range(n, -1, -1):
+                run = run + 1 if row[i] else 0
+                if run >= k_hold + 1:
+                    best = max(best, float(ts[i]))
                     break
-                b = order[idx, 0]
-                target = self._align(self._ik[cv[idx], b], st.q[par[idx]])
-                u0s = np.minimum(st.u[par[idx]], f_slow)
-                hs, ues, pks = _profile(u0s, Lf[idx, 0], f_slow, Q.A, end_rest[idx])
-                hs = np.where(Lf[idx, 0] > 1e-12, np.maximum(hs, cfg.min_edge_s), 0.0)
-                arr = t_par[idx] + hs
-                live = arr < Q.AT[cv[idx]] - _EPS_T
-                idx, b, target, u0s, hs, ues, pks, arr = (
-                    x[live] for x in (idx, b, target, u0s, hs, ues, pks, arr)
-                )
-                if idx.size == 0:
-                    break
-                ok = self._moves_ok(
-                    Q,
-                    par[idx],
-                    cv[idx],
-                    b,
-                    target,
-                    t_par[idx],
-                    hs,
-                    u0s,
-                    Lf[idx, 0],
-                    end_rest[idx],
-                    pks,
-                    f=f_slow,
-                )
-                good = np.flatnonzero(ok)
-                if good.size:
-                    g = idx[good]
-                    acc.append((par[g], cv[g], b[good], target[good], arr[good], ues[good], t_par[g]))
-                    resolved[g] = True
-        pending = np.flatnonzero(~resolved)
-        if pending.size and cfg.max_wait_s > 0 and Q.sep.forecast is not None:
-            got = self._try_waits(Q, pending, par, cv, order, L, static_state, end_rest)
-            if got is not None:
-                acc.append(got)
-        if not acc:
-            return np.zeros(0, dtype=np.int64)
-        c_par, c_v, c_b, c_q, c_t, c_u, c_dep = (np.concatenate(x) for x in zip(*acc, strict=True))
-        # relax: the earliest arrival per node, only where it improves AT
-        o = np.lexsort((c_t, c_v))
-        first = np.ones(o.shape[0], dtype=bool)
-        first[1:] = c_v[o][1:] != c_v[o][:-1]
-        o = o[first]
-        o = o[c_t[o] < Q.AT[c_v[o]] - _EPS_T]
-        if o.size == 0:
-            return np.zeros(0, dtype=np.int64)
-        c_v, c_b = c_v[o], c_b[o]
-        Q.AT[c_v] = c_t[o]
-        return st.add(
-            node=c_v,
-            branch=c_b,
-            t=c_t[o],
-            u=c_u[o],
-            q=c_q[o],
-            parent=c_par[o],
-            dep=c_dep[o],
-            pts=self._pts_all[c_v, c_b],
-            cen=self._cen_all[c_v, c_b],
-            rad=self._rad_all[c_v, c_b],
-        )
+        return best
 
     def _moves_ok(
         self,
-        Q: _Query,
-        par: np.ndarray,
+        sep: _Separation,
+        q_a: np.ndarray,
+        pts_a: np.ndarray,
+        cen_a: np.ndarray,
+        rad_a: np.ndarray,
         cv: np.ndarray,
         b: np.ndarray,
         target: np.ndarray,
@@ -1213,31 +1117,93 @@ class Planner:
         L: np.ndarray,
         end_rest: np.ndarray,
         peak: np.ndarray,
-        *,
-        f: float | None = None,
+        f: np.ndarray,
+        hold: np.ndarray,
+        hold_s: float,
     ) -> np.ndarray:
-        """Check moves (and the hold at their end where required) against the forecast; boolean (M,).
+        """Check moves (and the hold at their end where ``hold``) against the forecast; boolean (M,).
 
-        ``f`` is the cruise speed the moves were timed with (default the query's)."""
-        M = par.shape[0]
-        if Q.sep.forecast is None or M == 0:
+        Per move: the start configuration ``q_a`` with its capsule points/spheres, the target roadmap node
+        ``cv`` at branch ``b`` (configuration ``target``), departure, duration, entry speed, length, whether
+        it ends at rest, its peak path speed and its cruise speed ``f``.
+        """
+        M = q_a.shape[0]
+        if sep.forecast is None or M == 0:
             return np.ones(M, dtype=bool)
         cfg = self.config
-        st = Q.states
-        q_a = st.q[par]
         dq = target - q_a
+        cum = np.concatenate([np.zeros((M, 1)), np.cumsum(np.abs(dq) * self._lever, axis=1)], axis=1)
+        travel = cum[:, self._moved_by]  # (M, L): how far joints 1..J(l) can carry capsule l
+        cen_b, rad_b = self._cen_all[cv, b], self._rad_all[cv, b]
         # robot speed for S_r + S_s: the largest chord speed of the capsule points, average -> peak, x factor
-        chord = np.max(np.linalg.norm(self._pts_all[cv, b] - st.pts[par], axis=-1), axis=-1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(L > 1e-12, np.maximum(peak * h / np.maximum(L, 1e-12), 1.0), 1.0)
-            v_move = np.where(h > 0, chord / h * ratio, 0.0) * cfg.speed_factor
+        chord = np.max(np.linalg.norm(self._pts_all[cv, b] - pts_a, axis=-1), axis=-1)
+        Ls = np.maximum(L, 1e-12)
+        ratio = np.where(L > 1e-12, np.maximum(peak * h / Ls, 1.0), 1.0)
+        v_move = np.where(h > 0, chord / np.maximum(h, 1e-12) * ratio, 0.0) * cfg.speed_factor
+        # stage 0: moves far from the person over their whole time window pass without samples; a capsule
+        # point is within frac * T of its start and (1 - frac) * T of its end, so within
+        # T / 2 + (rho_a + rho_b) / 2 of the middle of the two sphere centres
+        near = sep.near_moves(
+            0.5 * (cen_a + cen_b),
+            0.5 * (rad_a + rad_b + travel),
+            t_dep,
+            t_dep + h + np.where(hold, hold_s, 0.0),
+            v_move,
+        )
+        result = np.ones(M, dtype=bool)
+        if not near.any():
+            return result
+        sel = np.flatnonzero(near)
+        (
+            q_a,
+            pts_a,
+            cen_a,
+            rad_a,
+            cv,
+            b,
+            target,
+            t_dep,
+            h,
+            u0,
+            L,
+            end_rest,
+            peak,
+            f,
+            hold,
+            dq,
+            travel,
+            cen_b,
+            rad_b,
+            v_move,
+        ) = (
+            x[sel]
+            for x in (
+                q_a,
+                pts_a,
+                cen_a,
+                rad_a,
+                cv,
+                b,
+                target,
+                t_dep,
+                h,
+                u0,
+                L,
+                end_rest,
+                peak,
+                f,
+                hold,
+                dq,
+                travel,
+                cen_b,
+                rad_b,
+                v_move,
+            )
+        )
+        M = sel.size
         # samples: the move every sample_dt_s (its end included), then the hold
         n = np.maximum(np.ceil(h / cfg.sample_dt_s - 1e-9), 1).astype(np.int64)
-        if Q.goal is None:
-            hold = np.ones(M, dtype=bool) if Q.hold_s > 0 else np.zeros(M, dtype=bool)
-        else:
-            hold = cv == Q.goal
-        n_hold_1 = max(math.ceil(Q.hold_s / cfg.sample_dt_s - 1e-9), 0)
+        n_hold_1 = max(math.ceil(hold_s / cfg.sample_dt_s - 1e-9), 0)
         n_hold = np.where(hold, n_hold_1, 0)
         tot = n + n_hold
         owner = np.repeat(np.arange(M), tot)
@@ -1245,117 +1211,353 @@ class Planner:
         n_o, h_o = n[owner], h[owner]
         in_move = i <= n_o
         tau = np.where(in_move, i / n_o * h_o, h_o)
-        frac = _profile_fraction(tau, u0[owner], L[owner], h_o, Q.f if f is None else f, Q.A, end_rest[owner])
+        frac = np.empty(owner.shape[0])
+        for fv in np.unique(f).tolist():
+            grp = f[owner] == fv
+            frac[grp] = _profile_fraction(
+                tau[grp], u0[owner][grp], L[owner][grp], h_o[grp], fv, self._A, end_rest[owner][grp]
+            )
         frac = np.where(in_move, frac, 1.0)
         q = q_a[owner] + frac[:, None] * dq[owner]
-        t = t_dep[owner] + tau + np.where(in_move, 0.0, (i - n_o) * (Q.hold_s / max(n_hold_1, 1)))
+        t = t_dep[owner] + tau + np.where(in_move, 0.0, (i - n_o) * (hold_s / max(n_hold_1, 1)))
         v = np.where(in_move, v_move[owner], 0.0)
         # capsule l lies within its start sphere grown by frac * T_l and its end sphere grown by
-        # (1 - frac) * T_l, T_l = how far joints 1..J(l) can carry it; take the smaller sphere
-        cum = np.concatenate([np.zeros((M, 1)), np.cumsum(np.abs(dq) * self._lever, axis=1)], axis=1)
-        travel = cum[:, self._moved_by]  # (M, L)
+        # (1 - frac) * T_l; take the smaller sphere
         fo = frac[:, None]
-        ra = st.rad[par][owner] + fo * travel[owner]
-        rb = self._rad_all[cv, b][owner] + (1.0 - fo) * travel[owner]
+        ra = rad_a[owner] + fo * travel[owner]
+        rb = rad_b[owner] + (1.0 - fo) * travel[owner]
         use_a = ra <= rb
-        cen = np.where(use_a[..., None], st.cen[par][owner], self._cen_all[cv, b][owner])
+        cen = np.where(use_a[..., None], cen_a[owner], cen_b[owner])
         rad = np.where(use_a, ra, rb)
-        ok_s = Q.sep.check(q, t, v, cen, rad)
-        return np.bincount(owner, weights=~ok_s, minlength=M) == 0
+        ok_s = sep.check(q, t, v, cen, rad)
+        result[sel] = np.bincount(owner, weights=~ok_s, minlength=M) == 0
+        return result
 
-    def _try_waits(
+
+class _Run:
+    """The records of one search: unchecked and checked states, in plain lists and growable arrays.
+
+    Owned by one query (never shared, never written to the roadmap). A state is a move from a parent state
+    to a roadmap node at an IK branch: departure, duration, entry/exit path speed, cruise speed, and the
+    alternative it is (0 = nearest branch at cruise speed; others are pushed when it fails).
+    """
+
+    def __init__(
         self,
-        Q: _Query,
-        pending: np.ndarray,
+        planner: Planner,
+        q_start: np.ndarray,
+        t_start: float,
+        sep: _Separation,
+        *,
+        goal: int | None,
+        stop_time: float | None,
+        hold_s: float,
+    ) -> None:
+        self.p = planner
+        self.sep = sep
+        self.goal = goal
+        self.stop_time = stop_time
+        self.hold_s = hold_s
+        cfg = planner.config
+        self.f = cfg.speed_fraction
+        self.A = planner._A
+        self.min_edge = cfg.min_edge_s
+        # per state (lists)
+        self.node: list[int] = [-1]
+        self.branch: list[int] = [-1]
+        self.t: list[float] = [t_start]
+        self.u: list[float] = [0.0]
+        self.parent: list[int] = [-1]
+        self.dep: list[float] = [t_start]
+        self.fc: list[float] = [self.f]
+        self.L: list[float] = [0.0]
+        self.h: list[float] = [0.0]
+        self.end: list[bool] = [False]
+        self.peak: list[float] = [0.0]
+        self.same: list[bool] = [True]
+        self.alt: list[int] = [0]
+        self.opts: list[list[tuple[int, float, bool]] | None] = [None]
+        # per checked state: configuration, capsule points and spheres (start: computed here)
+        pts, cen, rad = planner._points_and_spheres(q_start[None])
+        self.q = np.empty((64, 6))
+        self.q[0] = q_start
+        self.checked_q = np.zeros(64, dtype=bool)
+        self.checked_q[0] = True
+        self.start_pts, self.start_cen, self.start_rad = pts[0], cen[0], rad[0]
+        self.wait_safe_until: dict[int, float] = {}
+
+    # -- records
+    def _new(
+        self,
+        node: int,
+        branch: int,
+        t: float,
+        u: float,
+        parent: int,
+        dep: float,
+        fc: float,
+        L: float,
+        h: float,
+        end: bool,
+        peak: float,
+        same: bool,
+        alt: int,
+        opts: list[tuple[int, float, bool]] | None,
+    ) -> int:
+        self.node.append(node)
+        self.branch.append(branch)
+        self.t.append(t)
+        self.u.append(u)
+        self.parent.append(parent)
+        self.dep.append(dep)
+        self.fc.append(fc)
+        self.L.append(L)
+        self.h.append(h)
+        self.end.append(end)
+        self.peak.append(peak)
+        self.same.append(same)
+        self.alt.append(alt)
+        self.opts.append(opts)
+        sid = len(self.node) - 1
+        if sid >= self.q.shape[0]:
+            grow = self.q.shape[0] * 2
+            self.q = np.concatenate([self.q, np.empty((grow, 6))])
+            self.checked_q = np.concatenate([self.checked_q, np.zeros(grow, dtype=bool)])
+        return sid
+
+    def _move(
+        self,
+        parent: int,
+        node: int,
+        opt: tuple[int, float, bool],
+        t_dep: float,
+        u0: float,
+        fc: float,
+        alt: int,
+        opts: list[tuple[int, float, bool]] | None,
+        AT: list[float],
+    ) -> int | None:
+        branch, L, same = opt
+        end = node == self.goal
+        h, u1, peak = _profile_py(u0, L, fc, self.A, end)
+        if L > 1e-12:
+            h = max(h, self.min_edge)
+        ta = t_dep + h
+        if ta >= AT[node] - _EPS_T:
+            return None
+        return self._new(node, branch, ta, u1, parent, t_dep, fc, L, h, end, peak, same, alt, opts)
+
+    # -- generation (plain Python)
+    def start_options(self) -> list[int]:
+        """Unchecked moves from the start to its nearest roadmap nodes (all checked against the scene)."""
+        p = self.p
+        q = self.q[0]
+        aligned = p._align(p._ik, q[None, None, :])
+        L = np.where(p._valid, p._metric(aligned - q), np.inf)
+        best = L.min(axis=1)
+        k = min(p.config.start_neighbors, int(np.isfinite(best).sum()))
+        if k == 0:
+            return []
+        nodes = np.argpartition(best, k - 1)[:k]
+        order = np.argsort(L[nodes], axis=1, kind="stable")[:, : p._R]
+        Lo = np.take_along_axis(L[nodes], order, axis=1)
+        AT = [math.inf] * p.roadmap.num_nodes
+        out = []
+        for v, bs, ls in zip(nodes.tolist(), order.tolist(), Lo.tolist(), strict=True):
+            opts = [(b, ln, False) for b, ln in zip(bs, ls, strict=True) if ln < math.inf]
+            if opts:
+                sid = self._move(0, v, opts[0], self.t[0], 0.0, self.f, 0, opts, AT)
+                if sid is not None:
+                    out.append(sid)
+        return out
+
+    def children(self, sid: int, AT: list[float], f: float) -> list[int]:
+        """Unchecked moves from a checked state to its roadmap neighbours (nearest branch, cruise speed)."""
+        out = []
+        t, u = self.t[sid], self.u[sid]
+        for v, opts in self.p._succ(self.node[sid], self.branch[sid]):
+            child = self._move(sid, v, opts[0], t, u, f, 0, opts, AT)
+            if child is not None:
+                out.append(child)
+        return out
+
+    def alternatives(self, sid: int, AT: list[float]) -> list[int]:
+        """When the nearest branch at cruise speed fails: the next branches, slower, and after a wait."""
+        if self.alt[sid] != 0 or self.opts[sid] is None:
+            return []
+        cfg = self.p.config
+        par, node, opts = self.parent[sid], self.node[sid], self.opts[sid]
+        t, u = self.t[par], self.u[par]
+        out = []
+        for opt in opts[1:]:
+            out.append(self._move(par, node, opt, t, u, self.f, 1, None, AT))
+        if self.sep.forecast is not None:
+            for fs in cfg.slow_speed_fractions:
+                if fs < self.f:
+                    out.append(self._move(par, node, opts[0], t, min(u, fs), fs, 2, None, AT))
+            K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
+            for k in range(1, K + 1):
+                out.append(self._move(par, node, opts[0], t + k * cfg.wait_step_s, 0.0, self.f, 3, None, AT))
+        return [s for s in out if s is not None]
+
+    # -- checking (vectorised)
+    def check(self, batch: list[int]) -> list[bool]:
+        """Check a batch of unchecked moves; stores the configuration of every move that passes."""
+        p = self.p
+        idx = np.array(batch, dtype=np.int64)
+        par = np.array([self.parent[s] for s in batch], dtype=np.int64)
+        cv = np.array([self.node[s] for s in batch], dtype=np.int64)
+        b = np.array([self.branch[s] for s in batch], dtype=np.int64)
+        q_par = self.q[par]
+        target = p._align(p._ik[cv, b], q_par)
+        M = idx.size
+        ok = np.ones(M, dtype=bool)
+        # static scene: moves the roadmap checked (same branch, edge bit, the same move) need nothing more
+        same = np.array([self.same[s] for s in batch], dtype=bool)
+        pn = np.array([self.node[s] for s in par.tolist()], dtype=np.int64)
+        pb = np.array([self.branch[s] for s in par.tolist()], dtype=np.int64)
+        chk = np.flatnonzero(same & (pn >= 0))
+        if chk.size:
+            ref = p._ik[pn[chk], pb[chk]]
+            ref_t = p._align(p._ik[cv[chk], b[chk]], ref)
+            moved = np.abs((ref_t - ref) - (target[chk] - q_par[chk])).max(axis=1) > 1e-9
+            same[chk[moved]] = False
+        todo = np.flatnonzero(~same)
+        if todo.size:
+            ok[todo] = p._static_cached(pn[todo], pb[todo], cv[todo], b[todo], q_par[todo], target[todo]) == 1
+        if self.sep.forecast is not None:
+            live = np.flatnonzero(ok)
+            if live.size:
+                ok[live] = self._check_forecast(
+                    idx[live], par[live], cv[live], b[live], q_par[live], target[live]
+                )
+        good = idx[ok]
+        self.q[good] = target[ok]
+        self.checked_q[good] = True
+        return ok.tolist()
+
+    def _parent_geometry(self, par: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        p = self.p
+        pn = np.array([self.node[s] for s in par.tolist()], dtype=np.int64)
+        pb = np.array([self.branch[s] for s in par.tolist()], dtype=np.int64)
+        on = pn >= 0
+        pts = np.where(on[:, None, None], p._pts_all[pn.clip(0), pb.clip(0)], self.start_pts[None])
+        cen = np.where(on[:, None, None], p._cen_all[pn.clip(0), pb.clip(0)], self.start_cen[None])
+        rad = np.where(on[:, None], p._rad_all[pn.clip(0), pb.clip(0)], self.start_rad[None])
+        return pts, cen, rad
+
+    def _check_forecast(
+        self,
+        idx: np.ndarray,
         par: np.ndarray,
         cv: np.ndarray,
-        order: np.ndarray,
-        L: np.ndarray,
-        static_state: np.ndarray,
-        end_rest: np.ndarray,
-    ) -> tuple[np.ndarray, ...] | None:
-        """Wait at the parent, then move: all (candidate, branch, wait step) combinations in one check."""
-        cfg = self.config
-        st = Q.states
-        K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
-        if K < 1:
-            return None
-        # how long each parent can stand still (robot at rest: speed 0)
-        todo = [p for p in np.unique(par[pending]).tolist() if p not in Q.wait_safe_until]
-        if todo:
-            sub = max(1, math.ceil(cfg.wait_step_s / cfg.sample_dt_s - 1e-9))
-            n = K * sub
-            tp = np.array(todo, dtype=np.int64)
-            ts = st.t[tp][:, None] + (cfg.wait_step_s / sub) * np.arange(1, n + 1)[None, :]
-            rep = np.repeat(tp, n)
-            ok = Q.sep.check(st.q[rep], ts.reshape(-1), np.zeros(rep.size), st.cen[rep], st.rad[rep])
-            ok = ok.reshape(tp.size, n)
-            for j, p in enumerate(todo):
-                bad = np.flatnonzero(~ok[j])
-                Q.wait_safe_until[p] = float(ts[j, bad[0]]) if bad.size else math.inf
-        R = 1  # waiting is tried with the nearest branch only
-        P = pending.size
-        cand = np.repeat(pending, R * K)
-        rank = np.tile(np.repeat(np.arange(R), K), P)
-        kk = np.tile(np.arange(1, K + 1), P * R)
-        t_go = st.t[par[cand]] + kk * cfg.wait_step_s
-        safe_until = np.array([Q.wait_safe_until[p] for p in par[cand].tolist()])
-        Lc = L[cand, rank]
-        finite = np.isfinite(Lc)
-        Lf = np.where(finite, Lc, 0.0)
-        u0 = np.zeros(cand.shape[0])
-        h, u_end, peak = _profile(u0, Lf, Q.f, Q.A, end_rest[cand])
-        h = np.where(Lf > 1e-12, np.maximum(h, cfg.min_edge_s), 0.0)
-        arrival = t_go + h
-        live = np.flatnonzero(
-            finite
-            & (static_state[cand, rank] == 1)
-            & (t_go < safe_until - _EPS_T)
-            & (arrival < Q.AT[cv[cand]] - _EPS_T)
-        )
+        b: np.ndarray,
+        q_par: np.ndarray,
+        target: np.ndarray,
+    ) -> np.ndarray:
+        p = self.p
+        cfg = p.config
+        ok = np.ones(idx.size, dtype=bool)
+        pts, cen, rad = self._parent_geometry(par)
+        # waits: the parent must be able to stand still until the departure
+        dep = np.array([self.dep[s] for s in idx.tolist()])
+        t_par = np.array([self.t[s] for s in par.tolist()])
+        waiting = np.flatnonzero(dep > t_par + _EPS_T)
+        if waiting.size:
+            todo = sorted({int(par[i]) for i in waiting.tolist()} - set(self.wait_safe_until))
+            if todo:
+                K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
+                sub = max(1, math.ceil(cfg.wait_step_s / cfg.sample_dt_s - 1e-9))
+                n = K * sub
+                tp = np.array(todo, dtype=np.int64)
+                ts = np.array([self.t[s] for s in todo])[:, None] + (cfg.wait_step_s / sub) * np.arange(
+                    1, n + 1
+                )
+                rep = np.repeat(np.arange(tp.size), n)
+                pg = self._parent_geometry(tp)
+                res = self.sep.check(
+                    self.q[tp][rep], ts.reshape(-1), np.zeros(rep.size), pg[1][rep], pg[2][rep]
+                )
+                res = res.reshape(tp.size, n)
+                for j, s in enumerate(todo):
+                    bad = np.flatnonzero(~res[j])
+                    self.wait_safe_until[s] = float(ts[j, bad[0]]) if bad.size else math.inf
+            safe = np.array([self.wait_safe_until[int(par[i])] for i in waiting.tolist()])
+            ok[waiting] = dep[waiting] < safe - _EPS_T
+        live = np.flatnonzero(ok)
         if live.size == 0:
-            return None
-        c, r = cand[live], rank[live]
-        b = order[c, r]
-        target = self._align(self._ik[cv[c], b], st.q[par[c]])
-        ok = self._moves_ok(
-            Q, par[c], cv[c], b, target, t_go[live], h[live], u0[live], Lf[live], end_rest[c], peak[live]
+            return ok
+        sl = idx[live]
+        get = lambda arr: np.array([arr[s] for s in sl.tolist()])  # noqa: E731
+        hold = cv[live] == self.goal if self.goal is not None else np.full(live.size, self.hold_s > 0)
+        ok[live] = p._moves_ok(
+            self.sep,
+            q_par[live],
+            pts[live],
+            cen[live],
+            rad[live],
+            cv[live],
+            b[live],
+            target[live],
+            dep[live],
+            get(self.h),
+            np.array(self._u0(sl)),
+            get(self.L),
+            get(self.end).astype(bool),
+            get(self.peak),
+            get(self.fc),
+            hold,
+            self.hold_s,
         )
-        if not np.any(ok):
-            return None
-        sel = live[ok]
-        c, r, b, target = c[ok], r[ok], b[ok], target[ok]
-        # per candidate: the shortest wait, then the nearest branch (sel is ordered by candidate, rank, k)
-        o = np.lexsort((r, kk[sel], c))
-        first = np.ones(o.shape[0], dtype=bool)
-        first[1:] = c[o][1:] != c[o][:-1]
-        o = o[first]
-        s = sel[o]
-        return par[c[o]], cv[c[o]], b[o], target[o], arrival[s], u_end[s], t_go[s]
+        return ok
 
-    def _reconstruct(self, states: _States, sid: int) -> Plan:
+    def _u0(self, sids: np.ndarray) -> list[float]:
+        """Entry path speed of each move (0 after a wait, the parent's exit speed capped at the cruise)."""
+        out = []
+        for s in sids.tolist():
+            if self.alt[s] == 3:
+                out.append(0.0)
+            else:
+                out.append(min(self.u[self.parent[s]], self.fc[s]))
+        return out
+
+    def reconstruct(self, sid: int) -> Plan:
         chain = []
         s = sid
         while s >= 0:
             chain.append(s)
-            s = int(states.parent[s])
+            s = self.parent[s]
         chain.reverse()
         if len(chain) > 1:
-            a, b = chain[0], chain[1]
-            if states.t[b] <= states.t[a] + _EPS_T and np.allclose(states.q[a], states.q[b], atol=1e-12):
+            a, c = chain[0], chain[1]
+            if self.t[c] <= self.t[a] + _EPS_T and np.allclose(self.q[a], self.q[c], atol=1e-12):
                 chain = chain[1:]  # the start is a roadmap node: one waypoint, labelled with the node
         times, qs, nodes = [], [], []
         for i, s in enumerate(chain):
             if i > 0:
-                p = chain[i - 1]
-                if states.dep[s] > states.t[p] + _EPS_T:  # waited at the parent
-                    times.append(float(states.dep[s]))
-                    qs.append(states.q[p])
-                    nodes.append(int(states.node[p]))
-            times.append(float(states.t[s]))
-            qs.append(states.q[s])
-            nodes.append(int(states.node[s]))
+                par = chain[i - 1]
+                if self.dep[s] > self.t[par] + _EPS_T:  # waited at the parent
+                    times.append(self.dep[s])
+                    qs.append(self.q[par])
+                    nodes.append(self.node[par])
+            times.append(self.t[s])
+            qs.append(self.q[s])
+            nodes.append(self.node[s])
         return Plan(times=np.array(times), q=np.array(qs), nodes=np.array(nodes))
+
+
+def _profile_py(u0: float, L: float, f: float, A: float, end_rest: bool) -> tuple[float, float, float]:
+    """:func:`_profile` for one move, in plain Python (the same formulas)."""
+    u0 = min(u0, f)
+    u0sq = u0 * u0
+    if not end_rest:
+        u1 = min(math.sqrt(u0sq + 2.0 * A * L), f)
+        return (u1 - u0) / A + max(L - (u1 * u1 - u0sq) / (2.0 * A), 0.0) / f, u1, u1
+    up = min(f, math.sqrt((2.0 * A * L + u0sq) / 2.0))
+    if u0sq <= 2.0 * A * L:
+        cruise = max(L - (up * up - u0sq) / (2.0 * A) - up * up / (2.0 * A), 0.0)
+        return (up - u0) / A + cruise / max(up, 1e-12) + up / A, 0.0, up
+    return 2.0 * L / max(u0, 1e-12), 0.0, u0
 
 
 def _map_nodes(waypoints: Plan, traj: Trajectory) -> np.ndarray:
