@@ -3,7 +3,9 @@
 Prints ``infer_ms`` {p50, p95} (Graph-Mixer, one person, including the numpy/torch conversion), ``update_ms``
 (the whole ``MotionPredictor.update``: repair, resampling, network, forecast object), ``mpjpe_mm``
 {graphmixer, constant_velocity, zero_velocity} each {"80": ..., "1000": ...} on every window of the CMU test
-split (``null`` with a ``note`` if the clips are not on this machine), ``params`` and the aims' ratios.
+split (``null`` with a ``note`` if the clips are not on this machine), ``params``, the aims' ratios, and
+``reference_workload_ms`` (a fixed numpy workload timed the same way: its p95/p50 ratio shows how much of the
+forecast's p95 is the machine's own timing noise).
 """
 
 from __future__ import annotations
@@ -53,6 +55,15 @@ def run(*, quick: bool = False, progress: bool = True) -> dict:
             samples.append(time.perf_counter() - t)
     result["update_ms"] = _percentiles(samples)
     result["params"] = count_parameters(predictor.model) if predictor.model is not None else 0
+    # the same number of repetitions of a fixed numpy workload: how noisy this machine's timing is right now
+    a = rng.random((160, 160))
+    samples = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        for _ in range(8):
+            a @ a
+        samples.append(time.perf_counter() - t)
+    result["reference_workload_ms"] = _percentiles(samples)
 
     try:
         clips = load_clip_dir(require_cmu_dir(None), split="test")

@@ -138,14 +138,14 @@ def load_clip_dir(directory: str | Path, *, split: str | None = None) -> list[Cl
 
 
 def default_cmu_dir() -> Path | None:
-    """The shared CMU clips if present: ``$HRC_CMU_DIR``, or ``../shared/data/cmu_mocap`` by the repo."""
+    """The shared CMU clips if present: ``$HRC_CMU_DIR`` if set, else ``../shared/data/cmu_mocap``."""
     env = os.environ.get("HRC_CMU_DIR")
-    candidates = [Path(env)] if env else []
     repo = Path(__file__).resolve().parents[2]
-    candidates += [
+    shared = [
         repo.parent / "shared" / "data" / "cmu_mocap",
         Path.cwd().parent / "shared" / "data" / "cmu_mocap",
     ]
+    candidates = [Path(env)] if env else shared
     for c in candidates:
         if (c / "index.json").is_file() or (c.is_dir() and any(c.rglob("*.npz"))):
             return c

@@ -148,7 +148,9 @@ def test_mismatched_weights_fall_back(tiny_weights: Path, tmp_path: Path, caplog
 
 
 def test_margins_without_quantiles_grow_at_human_speed(tmp_path: Path) -> None:
-    p = MotionPredictor(kind="zero_velocity", weights=tmp_path / "none.pt", growth_mps=1.6)
+    p = MotionPredictor(
+        kind="zero_velocity", weights=tmp_path / "none.pt", quantiles=tmp_path / "none.json", growth_mps=1.6
+    )
     f = _feed(p, [0.0])
     np.testing.assert_allclose(f.margins, np.minimum(1.6 * np.arange(31) / FPS, 1.0))
 
@@ -250,3 +252,16 @@ def test_shipped_weights_load_and_are_small() -> None:
     assert m[0] == 0.0 and m[-1] > m[3] > 0.0
     f = _feed(p, DT * np.arange(10))
     assert p.last_source == "graphmixer" and np.all(np.isfinite(f.joints))
+
+
+@pytest.mark.skipif(not DEFAULT_WEIGHTS.is_file(), reason="shipped weights not built yet")
+def test_shipped_weights_beat_constant_velocity_on_cmu_test(cmu_dir: Path) -> None:
+    from app.prediction.data import load_clip_dir
+    from app.prediction.evaluate import evaluate_clips
+
+    p = load_default_predictor()
+    fns = {k: (lambda obs, H, k=k: p.predict_batch(obs, kind=k)) for k in ("graphmixer", "constant_velocity")}
+    res = evaluate_clips(load_clip_dir(cmu_dir, split="test"), fns, stride=3)
+    gm, cv = res["graphmixer"]["mpjpe_mm"], res["constant_velocity"]["mpjpe_mm"]
+    assert gm["400"] <= 0.7 * cv["400"]
+    assert gm["1000"] <= 0.8 * cv["1000"]

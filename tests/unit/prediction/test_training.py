@@ -260,3 +260,10 @@ def test_cli_train_and_eval(clip_dir: Path, tmp_path: Path) -> None:
     assert report["mpjpe_mm"]["constant_velocity"]["1000"] < report["mpjpe_mm"]["zero_velocity"]["1000"]
     r = runner.invoke(cli_app, ["hmp", "eval", "--clips", str(tmp_path / "missing")])
     assert r.exit_code == 2 and "does not exist" in r.output
+
+
+def test_cli_eval_without_clips_says_what_to_do(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HRC_CMU_DIR", str(tmp_path / "no_cmu_here"))
+    r = CliRunner().invoke(cli_app, ["hmp", "eval"])
+    assert r.exit_code == 2
+    assert "CMU clips were not found" in r.output and "--clips" in r.output
