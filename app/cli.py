@@ -264,6 +264,52 @@ def replay(
         player.stop()
 
 
+# --- headless trials (app.control) --------------------------------------------------------------------------
+
+
+@app.command()
+def simulate(
+    method: Annotated[
+        str, typer.Option(help="proactive (predicted motion) or reactive (current pose held).")
+    ] = "proactive",
+    duration: Annotated[float, typer.Option(help="Simulated trial length (s).", min=0.1)] = 300.0,
+    seed: Annotated[int, typer.Option(help="Seed of the simulated participant and trial.")] = 1,
+    source: Annotated[
+        str, typer.Option(help="sim (simulated operator) or replay (a recorded clip).")
+    ] = "sim",
+    clip: Annotated[
+        Path | None, typer.Option(help="Clip for --source replay (default HRC_REPLAY_CLIP).")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
+) -> None:
+    """Run one headless trial on the simulated clock and print its metrics."""
+    import logging
+
+    from app.config import Settings
+    from app.control.headless import run_headless_trial
+
+    if method not in ("proactive", "reactive"):
+        raise typer.BadParameter(f"--method must be proactive or reactive, not {method!r}")
+    if source not in ("sim", "replay"):
+        raise typer.BadParameter(f"--source must be sim or replay, not {source!r}")
+    logging.basicConfig(level=logging.ERROR if as_json else logging.WARNING)
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # the reactive method needs no predictor
+        pass
+    settings = Settings()
+    try:
+        result = run_headless_trial(
+            settings=settings, method=method, duration_s=duration, seed=seed, source=source, clip=clip
+        )
+    except ValueError as exc:
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(2) from exc
+    typer.echo(json.dumps(result.summary(), indent=None if as_json else 2))
+
+
 def main() -> None:
     """Console entry point."""
     app()

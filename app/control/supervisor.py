@@ -111,6 +111,7 @@ class PlannerLike(Protocol):
         forecast: HumanForecast | None,
         workers: int = 1,
         deadline_s: float | None = None,
+        qd0: np.ndarray | None = None,
     ) -> PlanResultLike: ...
 
     def emergency(
@@ -118,19 +119,20 @@ class PlannerLike(Protocol):
     ) -> PlanResultLike: ...
 
     def first_violation(
-        self, traj: Any, forecast: HumanForecast, *, t_from: float, t_to: float
+        self, traj: Any, forecast: HumanForecast, *, t_from: float, t_to: float, dt_s: float | None = None
     ) -> float | None: ...
 
 
 class RobotGeometry(Protocol):
-    """Distances and speeds of the robot's body (see :class:`app.control.engine.CellGeometry`)."""
+    """The robot's body as ``L`` parts (see :class:`app.control.engine.CellGeometry`: one per capsule)."""
 
-    def separation(self, q: np.ndarray, joints: np.ndarray) -> float:
-        """Minimum surface distance (m) between the robot at ``q`` (6,) and a person at ``joints`` (J, 3)."""
+    def part_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """Surface distance (P, L) in m between each part of the robot at ``q`` (6,) and the person in each
+        of the poses ``joints`` (P, J, 3)."""
         ...
 
-    def point_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-        """Largest Cartesian speed (m/s) over the robot's body points, for ``q``, ``qd`` (K, 6) -> (K,)."""
+    def part_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """Speed (K, L) in m/s of each part (its fastest point) for ``q``, ``qd`` (K, 6)."""
         ...
 
 
@@ -171,6 +173,21 @@ class HoldTrajectory:
     def qd(self, t: Any) -> np.ndarray:
         t = np.asarray(t, dtype=np.float64)
         return np.zeros((*t.shape, 6))
+
+    def sample(self, dt_s: float, *, t_from: float | None = None, t_to: float | None = None) -> np.ndarray:
+        return _sample(self.t_start, self.t_end, dt_s, t_from, t_to)
+
+
+def _sample(
+    t_start: float, t_end: float, dt_s: float, t_from: float | None, t_to: float | None
+) -> np.ndarray:
+    if dt_s <= 0:
+        raise ValueError(f"dt_s must be > 0, got {dt_s}")
+    a = t_start if t_from is None else float(t_from)
+    b = t_end if t_to is None else float(t_to)
+    if b <= a:
+        return np.array([a])
+    return np.linspace(a, b, math.ceil((b - a) / dt_s) + 1)
 
 
 class ScaledView:
@@ -216,16 +233,21 @@ class ScaledView:
     def tcp(self, t: Any) -> np.ndarray:
         return self.traj.tcp(self._tau(t))  # type: ignore[attr-defined]
 
+    def sample(self, dt_s: float, *, t_from: float | None = None, t_to: float | None = None) -> np.ndarray:
+        """Wall times (N,) every ``dt_s`` from ``t_from`` (default ``t_start``) to ``t_to`` (default
+        ``t_end``), both ends included."""
+        return _sample(self.t_start, self.t_end, dt_s, t_from, t_to)
+
 
 @dataclass(frozen=True, slots=True)
 class SpeedProfile:
-    """Largest robot-point speed along a trajectory at scale 1, sampled in path time.
+    """Speed of each robot part along a trajectory at scale 1, sampled in path time.
 
     Attributes:
         tau0: Path time of the first sample (s).
         step_s: Sample spacing (s).
-        v_mps: (K,) speed at each sample (m/s).
-        window_mps: (K,) the largest speed from each sample over the following ``window_s`` (m/s).
+        v_mps: (K, L) speed of each part at each sample (m/s).
+        window_mps: (K, L) the largest speed of each part from each sample over the following ``window_s``.
         qd_max: (K,) windowed largest joint speed (rad/s), bounds the joint deceleration of a brake.
     """
 
@@ -236,38 +258,49 @@ class SpeedProfile:
     qd_max: np.ndarray
 
     @classmethod
+    def still(cls, tau0: float, n_parts: int) -> SpeedProfile:
+        """The profile of a robot that does not move."""
+        z = np.zeros((1, n_parts))
+        return cls(tau0=tau0, step_s=1.0, v_mps=z, window_mps=z, qd_max=np.zeros(1))
+
+    @classmethod
     def of(
         cls, traj: TrajectoryLike, geometry: RobotGeometry, *, step_s: float = 0.02, window_s: float = 0.6
     ) -> SpeedProfile:
         t0, t1 = float(traj.t_start), float(traj.t_end)
-        if t1 <= t0:
-            z = np.zeros(1)
-            return cls(tau0=t0, step_s=step_s, v_mps=z, window_mps=z, qd_max=z)
-        n = max(math.ceil((t1 - t0) / step_s) + 1, 2)
+        n = max(math.ceil((t1 - t0) / step_s) + 1, 2) if t1 > t0 else 2
         taus = t0 + np.arange(n) * step_s
-        taus[-1] = min(taus[-1], t1)
+        taus[-1] = min(taus[-1], max(t1, t0))
         q = np.asarray(traj.q(taus), dtype=np.float64).reshape(n, 6)
         qd = np.asarray(traj.qd(taus), dtype=np.float64).reshape(n, 6)
-        v = np.asarray(geometry.point_speeds(q, qd), dtype=np.float64).reshape(n)
+        v = np.asarray(geometry.part_speeds(q, qd), dtype=np.float64).reshape(n, -1)
         jq = np.abs(qd).max(axis=1)
         w = max(math.ceil(window_s / step_s), 1) + 1
         return cls(tau0=t0, step_s=step_s, v_mps=v, window_mps=_forward_max(v, w), qd_max=_forward_max(jq, w))
 
-    def window_at(self, tau: float) -> float:
-        """Largest speed over the window starting at path time ``tau`` (0 after the end)."""
+    @property
+    def n_parts(self) -> int:
+        return int(self.v_mps.shape[1])
+
+    def window_at(self, tau: float) -> np.ndarray:
+        """(L,) largest speed of each part over the window starting at path time ``tau`` (0 after the end)."""
         i = int((tau - self.tau0) / self.step_s)
         if i >= self.window_mps.shape[0]:
-            return 0.0
+            return np.zeros(self.n_parts)
         i = max(i, 0)
         # the sample before tau may be faster than the one at tau: take both
-        return float(max(self.window_mps[i], self.window_mps[max(i - 1, 0)]))
+        return np.maximum(self.window_mps[i], self.window_mps[max(i - 1, 0)])
 
-    def speed_at(self, tau: float) -> float:
-        """Speed at path time ``tau`` (m/s; 0 after the end)."""
+    def speed_at(self, tau: float) -> np.ndarray:
+        """(L,) speed of each part at path time ``tau`` (0 after the end)."""
         x = (tau - self.tau0) / self.step_s
-        if x >= self.v_mps.shape[0] - 1:
-            return 0.0 if x > self.v_mps.shape[0] - 1 + 1e-9 else float(self.v_mps[-1])
-        return float(np.interp(x, np.arange(self.v_mps.shape[0]), self.v_mps))
+        k = self.v_mps.shape[0]
+        if x > k - 1 + 1e-9:
+            return np.zeros(self.n_parts)
+        i = min(max(int(x), 0), k - 1)
+        j = min(i + 1, k - 1)
+        w = min(max(x - i, 0.0), 1.0)
+        return self.v_mps[i] * (1.0 - w) + self.v_mps[j] * w
 
     def joint_window_at(self, tau: float) -> float:
         i = int((tau - self.tau0) / self.step_s)
@@ -278,11 +311,11 @@ class SpeedProfile:
 
 
 def _forward_max(x: np.ndarray, w: int) -> np.ndarray:
-    """out[k] = max(x[k : k + w]) for (K,) x."""
+    """out[k] = max(x[k : k + w]) along the first axis of (K, ...) x."""
     n = x.shape[0]
-    pad = np.concatenate([x, np.full(w - 1, -np.inf)])
-    win = np.lib.stride_tricks.sliding_window_view(pad, w)[:n]
-    return win.max(axis=1)
+    pad = np.concatenate([x, np.full((w - 1, *x.shape[1:]), -np.inf)], axis=0)
+    win = np.lib.stride_tricks.sliding_window_view(pad, w, axis=0)[:n]
+    return win.max(axis=-1)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -341,43 +374,68 @@ class SeparationModel:
         """``S_p`` (m)."""
         return self.s0_m + self.k_robot_s * max(v_robot_mps, 0.0) + self.k_human_s * max(v_human_mps, 0.0)
 
-    def human_approach(self, v_h0: float, dt: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    def human_approach(self, v_h0: Any, dt: Any) -> tuple[np.ndarray, np.ndarray]:
         """Worst-case approach distance (m) and speed (m/s) of the person ``dt`` (s) after moving at
-        ``v_h0`` toward the robot."""
+        ``v_h0`` toward the robot (both broadcast)."""
+        v_h0 = np.asarray(v_h0, dtype=np.float64)
         dt = np.maximum(np.asarray(dt, dtype=np.float64), 0.0)
-        vmax = max(self.human_speed_max_mps, v_h0)
+        vmax = np.maximum(self.human_speed_max_mps, v_h0)
         a = self.human_accel_mps2
         if a <= 0:
-            return v_h0 * dt, np.full(dt.shape, v_h0)
+            return v_h0 * dt, np.broadcast_to(v_h0, np.broadcast(v_h0, dt).shape).copy()
         t1 = (vmax - v_h0) / a
         acc = np.minimum(dt, t1)
         dist = v_h0 * acc + 0.5 * a * acc**2 + vmax * np.maximum(dt - t1, 0.0)
         return dist, np.minimum(v_h0 + a * dt, vmax)
 
     def max_speed(
-        self, separation_m: float, *, v_human_mps: float, decel_mps2: float, v_cap_mps: float = 3.0
-    ) -> float:
-        """Largest safe robot speed (m/s) at ``separation_m`` with the person approaching at
-        ``v_human_mps`` now, braking at ``decel_mps2`` (0 when even a creeping robot is not safe)."""
-        d = float(separation_m)
-        if not math.isfinite(d):
-            return v_cap_mps if d > 0 else 0.0
-        if d <= self.required(0.0, v_human_mps):
-            return 0.0
-        a = max(float(decel_mps2), 1e-3)
-        v = np.linspace(0.0, v_cap_mps, _ENV_NV)[:, None]
-        t = _ENV_U[None, :] * v / a
-        x_h, v_h = self.human_approach(v_human_mps, t)
+        self, separation_m: Any, *, v_human_mps: Any, decel_mps2: Any, v_cap_mps: float = 3.0
+    ) -> Any:
+        """Largest safe speed (m/s) of a robot part at ``separation_m`` with the person approaching it at
+        ``v_human_mps`` now, braking at ``decel_mps2`` (0 when even a creeping part is not safe). Arguments
+        broadcast; a float for scalar arguments."""
+        d, vh0, a = np.broadcast_arrays(
+            np.asarray(separation_m, dtype=np.float64),
+            np.asarray(v_human_mps, dtype=np.float64),
+            np.maximum(np.asarray(decel_mps2, dtype=np.float64), 1e-3),
+        )
+        shape = d.shape
+        d, vh0, a = d.reshape(-1, 1, 1), vh0.reshape(-1, 1, 1), a.reshape(-1, 1, 1)
+        v = np.linspace(0.0, v_cap_mps, _ENV_NV)[None, :, None]
+        t = _ENV_U[None, None, :] * v / a
+        x_h, v_h = self.human_approach(vh0, t)
         travel = v * t - 0.5 * a * t**2
         need = self.s0_m + self.k_robot_s * (v - a * t) + self.k_human_s * v_h
-        margin = d - x_h - travel - need
-        ok = np.all(margin >= 0.0, axis=1)
-        if ok.all():
-            return v_cap_mps
-        first_bad = int(np.argmin(ok))
-        return float(v[max(first_bad - 1, 0), 0])
+        ok = np.all(d - x_h - travel - need >= 0.0, axis=2)  # (P, NV)
+        ok &= np.isfinite(d[:, :, 0]) | (d[:, :, 0] > 0)
+        n_ok = np.cumprod(ok, axis=1).sum(axis=1)  # leading feasible speeds
+        out = np.where(n_ok > 0, v[0, np.maximum(n_ok - 1, 0), 0], 0.0)
+        out = np.where(~np.isfinite(d[:, 0, 0]) & (d[:, 0, 0] > 0), v_cap_mps, out)
+        out = out.reshape(shape)
+        return float(out) if out.ndim == 0 else out
+
+    def max_scale(
+        self, separation_m: np.ndarray, *, v_human_mps: np.ndarray, v_parts_mps: np.ndarray, rate: float
+    ) -> float:
+        """Largest path-speed scale in [0, 1] that is safe for every part: part i moves at
+        ``s * v_parts_mps[i]`` and a brake lowers the scale at ``rate`` (1/s), so every part stops after
+        ``s / rate``. Arrays (L,)."""
+        d = np.asarray(separation_m, dtype=np.float64)[:, None, None]
+        vh0 = np.asarray(v_human_mps, dtype=np.float64)[:, None, None]
+        vp = np.asarray(v_parts_mps, dtype=np.float64)[:, None, None]
+        sc = _SCALES[None, :, None]
+        t = _ENV_U[None, None, :] * sc / max(rate, 1e-6)
+        x_h, v_h = self.human_approach(vh0, t)
+        a = rate * vp
+        v = sc * vp
+        travel = v * t - 0.5 * a * t**2
+        need = self.s0_m + self.k_robot_s * (v - a * t) + self.k_human_s * v_h
+        ok = np.all(d - x_h - travel - need >= 0.0, axis=2).all(axis=0)  # (NS,) every part
+        n_ok = int(np.cumprod(ok).sum())
+        return float(_SCALES[n_ok - 1]) if n_ok > 0 else 0.0
 
 
+_SCALES = np.linspace(0.0, 1.0, 101)
 _ENV_NV = 97
 _ENV_U = np.linspace(0.0, 1.0, 25)[:-1]  # instants of the braking (its end: the robot is at rest)
 
@@ -471,8 +529,16 @@ class BackupComputer:
         self.workers = int(workers)
         self.timer = timer
         self.profile_window_s = profile_window_s
+        #: Give the planner the deadline (live, measured headless); False when compute times are fixed.
+        self.enforce_deadline = True
 
     def __call__(self, req: BackupRequest) -> PlanOutcome:
+        """Plan, build the trajectory and its speed profile; ``ok`` or ``deadline_miss`` by the measured
+        compute time (see :meth:`judge`)."""
+        return self.judge(self.compute_raw(req), None)
+
+    def compute_raw(self, req: BackupRequest) -> PlanOutcome:
+        """The plan with its measured compute time, not yet judged against the deadline."""
         t0 = self.timer()
         try:
             res = self.planner.plan(
@@ -481,21 +547,26 @@ class BackupComputer:
                 goal=req.goal,
                 forecast=req.forecast,
                 workers=self.workers,
-                deadline_s=self.deadline_s,
+                deadline_s=self.deadline_s if self.enforce_deadline else None,
+                qd0=req.qd_start,
             )
             if not res.ok or res.plan is None:
-                dt = self.timer() - t0
-                status: OutcomeStatus = "deadline_miss" if dt > self.deadline_s else "failed"
-                return PlanOutcome(status, compute_s=dt, reason=str(res.reason))
+                return PlanOutcome("failed", compute_s=self.timer() - t0, reason=str(res.reason))
             traj = self.make_trajectory(res.plan, req.qd_start)
             prof = SpeedProfile.of(traj, self.geometry, window_s=self.profile_window_s)
         except Exception as exc:  # a planner fault must take the emergency path, never kill the loop
             log.exception("backup plan for frame %d raised", req.key)
             return PlanOutcome("error", compute_s=self.timer() - t0, reason=f"{type(exc).__name__}: {exc}")
         dt = self.timer() - t0
-        if dt > self.deadline_s:
-            return PlanOutcome("deadline_miss", compute_s=dt, reason="slower than the deadline")
         return PlanOutcome("ok", compute_s=dt, traj=traj, profile=prof, plan=res.plan, reason=str(res.reason))
+
+    def judge(self, out: PlanOutcome, compute_s: float | None) -> PlanOutcome:
+        """Apply the deadline: a plan slower than D (by ``compute_s`` when given, else its measured time)
+        is a ``deadline_miss``, whatever it found; so is a search the planner cut at the deadline."""
+        c = out.compute_s if compute_s is None else float(compute_s)
+        if out.status in ("ok", "failed") and (c > self.deadline_s or out.reason == "deadline"):
+            return PlanOutcome("deadline_miss", compute_s=c, reason=f"{c * 1e3:.1f} ms > D ({out.reason})")
+        return PlanOutcome(out.status, c, out.traj, out.profile, out.plan, out.reason)
 
 
 class InlinePlanJobs:
@@ -520,6 +591,7 @@ class InlinePlanJobs:
     ) -> None:
         self.compute = compute
         self.fixed_compute_s = fixed_compute_s
+        compute.enforce_deadline = fixed_compute_s is None
         self._pending: dict[int, BackupRequest] = {}
         self._keep = keep
 
@@ -533,16 +605,7 @@ class InlinePlanJobs:
         req = self._pending.pop(key, None) or request
         if req is None:
             return PlanOutcome("skipped", reason=f"no backup request for frame {key}")
-        out = self.compute(req)
-        if self.fixed_compute_s is not None:
-            c = self.fixed_compute_s
-            status = out.status
-            if status in ("ok", "deadline_miss") and out.traj is not None:
-                status = "deadline_miss" if c > self.compute.deadline_s else "ok"
-            elif status == "deadline_miss":
-                status = "deadline_miss" if c > self.compute.deadline_s else "failed"
-            out = PlanOutcome(status, c, out.traj, out.profile, out.plan, out.reason)
-        return out
+        return self.compute.judge(self.compute.compute_raw(req), self.fixed_compute_s)
 
     def peek(self, key: int) -> PlanOutcome | None:
         return None
@@ -571,6 +634,7 @@ class SupervisorConfig:
         tracking_margin_m: Tracking error of a frame: subtracted from measured separations and used as the
             margin of the held pose (reactive forecast, emergency plan).
         human_speed_window_s: Window (s) over which the person's approach speed is measured.
+        check_dt_s: Time step of the checks of a plan against a forecast (s).
         check_min_scale: Scale floor used to time the plan in execution for checks when the robot is slowed
             or stopped (the robot is assumed to go at least this fast when it resumes).
         profile_window_s: Look-ahead of the speed governor along the path (s).
@@ -586,6 +650,7 @@ class SupervisorConfig:
     scale_up_rate: float = 4.0
     tracking_margin_m: float = 0.02
     human_speed_window_s: float = 0.1
+    check_dt_s: float = 0.02
     check_min_scale: float = 0.5
     profile_window_s: float = 0.6
     emergency_horizon_s: float | None = None
@@ -780,6 +845,7 @@ class Supervisor:
         self.on_event = on_event
         self.timer = timer
         self.counters = SupervisorCounters()
+        self.n_parts = int(np.asarray(geometry.part_speeds(q0[None], np.zeros((1, 6)))).shape[-1])
         self._lock = threading.RLock()
         self._plan_ids = 0
         self._generation = 0
@@ -797,14 +863,15 @@ class Supervisor:
         self._frame: HumanFrame | None = None
         self._seq = -1
         # separation bookkeeping for the governor
-        self._sep_m = math.inf
+        L = self.n_parts
+        self._sep_m = np.full(L, math.inf)  # per robot part, minus the tracking margin
         self._sep_person_t = -math.inf  # time of the frame the separation was measured on
-        self._v_h0 = 0.0  # the person's approach speed, measured over the window ending there...
-        self._v_h_t = -math.inf  # ...and the middle of that window
+        self._v_h0 = np.zeros(L)  # the person's approach speed per part, measured over a window...
+        self._v_h_t = -math.inf  # ...whose middle is this
         self._history: deque[HumanFrame] = deque(maxlen=16)
-        self._travel_m = 0.0
-        self._v_cmd = 0.0
-        self._v_inst = 0.0  # speed along the path at the last tick (m/s)
+        self._travel_m = np.zeros(L)  # travel of each part since the separation was measured (bound, m)
+        self._v_cmd = np.zeros(L)  # speed bound of each part over the last tick (m/s)
+        self._v_inst = np.zeros(L)  # speed of each part along the path at the last tick (m/s)
         self._stale = False
         self._estop = False
         self._fault = False
@@ -911,24 +978,29 @@ class Supervisor:
             gen = self._generation
             active = self._active
             tau, s = self._tau, self._s
-            travel0 = self._travel_m
-        # separation now (robot at its last commanded pose vs the person as seen), and the person's
-        # approach speed: how fast their motion closed the distance to the robot over the last window
-        sep = float(self.geometry.separation(q_now, frame.joints)) - cfg.tracking_margin_m
+            travel0 = self._travel_m.copy()
+        # separation of each robot part now (robot at its last commanded pose vs the person as seen), and
+        # the person's approach speed: how fast their motion closed the distance over the last window
         old = self._older_frame(frame.t - cfg.human_speed_window_s)
+        poses = frame.joints[None] if old is None else np.stack([frame.joints, old.joints])
+        d = np.asarray(self.geometry.part_separations(q_now, poses), dtype=np.float64) - cfg.tracking_margin_m
+        sep_parts = d[0]
         if old is not None:
-            sep_old = float(self.geometry.separation(q_now, old.joints)) - cfg.tracking_margin_m
-            v_h0 = max((sep_old - sep) / (frame.t - old.t), 0.0)
+            # the person's speed: their fastest joint's (a directed speed toward a part jumps when the
+            # nearest pair of points changes; the speed of the body's points does not, and bounds it)
+            v_pts = float(np.max(np.linalg.norm(frame.joints - old.joints, axis=-1))) / (frame.t - old.t)
+            v_h0 = np.full(self.n_parts, v_pts)
             t_mid = 0.5 * (frame.t + old.t)
         else:  # no history yet: assume the fastest approach
-            v_h0, t_mid = self.ssm.human_speed_max_mps, frame.t
+            v_h0, t_mid = np.full(self.n_parts, self.ssm.human_speed_max_mps), frame.t
+        sep = float(sep_parts.min())
         self._history.append(frame)
         with self._lock:
-            self._sep_m = sep
+            self._sep_m = sep_parts
             self._sep_person_t = frame.t
             self._v_h0 = v_h0
             self._v_h_t = t_mid
-            self._travel_m = max(self._travel_m - travel0, 0.0)  # robot travel since q_now was read
+            self._travel_m = np.maximum(self._travel_m - travel0, 0.0)  # travel since q_now was read
             if self._estop or self._fault:
                 return self._done("hold", None, sep, c0)
             if self._stale:
@@ -950,8 +1022,10 @@ class Supervisor:
         if moving_plan:
             view = ScaledView(active.traj, t_ref=T, tau_ref=tau, scale=max(s, cfg.check_min_scale))
             t_v = self._first_violation(view, forecast, T, view.t_end)
+        # the stop distance: a part that is to move is within S_p(0) of the person
         _, v_h_now = self.ssm.human_approach(v_h0, frame.t - t_mid)
-        stop_distance = sep <= self.ssm.required(0.0, float(v_h_now))
+        to_move = active.profile.window_at(tau) > 1e-6
+        stop_distance = bool(np.any(to_move & (sep_parts <= self.ssm.s0_m + self.ssm.k_human_s * v_h_now)))
 
         # 3. pre-check a finished backup of the pending switch against this (latest) forecast
         with self._lock:
@@ -974,7 +1048,7 @@ class Supervisor:
                 return self._done("skipped", t_v, sep, c0)
             if self._brake is not None:
                 return self._done("hold", t_v, sep, c0)
-            robot_moving = self._v_cmd > 1e-3
+            robot_moving = float(self._v_cmd.max()) > 1e-3
             if moving_plan and (stop_distance or (t_v is not None and t_v <= T + D)):
                 pend = self._pending
                 if (
@@ -1029,7 +1103,9 @@ class Supervisor:
         self, traj: Any, forecast: HumanForecast, t_from: float, t_to: float
     ) -> float | None:
         try:
-            return self.planner.first_violation(traj, forecast, t_from=t_from, t_to=max(t_to, t_from))
+            return self.planner.first_violation(
+                traj, forecast, t_from=t_from, t_to=max(t_to, t_from), dt_s=self.config.check_dt_s
+            )
         except Exception:
             log.exception("first_violation raised; treating it as a violation now")
             return t_from
@@ -1107,7 +1183,7 @@ class Supervisor:
         cfg = self.config
         active = self._active
         s0 = self._s
-        vmax = active.profile.window_at(self._tau)
+        vmax = float(active.profile.window_at(self._tau).max())
         jmax = active.profile.joint_window_at(self._tau)
         rate = math.inf
         if vmax > 1e-9:
@@ -1163,6 +1239,9 @@ class Supervisor:
             log.exception("emergency plan raised")
             reason = f"{type(exc).__name__}: {exc}"
         compute_s = self.timer() - c0
+        fixed = getattr(self.jobs, "fixed_compute_s", None)
+        if fixed is not None:  # compute times fixed (deterministic headless runs): a tenth of a backup's
+            compute_s = 0.1 * float(fixed)
         with self._lock:
             self.counters.emergency_plans += 1
             if em is None:
@@ -1183,8 +1262,8 @@ class Supervisor:
             self._t = float(t)
             if self._estop or self._fault:
                 self._s = 0.0
-                self._v_cmd = 0.0
-                self._v_inst = 0.0
+                self._v_cmd[:] = 0.0
+                self._v_inst[:] = 0.0
                 self._account(dt)
                 return ServoCommand(t, self._q_cmd.copy(), np.zeros(6), 0.0, True)
             if self._brake is not None:
@@ -1213,8 +1292,8 @@ class Supervisor:
             self._v_inst = self._s * self._active.profile.speed_at(self._tau)
             return
         self._s = 0.0
-        self._v_cmd = 0.0
-        self._v_inst = 0.0
+        self._v_cmd[:] = 0.0
+        self._v_inst[:] = 0.0
         self._tau = b.tau_stop
         if self._state != "stopped" and t >= b.t_stop:
             self._set_state("stopped", b.t_stop)
@@ -1259,44 +1338,45 @@ class Supervisor:
         if active.kind == "hold":
             self._tau = t
             self._s = 0.0
-            self._v_cmd = 0.0
-            self._v_inst = 0.0
+            self._v_cmd[:] = 0.0
+            self._v_inst[:] = 0.0
             return
-        vmax = active.profile.window_at(self._tau)
+        vmax = active.profile.window_at(self._tau)  # (L,)
+        vtop = float(vmax.max())
         jmax = active.profile.joint_window_at(self._tau)
+        # braking: the path scale falls at `rate` (1/s), each part slows at rate * its speed
+        rate = math.inf
+        if vtop > 1e-9:
+            rate = cfg.brake_decel_mps2 / vtop
+        if jmax > 1e-9:
+            rate = min(rate, cfg.brake_joint_decel / jmax)
         s = self._s
-        # separation lower bound at the next tick
-        sep_lb, v_h = self._separation_bound(t + dt)
-        sep_lb -= s * vmax * dt
         if self._stale:
             s_target = 0.0
-        elif vmax <= 1e-9:
+        elif vtop <= 1e-9:
             s_target = 1.0
         else:
-            a_eff = cfg.brake_decel_mps2
-            if jmax > 1e-9:
-                a_eff = min(a_eff, cfg.brake_joint_decel * vmax / jmax)
-            v_allow = self.ssm.max_speed(sep_lb, v_human_mps=v_h, decel_mps2=a_eff)
-            law = 1.0
-            if self.speed_scale_law is not None and math.isfinite(sep_lb):
-                law = max(float(self.speed_scale_law(sep_lb, vmax, v_h)), 0.0)
-            s_target = min(1.0, v_allow / vmax, law)
+            # separation lower bound of each part at the next tick
+            sep_lb, v_h = self._separation_bound(t + dt)
+            sep_lb = sep_lb - s * vmax * dt
+            m = vmax > 1e-4
+            s_target = self.ssm.max_scale(sep_lb[m], v_human_mps=v_h[m], v_parts_mps=vmax[m], rate=rate)
+            if self.speed_scale_law is not None:
+                for i in np.flatnonzero(m):
+                    if math.isfinite(sep_lb[i]):
+                        law = max(float(self.speed_scale_law(sep_lb[i], vmax[i], v_h[i])), 0.0)
+                        s_target = min(s_target, law)
         if s_target >= s:
             s_new = min(s_target, s + cfg.scale_up_rate * dt)
-        elif self._v_inst <= 1e-6:
+        elif float(self._v_inst.max()) <= 1e-6:
             s_new = s = s_target  # at rest: lowering the scale brakes nothing
         else:
-            down = math.inf
-            if vmax > 1e-9:
-                down = cfg.brake_decel_mps2 / vmax
-            if jmax > 1e-9:
-                down = min(down, cfg.brake_joint_decel / jmax)
-            s_new = max(s_target, s - down * dt) if math.isfinite(down) else s_target
+            s_new = max(s_target, s - rate * dt) if math.isfinite(rate) else s_target
         self._tau += 0.5 * (s + s_new) * dt
         self._s = s_new
         self._v_cmd = max(s, s_new) * vmax
         self._v_inst = s_new * active.profile.speed_at(self._tau)
-        if self._v_cmd > 1e-3:
+        if float(self._v_cmd.max()) > 1e-3:
             self._stopped_latch = False
         if (
             pend is not None
@@ -1384,8 +1464,7 @@ class Supervisor:
 
     def _hold(self, q: np.ndarray, t: float) -> _Active:
         traj = HoldTrajectory(q, t)
-        z = np.zeros(1)
-        prof = SpeedProfile(tau0=t, step_s=1.0, v_mps=z, window_mps=z, qd_max=z)
+        prof = SpeedProfile.still(t, self.n_parts)
         return _Active(traj, prof, self._new_plan_id(), "hold", False, None, -1)
 
     def _activate_hold(self, q: np.ndarray, t: float) -> None:
@@ -1441,13 +1520,14 @@ class Supervisor:
             active = self._active
             pend = self._pending
             backup = pend.outcome.traj if pend is not None and pend.outcome is not None else None
-            v = self._v_cmd
+            i = int(np.argmin(self._sep_m))
+            v_h = self._v_h_bound(self._t)
             return SupervisorStatus(
                 t=self._t,
                 state=self._effective_state(),
                 scale=self._s,
-                separation_m=self._sep_m,
-                required_separation_m=self.ssm.required(v, self._v_h_bound(self._t)),
+                separation_m=float(self._sep_m[i]),
+                required_separation_m=self.ssm.required(float(self._v_cmd[i]), float(v_h[i])),
                 q=self._q_cmd.copy(),
                 plan=None if active.kind == "hold" else active.traj,
                 plan_tau=self._tau,
@@ -1463,19 +1543,21 @@ class Supervisor:
                 return f
         return None
 
-    def _v_h_bound(self, t: float) -> float:
+    def _v_h_bound(self, t: float) -> np.ndarray:
+        if not math.isfinite(self._v_h_t):
+            return np.full(self.n_parts, self.ssm.human_speed_max_mps)
         _, v = self.ssm.human_approach(self._v_h0, t - self._v_h_t)
-        return float(v)
+        return np.asarray(v)
 
-    def _separation_bound(self, t: float) -> tuple[float, float]:
-        """A lower bound of the separation at time ``t`` (m) and an upper bound of the person's approach
-        speed then (m/s), from the last measurement, the person's worst case since, and the robot's travel.
-        Caller holds the lock."""
-        if not math.isfinite(self._sep_m):
-            return self._sep_m, self.ssm.human_speed_max_mps
+    def _separation_bound(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per robot part: a lower bound of the separation at time ``t`` (m) and an upper bound of the
+        person's approach speed then (m/s), from the last measurement, the person's worst case since, and
+        the part's travel. Caller holds the lock."""
+        if not math.isfinite(self._v_h_t):
+            return self._sep_m.copy(), np.full(self.n_parts, self.ssm.human_speed_max_mps)
         x1, v1 = self.ssm.human_approach(self._v_h0, t - self._v_h_t)
         x0, _ = self.ssm.human_approach(self._v_h0, self._sep_person_t - self._v_h_t)
-        return float(self._sep_m - (x1 - x0) - self._travel_m), float(v1)
+        return self._sep_m - (x1 - x0) - self._travel_m, np.asarray(v1)
 
     def recent_decide_s(self) -> tuple[float, ...]:
         with self._lock:

@@ -73,6 +73,9 @@ class LinearTrajectory:
         out = np.stack([np.interp(t, self.times, self.qs[:, j]) for j in range(6)], axis=-1)
         return out
 
+    def sample(self, dt_s: float, *, t_from: float, t_to: float) -> np.ndarray:
+        return np.linspace(t_from, t_to, max(math.ceil((t_to - t_from) / dt_s), 1) + 1)
+
     def qd(self, t: Any) -> np.ndarray:
         t = np.asarray(t, dtype=float)
         tt = np.atleast_1d(t)
@@ -103,11 +106,16 @@ class FakeResult:
 
 
 class PointGeometry:
-    def separation(self, q: np.ndarray, joints: np.ndarray) -> float:
-        return float(np.min(np.linalg.norm(joints - q[:3], axis=-1)) - R_HUMAN)
+    """The point robot as one part."""
 
-    def point_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(np.asarray(qd)[..., :3], axis=-1)
+    def part_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        return np.min(np.linalg.norm(np.asarray(joints) - q[:3], axis=-1), axis=-1)[:, None] - R_HUMAN
+
+    def part_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(np.asarray(qd)[..., :3], axis=-1).reshape(-1, 1)
+
+    def separation(self, q: np.ndarray, joints: np.ndarray) -> float:
+        return float(self.part_separations(q, np.asarray(joints)[None])[0, 0])
 
 
 def make_traj(plan: FakePlan, qd0: np.ndarray | None) -> LinearTrajectory:
@@ -135,9 +143,11 @@ class FakePlanner:
         if forecast is None:
             return False
         traj = LinearTrajectory(plan.times, plan.q)
-        return self.first_violation(traj, forecast, t_from=traj.t_start, t_to=traj.t_end) is not None
+        return (
+            self.first_violation(traj, forecast, t_from=traj.t_start, t_to=traj.t_end, dt_s=0.02) is not None
+        )
 
-    def plan(self, *, q_start, t_start, goal, forecast, workers=1, deadline_s=None) -> FakeResult:
+    def plan(self, *, q_start, t_start, goal, forecast, workers=1, deadline_s=None, qd0=None) -> FakeResult:
         self.plan_calls += 1
         if self.raise_after is not None and self.plan_calls > self.raise_after:
             raise RuntimeError("planner crashed (test)")
@@ -157,9 +167,8 @@ class FakePlanner:
             True, FakePlan(np.array([t_start, t_start + horizon_s]), np.stack([q, q]), np.zeros(2)), ""
         )
 
-    def first_violation(self, traj, forecast, *, t_from, t_to) -> float | None:
-        n = max(int((t_to - t_from) / 0.02) + 1, 2)
-        ts = np.linspace(t_from, t_to, n)
+    def first_violation(self, traj, forecast, *, t_from, t_to, dt_s=None) -> float | None:
+        ts = traj.sample(dt_s or 0.02, t_from=t_from, t_to=t_to)
         q = traj.q(ts)
         joints, margins = forecast.poses_at(ts)
         d = np.min(np.linalg.norm(joints - q[:, None, :3], axis=-1), axis=1) - R_HUMAN - margins
@@ -341,10 +350,11 @@ def test_speed_profile_windows() -> None:
         np.array([0.0, 1.0, 2.0]), np.stack([q_of([0, 0, 0]), q_of([1, 0, 0]), q_of([1, 0, 0])])
     )
     prof = SpeedProfile.of(lin, PointGeometry(), step_s=0.1, window_s=0.3)
-    assert prof.window_at(0.0) == pytest.approx(1.0)
-    assert prof.window_at(0.75) == pytest.approx(1.0)  # the fast part is still within the window
-    assert prof.window_at(1.5) == pytest.approx(0.0)
-    assert prof.window_at(5.0) == 0.0
+    assert prof.window_at(0.0)[0] == pytest.approx(1.0)
+    assert prof.window_at(0.75)[0] == pytest.approx(1.0)  # the fast part is still within the window
+    assert prof.window_at(1.5)[0] == pytest.approx(0.0)
+    assert prof.window_at(5.0)[0] == 0.0
+    assert prof.speed_at(0.5)[0] == pytest.approx(1.0) and prof.speed_at(1.5)[0] == pytest.approx(0.0)
 
 
 def walker(start: np.ndarray, end: np.ndarray, t0: float, t1: float) -> PersonFn:

@@ -1,0 +1,780 @@
+"""One trial's wiring, shared by the live runtime and the headless runner:
+source -> validation -> predictor -> supervisor -> trajectory -> robot, plus the task, metrics and events.
+
+:class:`TrialEngine` has no threads and no clock of its own: the caller invokes
+:meth:`TrialEngine.frame_tick` at the camera rate and :meth:`TrialEngine.servo_tick` at the robot
+rate with the current time (the live runtime from its threads on the wall clock, the headless runner
+from one loop on the simulated clock).
+
+Also here: :class:`PlanningStack` (kinematics, collision model, roadmap and planner, built once per
+work cell), :class:`CellGeometry` (the supervisor's view of the robot's body) and
+:class:`SafetyMonitor`, an independent ISO/TS 15066 check of the executed motion against the person.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from app.config import Settings, WorkCell
+from app.control.metrics import Method, TrialEvent, TrialMetrics
+from app.control.robot import RobotBackend, RobotConnectionError, RobotState
+from app.control.supervisor import (
+    BackupComputer,
+    FrameDecision,
+    PlanJobs,
+    SeparationModel,
+    Supervisor,
+    SupervisorConfig,
+)
+from app.control.task import TaskExecutive
+from app.control.validation import FrameValidator, StaleWatchdog, ValidatedSource
+from app.prediction.forecast import HumanForecast
+from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+
+log = logging.getLogger(__name__)
+
+TrialStatus = Literal["completed", "aborted"]
+
+
+# --------------------------------------------------------------------------------------------------------
+# The planning stack and the robot's geometry
+# --------------------------------------------------------------------------------------------------------
+
+
+class CellGeometry:
+    """The UR5e's body as parts, one per capsule of the collision model (the supervisor's
+    :class:`~app.control.supervisor.RobotGeometry`).
+
+    A part's speed is that of the faster end of its capsule's axis: on a rigid link every point of the axis
+    moves no faster than that, so it bounds the speed of the capsule's whole surface.
+    """
+
+    def __init__(self, collision: Any, *, fd_step_s: float = 1e-3) -> None:
+        from app.planning.collision import capsule_distance
+
+        self.collision = collision
+        self.fd_step_s = float(fd_step_s)
+        self._capsule_distance = capsule_distance
+
+    def part_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """(P, L) surface distance (m) of each robot part at ``q`` (6,) to the person in poses (P, J, 3)."""
+        q = np.asarray(q, dtype=np.float64).reshape(1, 6)
+        joints = np.asarray(joints, dtype=np.float64)
+        if joints.ndim != 3 or joints.shape[1:] != (NUM_JOINTS, 3):
+            raise ValueError(f"joints must have shape (P, {NUM_JOINTS}, 3), got {joints.shape}")
+        ra, rb, rr = self.collision.robot_capsules(q)  # (1, L, 3) x 2, (L,)
+        ha, hb, hr = self.collision.human_capsules(joints)  # (P, M, 3) x 2, (M,)
+        d = self._capsule_distance(
+            ra[0][None, :, None, :],
+            rb[0][None, :, None, :],
+            rr[None, :, None],
+            ha[:, None, :, :],
+            hb[:, None, :, :],
+            hr[None, None, :],
+        )  # (P, L, M)
+        return d.min(axis=2)
+
+    def separation(self, q: np.ndarray, joints: np.ndarray) -> float:
+        """Minimum surface distance (m) robot-person for ``q`` (6,) and ``joints`` (J, 3)."""
+        return float(self.part_separations(q, np.asarray(joints)[None]).min())
+
+    def part_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """(K, L) speed (m/s) of each part for ``q``, ``qd`` (K, 6)."""
+        q = np.asarray(q, dtype=np.float64).reshape(-1, 6)
+        qd = np.asarray(qd, dtype=np.float64).reshape(-1, 6)
+        h = self.fd_step_s
+        a0, b0, _ = self.collision.robot_capsules(q)
+        a1, b1, _ = self.collision.robot_capsules(q + h * qd)
+        va = np.linalg.norm(a1 - a0, axis=-1)
+        vb = np.linalg.norm(b1 - b0, axis=-1)
+        return np.maximum(va, vb) / h
+
+
+@dataclass(frozen=True)
+class PlanningStack:
+    """Everything that is built once per work cell: kinematics, collision model, roadmap, planner.
+
+    Build it with :meth:`for_cell` (cached per process and cell).
+    """
+
+    cell: WorkCell
+    kin: Any
+    collision: Any
+    roadmap: Any
+    planner: Any
+    geometry: CellGeometry
+    ssm: Any
+
+    @classmethod
+    def for_cell(cls, cell: WorkCell, *, cache_dir: str | Path | None = None) -> PlanningStack:
+        """The stack of ``cell`` (roadmap from the on-disk cache, built when missing)."""
+        key = (cell.fingerprint(), None if cache_dir is None else str(cache_dir))
+        with _STACK_LOCK:
+            stack = _STACKS.get(key)
+            if stack is None:
+                stack = _build_stack(cell, key[1])
+                _STACKS[key] = stack
+                while len(_STACKS) > 4:
+                    _STACKS.pop(next(iter(_STACKS)))
+            return stack
+
+    def make_trajectory(self, plan: Any, qd0: np.ndarray | None) -> Any:
+        from app.planning.trajectory import Trajectory
+
+        return Trajectory.from_plan(plan, qd0=qd0, kin=self.kin)
+
+    def goal_names(self) -> list[str]:
+        return list(self.roadmap.station_nodes)
+
+
+_STACKS: dict[tuple[str, str | None], PlanningStack] = {}
+_STACK_LOCK = threading.Lock()
+
+
+def _build_stack(cell: WorkCell, cache_dir: str | None) -> PlanningStack:
+    from app.planning.collision import CollisionModel
+    from app.planning.roadmap import load_or_build_roadmap
+    from app.planning.search import Planner, PlannerConfig
+
+    t0 = time.perf_counter()
+    collision = CollisionModel(cell)
+    roadmap = load_or_build_roadmap(cell, cache_dir=cache_dir, collision=collision)
+    config = PlannerConfig()
+    planner = Planner(roadmap, collision, config=config)
+    log.info("planning stack for cell %s ready in %.2f s", cell.name, time.perf_counter() - t0)
+    return PlanningStack(
+        cell=cell,
+        kin=collision.kin,
+        collision=collision,
+        roadmap=roadmap,
+        planner=planner,
+        geometry=CellGeometry(collision),
+        ssm=config.ssm,
+    )
+
+
+# --------------------------------------------------------------------------------------------------------
+# Independent safety monitor
+# --------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class MonitorSample:
+    """One check of the executed motion.
+
+    Attributes:
+        t: Time (s).
+        separation_m: Robot-person surface distance (m).
+        required_m: ISO/TS 15066 S_p for the robot's speed and the person's approach speed (m).
+        robot_speed_mps: Largest speed of the robot's body points (m/s).
+        human_speed_mps: The person's directed speed toward the robot (m/s).
+        violation: The moving robot was closer than S_p.
+    """
+
+    t: float
+    separation_m: float
+    required_m: float
+    robot_speed_mps: float
+    human_speed_mps: float
+    violation: bool
+
+
+class SafetyMonitor:
+    """Checks the *executed* motion: at each call, the separation between the robot (its measured state) and
+    a pose of the person, against ISO/TS 15066's S_p for the robot's actual speed and the person's directed
+    speed toward it (:func:`app.planning.safety.protective_separation`). It shares nothing with the
+    supervisor: its own distance and speed computations, the robot's reported state, the poses it is given.
+
+    Args:
+        collision: The collision model (``distance_to_human``, ``robot_capsules``).
+        ssm: :class:`app.planning.safety.SSMParams`.
+        moving_mps: A robot whose points all move slower than this counts as standing still.
+    """
+
+    def __init__(self, collision: Any, ssm: Any, *, moving_mps: float = 0.01) -> None:
+        from app.planning.safety import protective_separation
+
+        self._sp = protective_separation
+        self.collision = collision
+        self.geometry = CellGeometry(collision)
+        self.ssm = ssm
+        self.moving_mps = float(moving_mps)
+        self.samples = 0
+        self.violation_ticks = 0
+        self.violation_episodes = 0
+        self.min_separation_m = math.inf
+        self.min_separation_moving_m = math.inf
+        self.worst: MonitorSample | None = None
+        self._in_violation = False
+
+    def check(
+        self,
+        t: float,
+        q: np.ndarray,
+        qd: np.ndarray,
+        joints: np.ndarray,
+        joints_before: np.ndarray | None,
+        dt_before_s: float,
+    ) -> MonitorSample:
+        """Check the robot at ``q``, ``qd`` (6,) against the person at ``joints`` (J, 3), who was at
+        ``joints_before`` ``dt_before_s`` seconds earlier (for their approach speed; None: 0).
+
+        Per robot part (capsule): its separation, its speed and the person's approach speed toward it; the
+        part violates when it moves and is closer than S_p(its speed, the approach speed). The sample
+        reports the worst part (the largest S_p - separation).
+        """
+        q = np.asarray(q, dtype=np.float64).reshape(6)
+        joints = np.asarray(joints, dtype=np.float64)
+        poses = joints[None] if joints_before is None else np.stack([joints, joints_before])
+        d = self.geometry.part_separations(q, poses)  # (P, L)
+        sep = d[0]
+        v_h = np.zeros_like(sep)
+        if joints_before is not None and dt_before_s > 0:
+            v_h = np.maximum((d[1] - sep) / dt_before_s, 0.0)
+        v_r = self.geometry.part_speeds(q, np.asarray(qd, dtype=np.float64))[0]
+        req = np.array(
+            [float(self._sp(float(v), self.ssm, v_human_mps=float(h))) for v, h in zip(v_r, v_h, strict=True)]
+        )
+        moving = v_r > self.moving_mps
+        bad_parts = moving & (sep < req)
+        bad = bool(bad_parts.any())
+        i = int(np.argmax(np.where(bad_parts, req - sep, -np.inf))) if bad else int(np.argmin(sep))
+        sample = MonitorSample(t, float(sep.min()), float(req[i]), float(v_r[i]), float(v_h[i]), bad)
+        self.samples += 1
+        self.min_separation_m = min(self.min_separation_m, float(sep.min()))
+        if moving.any():
+            self.min_separation_moving_m = min(self.min_separation_moving_m, float(sep[moving].min()))
+        if bad:
+            self.violation_ticks += 1
+            if not self._in_violation:
+                self.violation_episodes += 1
+            gap = float((req - sep)[i])
+            if self.worst is None or gap > (self.worst.required_m - self.worst.separation_m):
+                self.worst = MonitorSample(t, float(sep[i]), float(req[i]), float(v_r[i]), float(v_h[i]), bad)
+        self._in_violation = bad
+        return sample
+
+
+# --------------------------------------------------------------------------------------------------------
+# Messages: snapshots and trial results
+# --------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class TrialFrames:
+    """A trial's frames at the camera rate (the study database's recorded frames).
+
+    Attributes:
+        t: (T,) seconds since the trial started.
+        q: (T, 6) robot joint positions (rad).
+        skeleton: (T, J, 3) person joints in the world frame (m), or None when none were recorded.
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    skeleton: np.ndarray | None
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+
+@dataclass(frozen=True, slots=True)
+class TrialResult:
+    """What one trial produced.
+
+    Attributes:
+        metrics: The trial's metrics.
+        events: Its events, in time order (``t`` = seconds since the trial started).
+        frames: Its frames (None when not recorded).
+        status: ``completed`` (ran its duration) or ``aborted``.
+        reason: Why it ended (``duration``, ``operator``, ``estop``, ``robot_fault``, ...).
+        wall_s: Wall-clock seconds the run took.
+        sim_speedup: Simulated seconds per wall second (headless runs; 1 live).
+    """
+
+    metrics: TrialMetrics
+    events: list[TrialEvent]
+    frames: TrialFrames | None
+    status: TrialStatus = "completed"
+    reason: str = "duration"
+    wall_s: float = 0.0
+    sim_speedup: float = 1.0
+
+    def summary(self) -> dict[str, Any]:
+        """The ``hrc simulate --json`` object."""
+        m = self.metrics
+        return {
+            "method": m.method,
+            "status": self.status,
+            "duration_s": m.duration_s,
+            "completed_tasks": m.completed_tasks,
+            "avg_planning_time_s": m.avg_planning_time_s,
+            "stop_replans_per_task": m.stop_replans_per_task,
+            "online_replans_per_task": m.online_replans_per_task,
+            "stop_replans": m.stop_replans,
+            "online_replans": m.online_replans,
+            "deadline_misses": m.deadline_misses,
+            "plans_computed": m.plans_computed,
+            "min_separation_m": None if not math.isfinite(m.min_separation_m) else m.min_separation_m,
+            "violations": m.violations,
+            "time_stopped_s": m.time_stopped_s,
+            "sim_speedup": self.sim_speedup,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """An immutable view of the runtime for viewers (operator page, 3D scene, API).
+
+    Attributes:
+        t: Runtime clock (s).
+        trial_id: Running trial, or None.
+        state: Supervisor state (``idle``, ``nominal``, ``collision_avoidance``, ``stopped``, ``estop``,
+            ``fault``).
+        method: Method of the running trial, or None.
+        speed_scale: Speed scale along the path, 0..1.
+        separation_m: Last measured robot-person separation (m), None when nobody was seen.
+        required_separation_m: S_p for the robot's current speed (m).
+        planning_ms: Recent backup-plan compute times (ms), oldest first.
+        counters: Running counts (completed tasks, replans, deadline misses, frames, ...).
+        q: (6,) robot joint positions (rad).
+        p_world_tcp: (3,) TCP position (m, world).
+        skeleton: (J, 3) latest person pose (m, world), or None.
+        forecast: (H, J, 3) latest forecast, or None.
+        plan_tcp: (K, 3) TCP path of the plan in execution, or None.
+        backup_tcp: (K, 3) TCP path of the pending backup plan, or None.
+        stale: The human stream is stale.
+        estopped: E-stop latched.
+        trial_elapsed_s: Seconds since the trial started, or None.
+        trial_duration_s: The trial's planned duration, or None.
+    """
+
+    t: float
+    trial_id: int | None
+    state: str
+    method: str | None
+    speed_scale: float
+    separation_m: float | None
+    required_separation_m: float | None
+    planning_ms: tuple[float, ...]
+    counters: dict[str, Any]
+    q: np.ndarray
+    p_world_tcp: np.ndarray
+    skeleton: np.ndarray | None = None
+    forecast: np.ndarray | None = None
+    plan_tcp: np.ndarray | None = None
+    backup_tcp: np.ndarray | None = None
+    stale: bool = False
+    estopped: bool = False
+    trial_elapsed_s: float | None = None
+    trial_duration_s: float | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("q", "p_world_tcp", "skeleton", "forecast", "plan_tcp", "backup_tcp"):
+            v = getattr(self, name)
+            if v is not None:
+                a = np.array(v, dtype=np.float64)
+                a.setflags(write=False)
+                object.__setattr__(self, name, a)
+        if self.q.shape != (6,) or self.p_world_tcp.shape != (3,):
+            raise ValueError(f"Snapshot q must be (6,) and p_world_tcp (3,), got {self.q.shape}")
+        object.__setattr__(self, "counters", dict(self.counters))
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-friendly dict (arrays as nested lists, non-finite floats as None)."""
+
+        def num(x: float | None) -> float | None:
+            return None if x is None or not math.isfinite(x) else float(x)
+
+        def arr(a: np.ndarray | None, nd: int = 4) -> list | None:
+            return None if a is None else np.round(a, nd).tolist()
+
+        return {
+            "t": float(self.t),
+            "trial_id": self.trial_id,
+            "state": self.state,
+            "method": self.method,
+            "speed_scale": float(self.speed_scale),
+            "separation_m": num(self.separation_m),
+            "required_separation_m": num(self.required_separation_m),
+            "planning_ms": [round(float(x), 3) for x in self.planning_ms],
+            "counters": {k: (num(v) if isinstance(v, float) else v) for k, v in self.counters.items()},
+            "q": arr(self.q, 5),
+            "p_world_tcp": arr(self.p_world_tcp),
+            "skeleton": arr(self.skeleton),
+            "forecast": arr(self.forecast),
+            "plan_tcp": arr(self.plan_tcp),
+            "backup_tcp": arr(self.backup_tcp),
+            "stale": bool(self.stale),
+            "estopped": bool(self.estopped),
+            "trial_elapsed_s": num(self.trial_elapsed_s),
+            "trial_duration_s": num(self.trial_duration_s),
+        }
+
+
+# --------------------------------------------------------------------------------------------------------
+# The engine
+# --------------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class EngineOptions:
+    """How a :class:`TrialEngine` runs.
+
+    Attributes:
+        monitor: ``"frame"``: the safety monitor checks at every frame (against that frame); ``"tick"``: at
+            every servo tick (against the newest frame); ``"off"``.
+        record_frames: Keep the frames for the study database.
+        tracking_margin_m: Tracking error of a frame (m) (see :class:`SupervisorConfig`).
+        pick_dwell_s, place_dwell_s: Gripper times (s).
+    """
+
+    monitor: Literal["frame", "tick", "off"] = "frame"
+    record_frames: bool = True
+    tracking_margin_m: float = 0.02
+    pick_dwell_s: float = 0.4
+    place_dwell_s: float = 0.4
+
+
+EventListener = Callable[[TrialEvent], None]
+
+
+class TrialEngine:
+    """One trial of the cell: see the module docstring.
+
+    Args:
+        stack: The planning stack of the cell.
+        settings: D, F, workers, method defaults.
+        robot: The robot backend (its clock is the caller's).
+        source: The human source behind validation (:class:`ValidatedSource`).
+        predictor: The motion predictor (proactive method); None for the reactive method.
+        jobs_factory: ``(BackupComputer, SupervisorConfig) -> PlanJobs``.
+        method: ``proactive`` or ``reactive``.
+        duration_s: Trial length (s).
+        seed: Seed of the assembly sequence.
+        t0: Start time on the caller's clock (s).
+        options: Engine options.
+        on_event: Called with every event (already in the trial's list).
+        separation: The speed governor's model (default: from the planner's SSM parameters).
+        timer: Monotonic timer for compute times.
+    """
+
+    def __init__(
+        self,
+        *,
+        stack: PlanningStack,
+        settings: Settings,
+        robot: RobotBackend,
+        source: ValidatedSource,
+        predictor: Any | None,
+        jobs_factory: Callable[[BackupComputer, SupervisorConfig], PlanJobs],
+        method: Method,
+        duration_s: float,
+        seed: int,
+        t0: float,
+        options: EngineOptions | None = None,
+        on_event: EventListener | None = None,
+        separation: SeparationModel | None = None,
+        timer: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        if method not in ("proactive", "reactive"):
+            raise ValueError(f"method must be 'proactive' or 'reactive', got {method!r}")
+        if not duration_s > 0:
+            raise ValueError(f"duration_s must be > 0, got {duration_s}")
+        if method == "proactive" and predictor is None:
+            raise ValueError("the proactive method needs a predictor")
+        self.stack = stack
+        self.settings = settings
+        self.robot = robot
+        self.source = source
+        self.predictor = predictor
+        self.method: Method = method
+        self.duration_s = float(duration_s)
+        self.seed = int(seed)
+        self.t0 = float(t0)
+        self.options = options or EngineOptions()
+        self.on_event = on_event
+        self.events: list[TrialEvent] = []
+        self.config = SupervisorConfig(
+            method=method,
+            deadline_s=settings.deadline_s,
+            frame_period_s=settings.frame_period_s,
+            planner_workers=settings.planner_workers,
+            tracking_margin_m=self.options.tracking_margin_m,
+        )
+        computer = BackupComputer(
+            stack.planner,
+            stack.make_trajectory,
+            stack.geometry,
+            deadline_s=self.config.deadline_s,
+            workers=self.config.planner_workers,
+            timer=timer,
+        )
+        self.jobs = jobs_factory(computer, self.config)
+        from app.planning.safety import speed_scale
+
+        ssm = stack.ssm
+        self.separation = separation or SeparationModel.from_ssm(ssm)
+        robot_state = robot.state()
+        self.supervisor = Supervisor(
+            planner=stack.planner,
+            geometry=stack.geometry,
+            jobs=self.jobs,
+            make_trajectory=stack.make_trajectory,
+            separation=self.separation,
+            speed_scale=lambda d, v, vh: speed_scale(d, v, ssm, v_human_mps=vh),
+            config=self.config,
+            q0=robot_state.q,
+            t0=t0,
+            on_event=self._emit_abs,
+            timer=timer,
+        )
+        self.task = TaskExecutive(
+            stack.cell,
+            seed=seed,
+            pick_dwell_s=self.options.pick_dwell_s,
+            place_dwell_s=self.options.place_dwell_s,
+            goals=stack.goal_names(),
+        )
+        self.monitor = SafetyMonitor(stack.collision, ssm) if self.options.monitor != "off" else None
+        self.completed_tasks = 0
+        self.min_separation_m = math.inf
+        self.finished: tuple[TrialStatus, str] | None = None
+        self.last_frame: HumanFrame | None = None
+        self.last_forecast: HumanForecast | None = None
+        self.last_decision: FrameDecision | None = None
+        self.last_state: RobotState = robot_state
+        self._prev_frame: HumanFrame | None = None
+        self._releases: list[tuple[float, str]] = []
+        self._stale = False
+        self._frames_t: list[float] = []
+        self._frames_q: list[np.ndarray] = []
+        self._frames_sk: list[np.ndarray] = []
+        self.decide_s: list[float] = []
+        if predictor is not None and hasattr(predictor, "reset"):
+            predictor.reset()
+        self._emit_abs(t0, "trial_started", {"method": method, "seed": self.seed})
+        self.supervisor.begin(t0)
+        self.supervisor.set_goal(self.task.current.goal, not_before=t0)
+
+    # ---------------------------------------------------------------------------------------------------
+    def _emit_abs(self, t: float, kind: str, payload: dict[str, Any]) -> None:
+        ev = TrialEvent(t=max(float(t) - self.t0, 0.0), kind=kind, payload=_json_safe(payload))
+        self.events.append(ev)
+        if self.on_event is not None:
+            try:
+                self.on_event(ev)
+            except Exception:
+                log.exception("an event listener raised; the trial goes on")
+
+    @property
+    def running(self) -> bool:
+        return self.finished is None
+
+    def elapsed(self, t: float) -> float:
+        return max(float(t) - self.t0, 0.0)
+
+    # ---------------------------------------------------------------------------------------------------
+    def frame_tick(self, t: float) -> FrameDecision | None:
+        """Read the source at ``t``; a new valid frame goes through the predictor and the supervisor."""
+        if self.finished is not None:
+            return None
+        frame = self.source.poll(t)
+        if frame is None:
+            return None
+        if self.method == "proactive":
+            forecast = self.predictor.update(frame)
+        else:
+            forecast = HumanForecast.hold(frame, margin_m=self.options.tracking_margin_m)
+        decision = self.supervisor.on_frame(frame, forecast, t_now=t)
+        self.decide_s.append(decision.decide_s)
+        self.last_decision = decision
+        sep = decision.separation_m + self.config.tracking_margin_m
+        self.min_separation_m = min(self.min_separation_m, sep)
+        self.last_forecast = forecast
+        if self.monitor is not None and self.options.monitor == "frame":
+            self._monitor(t, frame)
+        self._prev_frame = self.last_frame
+        self.last_frame = frame
+        if self.options.record_frames:
+            self._frames_t.append(self.elapsed(t))
+            self._frames_q.append(np.asarray(self.last_state.q, dtype=np.float32))
+            self._frames_sk.append(np.asarray(frame.joints, dtype=np.float32))
+        return decision
+
+    def _monitor(self, t: float, frame: HumanFrame) -> None:
+        assert self.monitor is not None
+        st = self.last_state
+        before = self._older_frame(frame)
+        self.monitor.check(
+            t,
+            st.q,
+            st.qd,
+            frame.joints,
+            None if before is None else before.joints,
+            0.0 if before is None else frame.t - before.t,
+        )
+
+    def _older_frame(self, frame: HumanFrame) -> HumanFrame | None:
+        prev = self.last_frame if self.last_frame is not frame else self._prev_frame
+        return prev if prev is not None and prev.t < frame.t else None
+
+    def servo_tick(self, t: float) -> None:
+        """One robot cycle at ``t``: read the robot, advance the supervisor, command it, do the task."""
+        if self.finished is not None:
+            return
+        try:
+            state = self.robot.state()
+        except RobotConnectionError as exc:
+            self._robot_lost(t, str(exc))
+            return
+        if not state.connected:
+            self._robot_lost(t, f"robot disconnected ({getattr(state, 'fault', None) or 'no reason given'})")
+            return
+        self.last_state = state
+        stale = self.source.is_stale(t)
+        if stale != self._stale:
+            self._stale = stale
+            self.supervisor.set_stale(stale, t)
+        cmd = self.supervisor.servo(t)
+        if self.supervisor.status().estopped:
+            pass  # the runtime stopped the robot; nothing is commanded until reset
+        else:
+            try:
+                self.robot.servo(cmd.q, cmd.qd, t)
+            except RobotConnectionError as exc:
+                self._robot_lost(t, str(exc))
+                return
+        goal = self.supervisor.take_arrival()
+        if goal is not None:
+            done = self.task.arrived(t)
+            if done.placed is not None:
+                self._releases.append((done.leave_at, done.placed))
+            self.supervisor.set_goal(done.next_leg.goal, not_before=done.leave_at)
+        while self._releases and self._releases[0][0] <= t:
+            _, station = self._releases.pop(0)
+            self.completed_tasks += 1
+            self._emit_abs(t, "task_completed", {"station": station, "index": self.completed_tasks})
+            self.source.notify_block_placed(station, t)
+        if self.monitor is not None and self.options.monitor == "tick" and self.last_frame is not None:
+            self._monitor(t, self.last_frame)
+        if self.elapsed(t) >= self.duration_s - 1e-9:
+            self.finish(t, "completed", "duration")
+
+    def _robot_lost(self, t: float, message: str) -> None:
+        log.error("robot connection lost: %s; the trial is aborted", message)
+        self.supervisor.fault(t, message)
+        self.finish(t, "aborted", "robot_fault")
+
+    def estop(self, t: float, *, source: str) -> None:
+        self.supervisor.estop(t, source=source)
+
+    def finish(self, t: float, status: TrialStatus, reason: str) -> None:
+        """End the trial (idempotent)."""
+        if self.finished is not None:
+            return
+        self.finished = (status, reason)
+        self._emit_abs(t, "trial_ended", {"status": status, "reason": reason})
+        self.supervisor.end(t)
+        self.jobs.close()
+        self._end_t = float(t)
+
+    # ---------------------------------------------------------------------------------------------------
+    def metrics(self) -> TrialMetrics:
+        c = self.supervisor.counters
+        times = np.asarray(c.planning_times_s, dtype=np.float64)
+        end_t = getattr(self, "_end_t", self.supervisor.status().t)
+        st = c.state_time_s
+        counters = self.source.counters
+        mon = self.monitor
+        return TrialMetrics(
+            method=self.method,
+            duration_s=round(self.elapsed(end_t), 6),
+            completed_tasks=self.completed_tasks,
+            plans_computed=c.plans_computed,
+            avg_planning_time_s=float(times.mean()) if times.size else 0.0,
+            p95_planning_time_s=float(np.percentile(times, 95)) if times.size else 0.0,
+            stop_replans=c.stop_replans,
+            online_replans=c.online_replans,
+            deadline_misses=c.deadline_misses,
+            emergency_plans=c.emergency_plans,
+            plan_failures=c.plan_failures,
+            min_separation_m=self.min_separation_m,
+            violations=0 if mon is None else mon.violation_episodes,
+            time_stopped_s=st["stopped"] + st["estop"] + st["fault"],
+            time_nominal_s=st["nominal"],
+            time_collision_avoidance_s=st["collision_avoidance"],
+            stale_stops=c.stale_stops,
+            frames_received=int(counters.get("accepted", 0)) + int(counters.get("rejected", 0)),
+            frames_rejected=int(counters.get("rejected", 0)),
+        )
+
+    def frames(self) -> TrialFrames | None:
+        if not self.options.record_frames or not self._frames_t:
+            return None
+        return TrialFrames(
+            t=np.asarray(self._frames_t, dtype=np.float64),
+            q=np.stack(self._frames_q),
+            skeleton=np.stack(self._frames_sk),
+        )
+
+    def counters(self) -> dict[str, Any]:
+        c = self.supervisor.counters
+        return {
+            "completed_tasks": self.completed_tasks,
+            "stop_replans": c.stop_replans,
+            "online_replans": c.online_replans,
+            "deadline_misses": c.deadline_misses,
+            "emergency_plans": c.emergency_plans,
+            "plan_failures": c.plan_failures,
+            "plans_computed": c.plans_computed,
+            "frames": c.frames,
+            "violations": 0 if self.monitor is None else self.monitor.violation_episodes,
+            "min_separation_m": self.min_separation_m,
+        }
+
+
+def make_validated_source(source: Any, cell: WorkCell) -> ValidatedSource:
+    """``source`` behind the cell's frame checks and a 100 ms stale watchdog (a :class:`ValidatedSource`
+    is returned as it is)."""
+    if isinstance(source, ValidatedSource):
+        return source
+    return ValidatedSource(source, validator=FrameValidator.for_workcell(cell), watchdog=StaleWatchdog(0.1))
+
+
+def _json_safe(payload: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in payload.items():
+        if isinstance(v, (np.floating, float)):
+            v = float(v)
+            out[k] = v if math.isfinite(v) else None
+        elif isinstance(v, np.integer):
+            out[k] = int(v)
+        elif isinstance(v, np.ndarray):
+            out[k] = v.tolist()
+        else:
+            out[k] = v
+    return out
+
+
+__all__ = [
+    "CellGeometry",
+    "EngineOptions",
+    "MonitorSample",
+    "PlanningStack",
+    "SafetyMonitor",
+    "Snapshot",
+    "TrialEngine",
+    "TrialFrames",
+    "TrialResult",
+    "make_validated_source",
+]

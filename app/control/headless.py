@@ -1,0 +1,179 @@
+"""Headless trials: the runtime's engine on the simulated clock, single-threaded and deterministic.
+
+One loop advances a :class:`~app.control.clock.SimClock` in servo ticks; a frame is read at every camera
+period. Backup plans run lazily (:class:`~app.control.supervisor.InlinePlanJobs`): a plan is computed when the
+switch that its own frame's decision scheduled is due, and its *measured* compute time decides, as in live
+mode, whether it met the deadline ``D`` (the decisions are the same as with eager computation; see there).
+The emergency plan's measured compute time delays its start likewise. A run is therefore deterministic for a
+seed apart from those measured times (pass ``fixed_compute_s`` to fix them too, e.g. in tests).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from app.config import Settings, WorkCell
+from app.control.clock import SimClock
+from app.control.engine import (
+    EngineOptions,
+    PlanningStack,
+    TrialEngine,
+    TrialResult,
+    make_validated_source,
+)
+from app.control.metrics import Method
+from app.control.supervisor import InlinePlanJobs
+
+log = logging.getLogger(__name__)
+
+#: ``observer(t, engine)`` is called after every servo tick (tests use it for independent checks).
+Observer = Callable[[float, TrialEngine], None]
+
+
+def make_predictor(method: Method, *, tracking_margin_m: float = 0.02) -> Any | None:
+    """The predictor of a method: the shipped Graph-Mixer for ``proactive`` (constant velocity with a
+    warning if its weights are missing), none for ``reactive`` (the current pose is held)."""
+    if method == "reactive":
+        return None
+    from app.prediction.predictor import MotionPredictor
+
+    return MotionPredictor(kind="graphmixer", tracking_margin_m=tracking_margin_m)
+
+
+def make_operator(
+    cell: WorkCell,
+    *,
+    source: Literal["sim", "replay"],
+    seed: int,
+    participant_seed: int,
+    clip: str | Path | None = None,
+) -> Any:
+    """The person of a headless trial: a simulated participant (``participant_seed`` draws their body and
+    habits, ``seed`` their moment-to-moment behaviour and noise) or a recorded clip, looped."""
+    from app.control.human import ReplaySource
+    from app.control.operator_sim import OperatorParams, SimulatedOperator
+
+    if source == "sim":
+        return SimulatedOperator(cell, OperatorParams.draw(participant_seed), seed=seed)
+    if source == "replay":
+        if clip is None:
+            raise ValueError("--source replay needs a clip: pass clip=PATH or set HRC_REPLAY_CLIP")
+        return ReplaySource(clip, cell)
+    raise ValueError(f"unknown headless source {source!r}; expected 'sim' or 'replay'")
+
+
+def run_headless_trial(
+    *,
+    settings: Settings,
+    cell: WorkCell | None = None,
+    method: Method,
+    duration_s: float,
+    seed: int,
+    participant_seed: int | None = None,
+    source: Literal["sim", "replay"] = "sim",
+    clip: str | Path | None = None,
+    servo_rate_hz: float = 125.0,
+    options: EngineOptions | None = None,
+    stack: PlanningStack | None = None,
+    predictor: Any | None = None,
+    human: Any | None = None,
+    fixed_compute_s: float | None = None,
+    observer: Observer | None = None,
+) -> TrialResult:
+    """Run one trial on the simulated clock and return its metrics, events and frames.
+
+    Args:
+        settings: D, F, planner workers (and ``replay_clip`` for ``source="replay"``).
+        cell: The work cell (default: the one of ``settings``).
+        method: ``proactive`` or ``reactive``.
+        duration_s: Simulated length of the trial (s).
+        seed: The trial's seed (operator behaviour and noise, assembly order).
+        participant_seed: The participant's seed (body, habits, assembly order); default ``seed``.
+        source: ``sim`` (simulated operator) or ``replay`` (a recorded clip, looped).
+        clip: Clip for ``replay`` (default ``settings.replay_clip``).
+        servo_rate_hz: Robot command rate (Hz).
+        options: Engine options (monitor, frame recording, dwell times).
+        stack: The planning stack (default: built for ``cell``, cached per process).
+        predictor: The proactive predictor (default: the shipped one).
+        human: A ready human source instead of ``source`` (tests).
+        fixed_compute_s: Charge this compute time for every backup plan instead of the measured one.
+        observer: Called as ``observer(t, engine)`` after each servo tick.
+    """
+    from app.control.robot import SimRobot
+
+    if not duration_s > 0:
+        raise ValueError(f"duration_s must be > 0, got {duration_s}")
+    if not servo_rate_hz > 0:
+        raise ValueError(f"servo_rate_hz must be > 0, got {servo_rate_hz}")
+    cell = cell if cell is not None else settings.load_workcell()
+    stack = stack if stack is not None else PlanningStack.for_cell(cell)
+    p_seed = seed if participant_seed is None else participant_seed
+    options = options or EngineOptions()
+    if human is None:
+        human = make_operator(
+            cell,
+            source=source,
+            seed=seed,
+            participant_seed=p_seed,
+            clip=clip if clip is not None else settings.replay_clip,
+        )
+    if method == "proactive" and predictor is None:
+        predictor = make_predictor(method, tracking_margin_m=options.tracking_margin_m)
+    clock = SimClock(0.0)
+    robot = SimRobot(clock, q0=np.asarray(cell.robot.home_q, dtype=np.float64))
+    vsource = make_validated_source(human, cell)
+    wall0 = time.perf_counter()
+    engine = TrialEngine(
+        stack=stack,
+        settings=settings,
+        robot=robot,
+        source=vsource,
+        predictor=predictor,
+        jobs_factory=lambda computer, _cfg: InlinePlanJobs(computer, fixed_compute_s=fixed_compute_s),
+        method=method,
+        duration_s=duration_s,
+        seed=p_seed,
+        t0=0.0,
+        options=options,
+    )
+    dt = 1.0 / servo_rate_hz
+    frame_period = settings.frame_period_s
+    n_ticks = round(duration_s * servo_rate_hz)
+    next_frame = 0.0
+    try:
+        for k in range(n_ticks + 1):
+            t = k * dt
+            clock.set(t)
+            if t >= next_frame - 1e-9:
+                engine.frame_tick(t)
+                next_frame += frame_period
+                while next_frame <= t:  # frames slower than ticks never pile up
+                    next_frame += frame_period
+            engine.servo_tick(t)
+            if observer is not None:
+                observer(t, engine)
+            if not engine.running:
+                break
+        if engine.running:
+            engine.finish(clock.now(), "completed", "duration")
+    finally:
+        robot.stop()
+        robot.close()
+    wall = time.perf_counter() - wall0
+    status, reason = engine.finished or ("aborted", "unknown")
+    metrics = engine.metrics()
+    return TrialResult(
+        metrics=metrics,
+        events=list(engine.events),
+        frames=engine.frames(),
+        status=status,
+        reason=reason,
+        wall_s=wall,
+        sim_speedup=metrics.duration_s / wall if wall > 0 else float("inf"),
+    )

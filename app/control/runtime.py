@@ -1,0 +1,730 @@
+"""The live runtime: the cell's engine on background threads and the wall clock, for the operator app.
+
+Threads (started by :meth:`Runtime.start`, joined with timeouts by :meth:`Runtime.stop`, none at import or
+construction):
+
+- *frame* thread, at the camera rate (:class:`~app.control.clock.RateLoop`): reads the human source, runs
+  validation -> predictor -> supervisor decision, publishes a :class:`Snapshot` to the subscribers;
+- *servo* thread, at the robot rate: advances the supervisor (path time, speed governor, switches) and
+  commands the robot;
+- *planner* pool (per trial): the backup plans, at most ``ceil(D / F)`` in flight
+  (:class:`PoolPlanJobs`);
+- *notifier* thread: calls the trial and event listeners (e.g. the study database) off the control threads,
+  through a bounded queue.
+
+Without a running trial the robot holds where it is and the frames still flow (the viewers see the person).
+``robot.stop()`` runs in a ``finally`` of the servo thread and of :meth:`Runtime.stop`.
+
+Headless trials on the simulated clock: :func:`run_headless_trial` (re-exported from
+:mod:`app.control.headless`).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import logging
+import math
+import queue
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from app.config import Settings, WorkCell
+from app.control.clock import Clock, RateLoop, WallClock
+from app.control.engine import (
+    EngineOptions,
+    PlanningStack,
+    Snapshot,
+    TrialEngine,
+    TrialFrames,
+    TrialResult,
+    make_validated_source,
+)
+from app.control.headless import make_predictor, run_headless_trial
+from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
+from app.control.robot import RobotBackend, RobotConnectionError
+from app.control.supervisor import BackupComputer, BackupRequest, PlanOutcome, SupervisorConfig
+from app.control.validation import ValidatedSource
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "IngestUnavailable",
+    "PoolPlanJobs",
+    "Runtime",
+    "RuntimeNotReady",
+    "Snapshot",
+    "Subscription",
+    "TrialAlreadyRunning",
+    "TrialFrames",
+    "TrialResult",
+    "run_headless_trial",
+]
+
+TrialListener = Callable[[int, TrialMetrics, list[TrialEvent], str], None]
+EventListener = Callable[[int | None, TrialEvent], None]
+
+
+class TrialAlreadyRunning(RuntimeError):  # noqa: N818 (the contract's name)
+    """A trial was started while another one runs; stop it first (``stop_trial``)."""
+
+
+class RuntimeNotReady(RuntimeError):  # noqa: N818 (like the API's names)
+    """The runtime cannot start a trial now (not started, E-stop latched, robot lost); the message says
+    why."""
+
+
+class IngestUnavailable(RuntimeError):  # noqa: N818 (the API's name)
+    """Frames were pushed but the runtime does not read a stream (set ``HRC_HUMAN_SOURCE=stream``)."""
+
+
+# --------------------------------------------------------------------------------------------------------
+# Snapshot subscriptions
+# --------------------------------------------------------------------------------------------------------
+
+
+class Subscription:
+    """A bounded queue of snapshots for one viewer; when full, the oldest snapshot is dropped.
+
+    Args:
+        maxsize: Most snapshots kept.
+        on_close: Called once when the subscription closes.
+    """
+
+    def __init__(self, maxsize: int = 8, *, on_close: Callable[[Subscription], None] | None = None) -> None:
+        if maxsize < 1:
+            raise ValueError(f"maxsize must be >= 1, got {maxsize}")
+        self._items: deque[Snapshot] = deque(maxlen=maxsize)
+        self._cond = threading.Condition()
+        self._closed = False
+        self._on_close = on_close
+        self.dropped = 0
+
+    def put(self, snapshot: Snapshot) -> None:
+        with self._cond:
+            if self._closed:
+                return
+            if len(self._items) == self._items.maxlen:
+                self.dropped += 1
+            self._items.append(snapshot)
+            self._cond.notify()
+
+    def get(self, timeout: float | None = 1.0) -> Snapshot | None:
+        """The oldest waiting snapshot, waiting at most ``timeout`` s (None: 1 s); None on timeout/close."""
+        wait_s = 1.0 if timeout is None else max(float(timeout), 0.0)
+        with self._cond:
+            if not self._items and not self._closed:
+                self._cond.wait(wait_s)
+            if self._items:
+                return self._items.popleft()
+            return None
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        with self._cond:
+            if self._closed:
+                return
+            self._closed = True
+            self._items.clear()
+            self._cond.notify_all()
+        if self._on_close is not None:
+            self._on_close(self)
+
+
+# --------------------------------------------------------------------------------------------------------
+# Backup plans on a worker pool
+# --------------------------------------------------------------------------------------------------------
+
+
+class PoolPlanJobs:
+    """Live plan jobs: every frame's backup plan runs on a pool of ``ceil(D / F)`` workers (more requests
+    in flight are skipped); a result is taken at ``T_i + D`` and counts only if it was ready by then.
+
+    Args:
+        compute: The backup computer (the planner gets the deadline D).
+        max_jobs: Jobs in flight at most.
+        clock: For the in-flight bookkeeping.
+    """
+
+    def __init__(self, compute: BackupComputer, *, max_jobs: int, clock: Clock) -> None:
+        self.compute = compute
+        self.max_jobs = int(max_jobs)
+        self.clock = clock
+        self._pool = cf.ThreadPoolExecutor(max_workers=self.max_jobs, thread_name_prefix="hrc-planner")
+        self._jobs: dict[int, tuple[cf.Future[PlanOutcome], float]] = {}
+        self._lock = threading.Lock()
+        self.skipped = 0
+
+    def _in_flight(self) -> int:
+        return sum(1 for f, _ in self._jobs.values() if not f.done())
+
+    def submit(self, request: BackupRequest) -> None:
+        with self._lock:
+            if self._pool is None:
+                return
+            if self._in_flight() >= self.max_jobs:
+                self.skipped += 1
+                return
+            fut = self._pool.submit(self.compute, request)
+            self._jobs[request.key] = (fut, self.clock.now())
+            for k in sorted(self._jobs)[: max(len(self._jobs) - 4 * self.max_jobs, 0)]:
+                f, _ = self._jobs.pop(k)
+                f.cancel()
+
+    def take(self, key: int, request: BackupRequest | None = None) -> PlanOutcome:
+        with self._lock:
+            job = self._jobs.pop(key, None)
+        if job is None:
+            return PlanOutcome("skipped", reason=f"no backup job for frame {key} (no worker was free)")
+        fut, t_sub = job
+        if not fut.done():
+            fut.cancel()
+            elapsed = self.clock.now() - t_sub
+            return PlanOutcome("deadline_miss", compute_s=elapsed, reason="not ready at T_i + D")
+        return fut.result()
+
+    def peek(self, key: int) -> PlanOutcome | None:
+        with self._lock:
+            job = self._jobs.get(key)
+        if job is None or not job[0].done():
+            return None
+        return job[0].result()
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+            jobs = list(self._jobs.values())
+            self._jobs.clear()
+        for f, _ in jobs:
+            f.cancel()
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+
+
+# --------------------------------------------------------------------------------------------------------
+# The runtime
+# --------------------------------------------------------------------------------------------------------
+
+
+class _LockedSource:
+    """A human source shared by the frame thread (``frame_at``) and the servo thread (``notify``)."""
+
+    def __init__(self, source: Any) -> None:
+        self.source = source
+        self._lock = threading.Lock()
+
+    def frame_at(self, t: float) -> Any:
+        with self._lock:
+            return self.source.frame_at(t)
+
+    def notify_block_placed(self, station: str, t: float) -> None:
+        notify = getattr(self.source, "notify_block_placed", None)
+        if notify is not None:
+            with self._lock:
+                notify(station, t)
+
+
+@dataclass
+class _LoopStats:
+    decide_ms: deque[float]
+    frame_ms: deque[float]
+    servo_late_ms: deque[float]
+    servo_overruns: int = 0
+
+
+class Runtime:
+    """The live cell: see the module docstring.
+
+    Args:
+        settings: Application settings (robot and human source, D, F, workers).
+        cell: The work cell (default: ``settings.load_workcell()``).
+        robot: A robot backend (default: :func:`app.control.robot.make_robot` at :meth:`start`).
+        source: A human source (default by ``settings.human_source``: a simulated operator, re-seeded for
+            every trial; a replayed clip; or a :class:`~app.control.human.StreamSource` fed by
+            :meth:`ingest`).
+        predictor: The proactive method's predictor (default: the shipped one, loaded at :meth:`start`).
+        clock: The clock (default :class:`WallClock`).
+        servo_rate_hz: Robot command rate (Hz).
+        options: Engine options.
+        stack: The planning stack (default: built for the cell at :meth:`start`).
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        *,
+        cell: WorkCell | None = None,
+        robot: RobotBackend | None = None,
+        source: Any | None = None,
+        predictor: Any | None = None,
+        clock: Clock | None = None,
+        servo_rate_hz: float = 125.0,
+        options: EngineOptions | None = None,
+        stack: PlanningStack | None = None,
+    ) -> None:
+        if not servo_rate_hz > 0:
+            raise ValueError(f"servo_rate_hz must be > 0, got {servo_rate_hz}")
+        self.settings = settings
+        self.cell = cell if cell is not None else settings.load_workcell()
+        self.clock: Clock = clock if clock is not None else WallClock()
+        self.servo_rate_hz = float(servo_rate_hz)
+        self.options = options or EngineOptions(record_frames=False)
+        self._robot = robot
+        self._own_robot = robot is None
+        self._source_given = source
+        self._predictor = predictor
+        self._stack = stack
+        self._lock = threading.RLock()
+        self._engine: TrialEngine | None = None
+        self._trial_id: int | None = None
+        self._source: ValidatedSource | None = None
+        self._sim_source = False
+        self._stream: Any | None = None
+        self._threads: list[threading.Thread] = []
+        self._stop = threading.Event()
+        self._started = False
+        self._estopped = False
+        self._fault: str | None = None
+        self._subs: list[Subscription] = []
+        self._snapshot: Snapshot | None = None
+        self._trial_listeners: list[TrialListener] = []
+        self._event_listeners: list[EventListener] = []
+        self._notify_q: queue.Queue[Callable[[], None] | None] = queue.Queue(maxsize=10000)
+        self._tcp_cache: dict[int, np.ndarray] = {}
+        self._last_frame: Any | None = None
+        self.last_result: TrialResult | None = None
+        self.stats = _LoopStats(deque(maxlen=4096), deque(maxlen=4096), deque(maxlen=16384))
+
+    # -------------------------------------------------------------------------------------------- lifecycle
+    @property
+    def roadmap(self) -> Any | None:
+        """The planner's roadmap (after :meth:`start`), for the 3D view."""
+        return None if self._stack is None else self._stack.roadmap
+
+    @property
+    def robot(self) -> RobotBackend | None:
+        return self._robot
+
+    def start(self) -> None:
+        """Build what the cell needs (planning stack, robot, source, predictor) and start the threads."""
+        with self._lock:
+            if self._started:
+                return
+            if self._stack is None:
+                self._stack = PlanningStack.for_cell(self.cell)
+            if self._robot is None:
+                from app.control.robot import make_robot
+
+                self._robot = make_robot(self.settings, self.clock, q0=np.asarray(self.cell.robot.home_q))
+            self._open_source(seed=0)
+            if self._predictor is None:
+                self._predictor = make_predictor(
+                    "proactive", tracking_margin_m=self.options.tracking_margin_m
+                )
+            self._stop.clear()
+            self._started = True
+            for name, target in (
+                ("hrc-notifier", self._notify_loop),
+                ("hrc-servo", self._servo_loop),
+                ("hrc-frames", self._frame_loop),
+            ):
+                th = threading.Thread(target=target, name=name, daemon=True)
+                th.start()
+                self._threads.append(th)
+        log.info(
+            "runtime started (servo %.0f Hz, frames %.1f Hz)", self.servo_rate_hz, 1 / self._frame_period
+        )
+
+    def stop(self, *, timeout_s: float = 5.0) -> None:
+        """End a running trial (aborted), stop the threads (joined with a timeout) and stop the robot."""
+        with self._lock:
+            if not self._started:
+                return
+            engine = self._engine
+        try:
+            if engine is not None and engine.running:
+                engine.finish(self.clock.now(), "aborted", "shutdown")
+                self._end_trial()
+            self._stop.set()
+            try:
+                self._notify_q.put(None, timeout=timeout_s)
+            except queue.Full:
+                log.error("listener queue full at shutdown; pending notifications are dropped")
+            for th in self._threads:
+                th.join(timeout_s)
+                if th.is_alive():
+                    log.error("runtime thread %s did not stop within %.1f s", th.name, timeout_s)
+            self._threads.clear()
+        finally:
+            robot = self._robot
+            if robot is not None:
+                try:
+                    robot.stop()
+                except Exception:
+                    log.exception("robot.stop() failed while stopping the runtime")
+                if self._own_robot:
+                    try:
+                        robot.close()
+                    except Exception:
+                        log.exception("robot.close() failed")
+            for sub in list(self._subs):
+                sub.close()
+            with self._lock:
+                self._started = False
+        log.info("runtime stopped")
+
+    def __enter__(self) -> Runtime:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def _frame_period(self) -> float:
+        return float(self.settings.frame_period_s)
+
+    def _open_source(self, *, seed: int) -> None:
+        """(Re)build the human source behind validation. A simulated operator is re-seeded per trial."""
+        given = self._source_given
+        if given is not None:
+            if self._source is None:
+                self._stream = given if hasattr(given, "push") else None
+                self._source = make_validated_source(_LockedSource(given), self.cell)
+            return
+        kind = self.settings.human_source
+        if kind == "sim" or self._source is None:
+            from app.control.human import make_human_source
+
+            src = make_human_source(self.settings, self.cell, seed=seed, t0=self.clock.now())
+            self._sim_source = kind == "sim"
+            self._stream = src if kind == "stream" else None
+            self._source = make_validated_source(_LockedSource(src), self.cell)
+
+    # -------------------------------------------------------------------------------------------- trials
+    @property
+    def running_trial_id(self) -> int | None:
+        with self._lock:
+            return self._trial_id if self._engine is not None and self._engine.running else None
+
+    def start_trial(self, *, trial_id: int, method: Method, duration_s: float, seed: int) -> None:
+        """Start a trial now.
+
+        Raises:
+            TrialAlreadyRunning: another trial runs.
+            RuntimeNotReady: the runtime is not started, the E-stop is latched or the robot is lost.
+            ValueError: unknown method or a non-positive duration.
+        """
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        if not duration_s > 0:
+            raise ValueError(f"duration_s must be > 0, got {duration_s}")
+        with self._lock:
+            if not self._started:
+                raise RuntimeNotReady("the runtime is not started; call start() first")
+            if self._engine is not None and self._engine.running:
+                raise TrialAlreadyRunning(f"trial {self._trial_id} is running; stop it first")
+            if self._estopped:
+                raise RuntimeNotReady("the E-stop is latched; reset() first")
+            if self._fault is not None:
+                raise RuntimeNotReady(f"the robot is lost ({self._fault}); restart the runtime")
+            if self._sim_source:
+                self._open_source(seed=seed)
+            assert self._stack is not None and self._robot is not None and self._source is not None
+            clock = self.clock
+            self._engine = TrialEngine(
+                stack=self._stack,
+                settings=self.settings,
+                robot=self._robot,
+                source=self._source,
+                predictor=self._predictor if method == "proactive" else None,
+                jobs_factory=lambda computer, cfg: _pool_jobs(computer, cfg, clock),
+                method=method,
+                duration_s=duration_s,
+                seed=seed,
+                t0=clock.now(),
+                options=self.options,
+                on_event=lambda ev, tid=trial_id: self._post_event(tid, ev),
+            )
+            self._trial_id = trial_id
+        log.info("trial %d started (%s, %.0f s, seed %d)", trial_id, method, duration_s, seed)
+
+    def stop_trial(self, reason: str = "operator") -> None:
+        """End the running trial now (``aborted`` with ``reason``); no-op without one."""
+        with self._lock:
+            engine = self._engine
+            if engine is None or not engine.running:
+                return
+            engine.finish(self.clock.now(), "aborted", reason)
+        self._end_trial()
+
+    def _end_trial(self) -> None:
+        with self._lock:
+            engine, trial_id = self._engine, self._trial_id
+            if engine is None or engine.running or trial_id is None:
+                return
+            self._engine = None
+            self._trial_id = None
+        status, reason = engine.finished or ("aborted", "unknown")
+        metrics = engine.metrics()
+        events = list(engine.events)
+        self.last_result = TrialResult(metrics, events, engine.frames(), status, reason)
+        if reason == "robot_fault":
+            self._fault = "robot connection lost"
+        log.info("trial %d ended: %s (%s), %d tasks", trial_id, status, reason, metrics.completed_tasks)
+        for fn in list(self._trial_listeners):
+            self._post(lambda fn=fn: fn(trial_id, metrics, events, status))
+
+    def add_trial_listener(self, fn: TrialListener) -> None:
+        """``fn(trial_id, metrics, events, status)`` after every trial (status ``completed``/``aborted``),
+        called on the notifier thread."""
+        self._trial_listeners.append(fn)
+
+    def add_event_listener(self, fn: EventListener) -> None:
+        """``fn(trial_id, event)`` for every event of a trial, on the notifier thread."""
+        self._event_listeners.append(fn)
+
+    def _post_event(self, trial_id: int, ev: TrialEvent) -> None:
+        for fn in list(self._event_listeners):
+            self._post(lambda fn=fn: fn(trial_id, ev))
+
+    def _post(self, call: Callable[[], None]) -> None:
+        try:
+            self._notify_q.put(call, timeout=0.5)
+        except queue.Full:
+            log.error("listener queue full (%d); a notification was dropped", self._notify_q.maxsize)
+
+    def _notify_loop(self) -> None:
+        while True:
+            try:
+                call = self._notify_q.get(timeout=0.5)
+            except queue.Empty:
+                if self._stop.is_set():
+                    return
+                continue
+            if call is None:
+                return
+            try:
+                call()
+            except Exception:
+                log.exception("a trial/event listener raised")
+
+    # -------------------------------------------------------------------------------------------- safety
+    def estop(self, source: str = "api") -> None:
+        """E-stop: the robot stops now (protective stop), a running trial ends (aborted); :meth:`reset` to
+        go on."""
+        t = self.clock.now()
+        with self._lock:
+            self._estopped = True
+            engine = self._engine
+        robot = self._robot
+        if robot is not None:
+            try:
+                robot.protective_stop()
+            except Exception:
+                log.exception("protective stop failed; stopping the robot")
+                robot.stop()
+        if engine is not None and engine.running:
+            engine.estop(t, source=source)
+            engine.finish(t, "aborted", "estop")
+            self._end_trial()
+        log.warning("E-stop (%s)", source)
+
+    def reset(self) -> None:
+        """Clear the E-stop and the robot's protective stop.
+
+        Raises:
+            RuntimeError: the robot is lost (restart the runtime).
+        """
+        if self._fault is not None:
+            raise RuntimeError(f"the robot is lost ({self._fault}); restart the runtime")
+        robot = self._robot
+        if robot is not None:
+            robot.reset_protective_stop()
+        with self._lock:
+            self._estopped = False
+
+    # -------------------------------------------------------------------------------------------- frames in
+    def ingest(self, message: dict[str, Any] | str) -> None:
+        """Push one tracker message to the stream source.
+
+        Raises:
+            IngestUnavailable: the runtime reads no stream.
+            app.control.validation.FrameRejected: the frame is invalid (the reason says why).
+        """
+        stream = self._stream
+        if stream is None:
+            raise IngestUnavailable(
+                f"this runtime reads the {self.settings.human_source!r} source; set HRC_HUMAN_SOURCE=stream"
+            )
+        stream.push(message, self.clock.now())
+
+    # -------------------------------------------------------------------------------------------- loops
+    def _frame_loop(self) -> None:
+        loop = RateLoop(self.clock, 1.0 / self._frame_period)
+        while not self._stop.is_set():
+            t = self.clock.now()
+            c0 = time.perf_counter()
+            try:
+                self._frame_tick(t)
+            except Exception:
+                log.exception("frame tick failed; the trial is aborted")
+                with self._lock:
+                    engine = self._engine
+                if engine is not None and engine.running:
+                    engine.finish(t, "aborted", "runtime_error")
+                    self._end_trial()
+            self.stats.frame_ms.append((time.perf_counter() - c0) * 1e3)
+            loop.sleep()
+
+    def _frame_tick(self, t: float) -> None:
+        with self._lock:
+            engine = self._engine
+            source = self._source
+        if engine is not None:
+            decision = engine.frame_tick(t)
+            if decision is not None:
+                self.stats.decide_ms.append(decision.decide_s * 1e3)
+                self._last_frame = engine.last_frame
+            if not engine.running:
+                self._end_trial()
+        elif source is not None:
+            frame = source.poll(t)
+            if frame is not None:
+                self._last_frame = frame
+        self._publish(self._build_snapshot(t))
+
+    def _servo_loop(self) -> None:
+        loop = RateLoop(self.clock, self.servo_rate_hz)
+        try:
+            while not self._stop.is_set():
+                with self._lock:
+                    engine = self._engine
+                if engine is not None and engine.running:
+                    try:
+                        engine.servo_tick(self.clock.now())
+                    except RobotConnectionError as exc:
+                        engine.finish(self.clock.now(), "aborted", "robot_fault")
+                        self._fault = str(exc)
+                    except Exception:
+                        log.exception("servo tick failed; the trial is aborted and the robot stopped")
+                        engine.finish(self.clock.now(), "aborted", "runtime_error")
+                        if self._robot is not None:
+                            self._robot.stop()
+                deadline = loop.next_deadline
+                if not loop.sleep():
+                    self.stats.servo_overruns += 1
+                self.stats.servo_late_ms.append(max(self.clock.now() - deadline, 0.0) * 1e3)
+        finally:
+            if self._robot is not None:
+                try:
+                    self._robot.stop()
+                except Exception:
+                    log.exception("robot.stop() failed at the end of the servo thread")
+
+    # -------------------------------------------------------------------------------------------- snapshots
+    def subscribe(self, maxsize: int = 8) -> Subscription:
+        """A bounded queue of snapshots (oldest dropped when full); close it when done."""
+        sub = Subscription(maxsize, on_close=self._unsubscribe)
+        with self._lock:
+            self._subs.append(sub)
+        return sub
+
+    def _unsubscribe(self, sub: Subscription) -> None:
+        with self._lock:
+            if sub in self._subs:
+                self._subs.remove(sub)
+
+    def _publish(self, snap: Snapshot) -> None:
+        self._snapshot = snap
+        with self._lock:
+            subs = list(self._subs)
+        for sub in subs:
+            sub.put(snap)
+
+    def snapshot(self) -> Snapshot:
+        """The newest snapshot (built now when none was published yet)."""
+        snap = self._snapshot
+        return snap if snap is not None else self._build_snapshot(self.clock.now())
+
+    def _tcp_path(self, traj: Any) -> np.ndarray | None:
+        if traj is None or self._stack is None:
+            return None
+        key = id(traj)
+        got = self._tcp_cache.get(key)
+        if got is None:
+            ts = np.linspace(
+                traj.t_start, traj.t_end, max(2, min(60, int((traj.t_end - traj.t_start) * 20) + 2))
+            )
+            q = np.asarray(traj.q(ts)).reshape(-1, 6)
+            got = self._stack.kin.fk_tcp(q)[:, :3, 3]
+            if len(self._tcp_cache) > 8:
+                self._tcp_cache.clear()
+            self._tcp_cache[key] = got
+        return got
+
+    def _build_snapshot(self, t: float) -> Snapshot:
+        with self._lock:
+            engine = self._engine
+            trial_id = self._trial_id
+        robot = self._robot
+        q = np.asarray(self.cell.robot.home_q, dtype=np.float64)
+        if robot is not None:
+            with contextlib.suppress(Exception):
+                q = np.asarray(robot.state().q, dtype=np.float64)
+        p_tcp = self._stack.kin.fk_tcp(q[None])[0, :3, 3] if self._stack is not None else np.zeros(3)
+        frame = self._last_frame
+        stale = self._source.is_stale(t) if self._source is not None else True
+        base = dict(
+            t=t,
+            q=q,
+            p_world_tcp=p_tcp,
+            skeleton=None if frame is None else frame.joints,
+            stale=stale,
+            estopped=self._estopped,
+        )
+        if engine is None:
+            state = "fault" if self._fault else ("estop" if self._estopped else "idle")
+            return Snapshot(
+                trial_id=None,
+                state=state,
+                method=None,
+                speed_scale=0.0,
+                separation_m=None,
+                required_separation_m=None,
+                planning_ms=(),
+                counters={},
+                **base,
+            )
+        st = engine.supervisor.status()
+        fc = engine.last_forecast
+        times = engine.supervisor.counters.planning_times_s[-20:]
+        return Snapshot(
+            trial_id=trial_id,
+            state="estop" if self._estopped else st.state,
+            method=engine.method,
+            speed_scale=st.scale,
+            separation_m=st.separation_m if math.isfinite(st.separation_m) else None,
+            required_separation_m=st.required_separation_m,
+            planning_ms=tuple(1e3 * x for x in times),
+            counters=engine.counters(),
+            forecast=None if fc is None else fc.joints,
+            plan_tcp=self._tcp_path(st.plan),
+            backup_tcp=self._tcp_path(st.backup),
+            trial_elapsed_s=engine.elapsed(t),
+            trial_duration_s=engine.duration_s,
+            **base,
+        )
+
+
+def _pool_jobs(computer: BackupComputer, cfg: SupervisorConfig, clock: Clock) -> PoolPlanJobs:
+    return PoolPlanJobs(computer, max_jobs=cfg.max_jobs, clock=clock)
