@@ -312,7 +312,7 @@ class RoadmapConfig:
         yaw: Tool yaw about world z (rad) for every node.
     """
 
-    num_nodes: int = 1500
+    num_nodes: int = 1000
     x_range_m: tuple[float, float] | None = None
     y_range_m: tuple[float, float] | None = None
     z_range_m: tuple[float, float] = (0.05, 0.65)

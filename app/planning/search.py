@@ -2,14 +2,18 @@
 
 Paper, section II-A, and where this goes further:
 
-- **State.** Per roadmap node ``v`` the search keeps the arrival time ``AT(v)`` and the configuration
-  ``Cfg(v)`` (one IK branch), in arrays the search owns; states are immutable records (node, time,
-  configuration, path speed, parent record, departure time), so a plan is always rebuilt from exactly the
-  configurations and times that were checked. The roadmap is never written to.
+- **State.** Per roadmap node ``v`` the search keeps the arrival time ``AT(v)``; every state is an immutable
+  record of the search (node, IK branch, time, path speed, parent, departure, and its configuration
+  ``Cfg(v)`` once checked), so a plan is rebuilt from exactly the configurations and times that were checked.
+  The roadmap is never written to.
 - **Expansion u -> v.** The IK branches of ``v`` (each shifted by multiples of 2 pi next to ``Cfg(u)``) are
-  ordered by the time a straight joint move needs; the first one that passes is taken (at most
-  ``max_branch_tries``). A move between the same branch at both ends uses the roadmap's static edge check;
-  any other move (another branch, the start connection) is checked against the static scene on the fly.
+  ordered by the time a straight joint move needs (precomputed per edge and branch); the nearest is tried
+  first, the others (at most ``max_branch_tries``) when it fails. A move between the same branch at both ends
+  uses the roadmap's static edge check; any other move (another branch, the start connection) is checked
+  against the static scene on the fly (memoised).
+- **Lazy checking.** Successors are generated in plain Python, timed and pushed *unchecked*; a move is
+  checked only when its state is popped (its key ``t + h`` is a lower bound of any checked path through it,
+  so the order is still A*'s). This checks a few moves per expansion instead of all of them.
 - **Edge timing.** The paper lets every edge last as long as the slowest joint needs at its velocity limit.
   With the UR5e's acceleration limits that is too optimistic near starts and stops, and a trajectory fitted to
   it would run late: the forecast person would then be checked at the wrong time. Here the path speed (the
@@ -24,14 +28,23 @@ Paper, section II-A, and where this goes further:
   deviation from the straight moves). The forecast takes
   the place of ISO/TS 15066's worst-case ``S_h = v_h (T_r + T_s)`` over the planning horizon; the supervisor
   applies the full ``S_p`` to the current pose on top (speed scaling), so both views hold at run time.
-- **Waiting (safe-interval style).** When every branch of a move is blocked, the search may wait at ``u``
-  in steps of ``wait_step_s`` up to ``max_wait_s`` (if standing still there is itself safe) and try again.
-  Without a person the search is plain A*.
-- **Parallel.** ``workers = N`` pops up to N states per step and evaluates all their successors, branches,
-  waits and time samples in one vectorised distance call (the batched equivalent of the paper's N threads
-  taking nodes from the open list in turn; in CPython threads would serialise on the interpreter lock).
-  States are immutable records and ``AT`` is updated only when an arrival improves it, so the validity
-  guarantees are the same as sequentially; a node may be re-expanded when a later batch improves it.
+- **Slower, then waiting (safe-interval style).** When the branches are blocked at the cruise speed, the
+  nearest one is tried at ``slow_speed_fractions`` (less ``S_r + S_s``), and after waiting at ``u`` in steps
+  of ``wait_step_s`` up to ``max_wait_s`` (if standing still there is itself safe). Without a person the
+  search is plain A*.
+- **Pruning.** When the person blocks every goal branch for good after some time (their last pose held, the
+  margin at its cap), states that cannot arrive before it (by the admissible heuristic) are not pushed; a
+  goal blocked from the start fails at once. Plans longer than ``max_plan_s`` are not searched for.
+- **Parallel.** ``workers = N`` pops up to N states per step and checks all their moves, time samples and
+  waits in one vectorised call (the batched equivalent of the paper's N threads taking nodes from the open
+  list in turn; in CPython threads would serialise on the interpreter lock). ``AT`` is updated only when a
+  checked arrival improves it and a goal state is accepted only when nothing popped before it is pending, so
+  the validity guarantees and the result are those of the sequential search (up to ties); a node may be
+  expanded again when a later batch improves it.
+- **Broad phase.** Whole moves far from the person over their time window, then single samples far from
+  every body part, are passed without forward kinematics (bounding spheres of the robot capsules grown by
+  how far the joints can carry them, against boxes around the body parts); only close capsule pairs get the
+  exact capsule distance.
 - **Trajectory check.** The waypoints become a C1 spline (:class:`app.planning.trajectory.Trajectory`),
   possibly retimed to the acceleration limits; it is verified against the forecast at ``verify_dt_s``
   with :meth:`Planner.first_violation` (and against the static scene). If it fails, the search is repeated
@@ -243,7 +256,7 @@ def _profile_fraction(
         )
         a_forced = ue / np.maximum(de, 1e-12)
         pos[idx] = np.where(can, p_rest, ue * se - 0.5 * a_forced * se * se)
-    return np.clip(np.where(L > 1e-12, pos / np.maximum(L, 1e-12), 1.0), 0.0, 1.0)
+    return np.minimum(np.maximum(np.where(L > 1e-12, pos / np.maximum(L, 1e-12), 1.0), 0.0), 1.0)
 
 
 def _person_parts(model: RobotModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -335,13 +348,17 @@ class _Separation:
             self._hi_tab.append(np.maximum(phi[:-half], phi[half:]))
             k += 1
         self._times = forecast.times
+        self._cap = max(forecast.max_margin_m, float(forecast.margins.max()))
+        # boxes around two consecutive samples (a sample's own box when there is only one)
+        self._lo_pair = self._lo_tab[1] if len(self._lo_tab) > 1 else lo
+        self._hi_pair = self._hi_tab[1] if len(self._hi_tab) > 1 else hi
 
     def _boxes(self, t0: np.ndarray, t1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Part boxes (n, P, 3) x 2 that contain the person over each window [t0, t1] (t0 <= t1)."""
         times = self._times
         H = times.shape[0]
-        i0 = np.clip(np.searchsorted(times, t0, side="right") - 1, 0, H - 1)
-        i1 = np.clip(np.searchsorted(times, t1, side="left"), 0, H - 1)
+        i0 = np.minimum(np.maximum(np.searchsorted(times, t0, side="right") - 1, 0), H - 1)
+        i1 = np.minimum(np.searchsorted(times, t1, side="left"), H - 1)
         i1 = np.maximum(i1, i0)
         span = i1 - i0 + 1
         k = np.floor(np.log2(span)).astype(np.int64)
@@ -354,9 +371,17 @@ class _Separation:
             hi[sel] = np.maximum(self._hi_tab[kk][a], self._hi_tab[kk][b])
         return lo, hi
 
+    def _margins(self, t: np.ndarray) -> np.ndarray:
+        """The forecast's margins at times ``t`` (as :meth:`HumanForecast.poses_at`, without the poses)."""
+        fc = self.forecast
+        assert fc is not None
+        m = np.interp(t, fc.times, fc.margins)
+        if fc.growth_mps > 0.0:
+            m = np.minimum(m + fc.growth_mps * np.maximum(t - fc.times[-1], 0.0), self._cap)
+        return m
+
     def _required(self, v: np.ndarray, t: np.ndarray) -> np.ndarray:
-        _, margins = self.forecast.poses_at(t) if self.forecast is not None else (None, np.zeros(t.shape))
-        req = forecast_clearance(v, margins, self.ssm) + self.extra_m
+        req = forecast_clearance(v, self._margins(t), self.ssm) + self.extra_m
         return req if self.floor_m is None else np.minimum(req, self.floor_m)
 
     def near_moves(
@@ -408,7 +433,10 @@ class _Separation:
         self.samples += n
         hr = self._human_r
         if cen is not None and rad is not None:
-            lo, hi = self._boxes(t, t)
+            i = np.searchsorted(self._times, t, side="right") - 1
+            np.maximum(i, 0, out=i)
+            np.minimum(i, self._lo_pair.shape[0] - 1, out=i)
+            lo, hi = self._lo_pair[i], self._hi_pair[i]
             c = cen[:, :, None, :]  # (n, L, 1, 3)
             g = np.maximum(np.maximum(lo[:, None] - c, c - hi[:, None]), 0.0)  # (n, L, P, 3)
             gap = np.sqrt(np.einsum("nlpk,nlpk->nlp", g, g)) - rad[:, :, None]

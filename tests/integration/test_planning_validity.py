@@ -1,0 +1,139 @@
+"""Every trajectory the planner returns, sampled at 100 Hz, is within the joint limits, clear of the static
+scene and keeps the required separation from the forecast it was planned against.
+
+The check below is independent of the planner's code path: it evaluates the trajectory itself, takes the robot
+speed from numerical derivatives of the capsule points, the distances from the collision model's exact
+capsule distance, and the requirement from :func:`app.planning.safety.forecast_clearance`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.config import load_workcell
+from app.planning.collision import CollisionModel
+from app.planning.kinematics import Q_MAX, Q_MIN
+from app.planning.roadmap import RoadmapConfig, load_or_build_roadmap
+from app.planning.safety import SSMParams, forecast_clearance
+from app.planning.scenarios import reference_queries, synthetic_forecast
+from app.planning.search import Planner
+from app.planning.trajectory import Trajectory
+from app.prediction.forecast import HumanForecast
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory: pytest.TempPathFactory) -> tuple:
+    cell = load_workcell()
+    model = CollisionModel(cell)
+    rm = load_or_build_roadmap(
+        cell, config=RoadmapConfig(num_nodes=300), cache_dir=tmp_path_factory.mktemp("rm"), collision=model
+    )
+    return cell, model, rm, Planner(rm, model)
+
+
+def violations(
+    traj: Trajectory, forecast: HumanForecast | None, model: CollisionModel, ssm: SSMParams, *, hold_s: float
+) -> list[str]:
+    t = np.arange(traj.t_start, traj.t_end + hold_s + 1e-9, 0.01)
+    q = traj.q(t)
+    out = []
+    if np.any(q < Q_MIN - 1e-9) or np.any(q > Q_MAX + 1e-9):
+        out.append("joint limits")
+    moving = (t >= traj.t_start) & (t <= traj.t_end)
+    if np.any(model.static_clearance(q[moving]) < 0.0) or np.any(model.self_collision(q[moving])):
+        out.append("static scene or self-collision")
+    if forecast is not None:
+        eps = 1e-5
+        a0, b0, _ = model.robot_capsules(traj.q(t - eps))
+        a1, b1, _ = model.robot_capsules(traj.q(t + eps))
+        v = np.maximum(np.linalg.norm(a1 - a0, axis=-1), np.linalg.norm(b1 - b0, axis=-1)).max(axis=1) / (
+            2 * eps
+        )
+        joints, margins = forecast.poses_at(t)
+        d = model.distance_to_human_paired(q, joints)
+        need = forecast_clearance(v, margins, ssm)
+        bad = np.flatnonzero(d < need - 1e-9)
+        if bad.size:
+            k = bad[0]
+            out.append(f"separation at t={t[k] - traj.t_start:.2f}: {d[k]:.3f} < {need[k]:.3f}")
+    return out
+
+
+def test_planned_trajectories_are_valid_at_100_hz(setup: tuple) -> None:
+    cell, model, rm, planner = setup
+    ssm, hold = planner.config.ssm, planner.config.goal_hold_s
+    queries = reference_queries(cell, rm, n=8, seed=3)
+    ok = 0
+    for qr in queries:
+        static = planner.plan(q_start=qr.q_start, t_start=qr.t_start, goal=qr.goal, forecast=None)
+        assert static.ok, (qr.name, static.reason)
+        assert not violations(static.trajectory, None, model, ssm, hold_s=0.0)
+        for workers in (1, 8):
+            res = planner.plan(
+                q_start=qr.q_start, t_start=qr.t_start, goal=qr.goal, forecast=qr.forecast, workers=workers
+            )
+            if not res.ok:
+                assert res.plan is None and res.trajectory is None and res.reason
+                continue
+            ok += 1
+            assert res.trajectory.t_start == pytest.approx(qr.t_start)
+            np.testing.assert_allclose(res.trajectory.q(qr.t_start), qr.q_start, atol=1e-9)
+            # the plan rebuilds exactly the verified trajectory
+            again = Trajectory.from_plan(res.plan)
+            ts = res.trajectory.sample(0.05)
+            np.testing.assert_allclose(again.q(ts), res.trajectory.q(ts))
+            assert not violations(res.trajectory, qr.forecast, model, ssm, hold_s=hold), qr.name
+    assert ok >= 8  # most of the reference queries are feasible (16 searches)
+
+
+def test_replanning_from_a_moving_robot_is_continuous_and_valid(setup: tuple) -> None:
+    cell, model, rm, planner = setup
+    ssm, hold = planner.config.ssm, planner.config.goal_hold_s
+    first = planner.plan(
+        q_start=rm.ik[rm.station_nodes["home"]][rm.valid[rm.station_nodes["home"]]][0],
+        t_start=0.0,
+        goal="A_approach",
+        forecast=None,
+    )
+    assert first.ok
+    traj = first.trajectory
+    t_switch = traj.t_start + 0.4 * traj.duration
+    q0, qd0 = traj.q(t_switch), traj.qd(t_switch)
+    assert np.linalg.norm(qd0) > 0.05  # really moving
+    fc = synthetic_forecast(cell, seed=11, t0=t_switch - 0.1, reach=False)
+    res = planner.plan(q_start=q0, t_start=t_switch, goal="D_approach", forecast=fc, qd0=qd0, workers=8)
+    assert res.ok, res.reason
+    np.testing.assert_allclose(res.trajectory.q(t_switch), q0, atol=1e-9)
+    np.testing.assert_allclose(res.trajectory.qd(t_switch), qd0, atol=1e-9)
+    assert not violations(res.trajectory, fc, model, ssm, hold_s=hold)
+
+
+def test_emergency_plans_are_valid_against_the_held_person(setup: tuple) -> None:
+    cell, model, rm, planner = setup
+    ssm = planner.config.ssm
+    horizon = 1 / 30 + 0.1
+    for qr in reference_queries(cell, rm, n=10, seed=5):
+        res = planner.emergency(
+            q_start=qr.q_start, t_start=qr.t_start, forecast=qr.forecast, horizon_s=horizon
+        )
+        joints, margin = qr.forecast.pose_at(qr.t_start)
+        held = HumanForecast(
+            t0=qr.t_start,
+            times=np.array([qr.t_start]),
+            joints=joints[None],
+            margins=np.array([margin]),
+            growth_mps=qr.forecast.growth_mps,
+            max_margin_m=qr.forecast.max_margin_m,
+        )
+        d0 = float(model.distance_to_human_paired(qr.q_start[None], joints[None])[0])
+        if not res.ok:
+            assert res.plan is None
+            continue
+        assert res.trajectory.t_end >= qr.t_start
+        if d0 >= forecast_clearance(0.0, margin, ssm):
+            assert not violations(res.trajectory, held, model, ssm, hold_s=horizon), qr.name
+        else:  # escaping: never closer to the person than at the start
+            t = np.arange(res.trajectory.t_start, res.trajectory.t_end + 1e-9, 0.01)
+            d = model.distance_to_human_paired(res.trajectory.q(t), np.repeat(joints[None], t.size, axis=0))
+            assert np.all(d >= d0 - 1e-3)
