@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
@@ -32,6 +33,22 @@ def _database_ok(repo: object) -> bool:
     return True
 
 
+#: A runtime whose newest snapshot is older than this (s) has a stuck or dead frame loop.
+STALE_SNAPSHOT_S = 2.0
+
+
+def _runtime_alive(runtime: Any) -> bool:
+    """The runtime's loops run: its newest snapshot is recent (frames are published at the camera rate)."""
+    clock = getattr(runtime, "clock", None)
+    if clock is None:
+        return True
+    try:
+        return clock.now() - float(runtime.snapshot().t) < STALE_SNAPSHOT_S
+    except Exception:
+        logger.exception("health: the runtime's snapshot cannot be read")
+        return False
+
+
 @router.get(
     "/health",
     response_model=HealthRead,
@@ -46,7 +63,7 @@ def health(request: Request) -> HealthRead | JSONResponse:
         body = HealthRead(status="degraded", version=app_version(), runtime="stopped", database="error")
         return JSONResponse(body.model_dump(), status_code=503)
     db_ok = _database_ok(ctx.repo)
-    running = bool(getattr(ctx.runtime, "is_running", True))
+    running = _runtime_alive(ctx.runtime)
     body = HealthRead(
         status="ok" if db_ok and running else "degraded",
         version=app_version(),

@@ -96,7 +96,6 @@ class FakeRuntime:
     def __init__(self) -> None:
         self.started = 0
         self.stopped = 0
-        self.is_running = False
         self.running_trial_id: int | None = None
         self.trial_args: dict[str, Any] = {}
         self.estopped = False
@@ -110,13 +109,11 @@ class FakeRuntime:
 
     def start(self) -> None:
         self.started += 1
-        self.is_running = True
 
     def stop(self) -> None:
         self.stopped += 1
         if self.running_trial_id is not None:
             self.finish_trial("aborted")
-        self.is_running = False
 
     def add_trial_listener(self, fn: Callable[..., None]) -> None:
         self.trial_listeners.append(fn)

@@ -329,3 +329,16 @@ def test_exports(client: TestClient, auth: dict[str, str], runtime: Any) -> None
 def test_unknown_api_path_is_json_404(client: TestClient, auth: dict[str, str]) -> None:
     r = client.get("/api/nothing-here", headers=auth)
     assert r.status_code == 404 and r.json()["detail"]
+
+
+def test_health_is_503_when_the_runtime_stops_publishing(client: TestClient, runtime: Any) -> None:
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    now = [100.0]
+    runtime.clock = SimpleNamespace(now=lambda: now[0])
+    runtime.publish(replace(runtime.snapshot(), t=99.5))
+    assert client.get("/api/health").json()["runtime"] == "running"
+    now[0] = 110.0  # the frame loop has published nothing for 10.5 s
+    r = client.get("/api/health")
+    assert r.status_code == 503 and r.json() == {**r.json(), "status": "degraded", "runtime": "stopped"}
