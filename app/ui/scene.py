@@ -66,6 +66,8 @@ PERSON_JOINT_RADIUS_M = 0.042
 PERSON_HEAD_RADIUS_M = 0.1
 GHOST_BONE_RADIUS_M = 0.018
 _MAX_COALESCE = 16
+#: Highest refresh rate of the texts (state label, status panel) between state changes.
+TEXT_RATE_HZ = 4.0
 
 
 class Subscription(Protocol):
@@ -168,6 +170,8 @@ class CellView:
         self._show = {"roadmap": False, "ghosts": True, "plans": True, "separation": True}
         self._has = {"ghosts": False, "plan": False, "backup": False, "separation": False}
         self.applied = 0
+        self._last_text = ""
+        self._last_text_t = -np.inf
 
         q0 = np.asarray(cell.robot.home_q, dtype=np.float64)[None]
         a, _b, r = robot_capsules(q0)
@@ -565,11 +569,16 @@ class CellView:
                 self._has["separation"] = False
                 sphere.visible = False
 
-            speed = getattr(snap, "speed_scale", None)
-            label = text if speed is None else f"{text} · speed {100.0 * float(speed):.0f}%"
-            h["state_label"].text = label
-            if "gui_status" in h:
-                h["gui_status"].content = _status_markdown(snap, text, separation, required)
+            # Text re-renders the client's GUI: refresh it when the state changes, else at most TEXT_RATE_HZ
+            # (on the snapshots' own clock, so that replays and tests behave the same).
+            t = float(getattr(snap, "t", 0.0))
+            if text != self._last_text or not (0.0 <= t - self._last_text_t < 1.0 / TEXT_RATE_HZ):
+                self._last_text, self._last_text_t = text, t
+                speed = getattr(snap, "speed_scale", None)
+                label = text if speed is None else f"{text} · speed {100.0 * float(speed):.0f}%"
+                h["state_label"].text = label
+                if "gui_status" in h:
+                    h["gui_status"].content = _status_markdown(snap, text, separation, required)
         self.applied += 1
 
 

@@ -336,3 +336,70 @@ def test_cell_scene_default_robot_model_is_the_collision_model(cell: Any) -> Non
         assert links.batched_positions.shape == (a.shape[1], 3)
         assert np.allclose(links.batched_positions, ((a + b) / 2)[0], atol=1e-4)
         assert np.allclose(links.batched_scales[:, 0], r, atol=1e-6)
+
+
+def test_texts_refresh_on_state_change_and_at_most_a_few_times_a_second(server: Any, cell: Any) -> None:
+    view = CellView(server, cell, robot_capsules=fake_capsules)
+    label = view.handles["state_label"]
+    view.apply(FakeSnapshot(t=10.0, speed_scale=1.0))
+    assert label.text == "NOMINAL · speed 100%"
+    view.apply(FakeSnapshot(t=10.1, speed_scale=0.5))  # same state, 0.1 s later: text kept
+    assert label.text == "NOMINAL · speed 100%"
+    view.apply(FakeSnapshot(t=10.2, state="collision_avoidance", speed_scale=0.4))  # new state: at once
+    assert label.text == "COLLISION AVOIDANCE · speed 40%"
+    view.apply(FakeSnapshot(t=10.5, state="collision_avoidance", speed_scale=0.3))  # 0.3 s later: refreshed
+    assert label.text == "COLLISION AVOIDANCE · speed 30%"
+    assert "**State:** COLLISION AVOIDANCE" in view.handles["gui_status"].content
+
+
+def test_the_runtimes_own_snapshot_and_subscription_drive_the_scene(cell: Any) -> None:
+    """Contract check against SUP's real ``Snapshot`` and ``Subscription`` (not the doubles above)."""
+    from app.control.engine import Snapshot
+    from app.control.runtime import Subscription
+
+    def snap(t: float, x: float, **kw: Any) -> Snapshot:
+        sk = skeleton(seed=int(t * 10))
+        return Snapshot(
+            t=t,
+            trial_id=3,
+            state="nominal",
+            method="proactive",
+            speed_scale=0.8,
+            separation_m=0.9,
+            required_separation_m=0.35,
+            planning_ms=(12.0, 15.0),
+            counters={"plans_computed": 2},
+            q=np.full(6, x),
+            p_world_tcp=np.array([0.4, 0.0, 0.3]),
+            skeleton=sk,
+            forecast=np.stack([sk] * 5),
+            plan_tcp=np.linspace([0.4, 0.0, 0.3], [0.6, 0.2, 0.1], 8),
+            trial_elapsed_s=t,
+            trial_duration_s=60.0,
+            **kw,
+        )
+
+    class Runtime:
+        def __init__(self) -> None:
+            self.sub: Subscription | None = None
+
+        def snapshot(self) -> Snapshot:
+            return snap(0.0, 0.0)
+
+        def subscribe(self, maxsize: int = 8) -> Subscription:
+            self.sub = Subscription(maxsize)
+            return self.sub
+
+    rt = Runtime()
+    with CellScene(rt, cell, port=0, robot_capsules=fake_capsules) as scene:
+        assert rt.sub is not None
+        for k in range(1, 20):  # more than the queue holds: the oldest are dropped, never blocking
+            rt.sub.put(snap(k / 30, 0.01 * k))
+        wait_for(
+            lambda: np.allclose(scene.view.handles["robot_links"].batched_positions[:, 0], 0.19, atol=1e-5),
+            "the newest real snapshot to be drawn",
+        )
+        assert scene.view.handles["plan"].visible and scene.view.handles["forecast_ghosts"].visible
+        rt.sub.put(snap(1.0, 0.2, estopped=True))
+        wait_for(lambda: scene.view.handles["state_label"].text.startswith("E-STOP"), "the E-stop to show")
+    assert rt.sub.closed
