@@ -36,17 +36,23 @@ COPY app ./app
 RUN pip install --no-deps -e . \
     && python -c "import app.api.app, app.study.db; assert app.study.db.MIGRATIONS_DIR.joinpath('env.py').is_file()"
 
-RUN groupadd --system --gid 10001 hrc \
-    && useradd --system --uid 10001 --gid hrc --home-dir /data --shell /usr/sbin/nologin hrc \
-    && mkdir -p /data \
-    && chown hrc:hrc /data
-
-ENV HRC_HOST=0.0.0.0 \
+ENV HOME=/data \
+    HRC_DATA_DIR=/data \
+    HRC_CACHE_DIR=/data/cache \
+    MPLCONFIGDIR=/data/.matplotlib \
+    HRC_HOST=0.0.0.0 \
     HRC_PORT=8000 \
     HRC_VISER_PORT=8080 \
-    HRC_DATA_DIR=/data \
     HRC_ROBOT=sim \
     HRC_HUMAN_SOURCE=sim
+
+# The roadmap of the shipped cell is built now, into the volume's initial content (a new volume gets a copy),
+# so that the first start does not build it; it stays writable for another cell.
+RUN groupadd --system --gid 10001 hrc \
+    && useradd --system --uid 10001 --gid hrc --home-dir /data --shell /usr/sbin/nologin hrc \
+    && mkdir -p /data/cache \
+    && python -c "from app.config import load_workcell; from app.control.engine import PlanningStack; PlanningStack.for_cell(load_workcell())" \
+    && chown -R hrc:hrc /data
 
 VOLUME ["/data"]
 USER hrc
