@@ -183,9 +183,14 @@ class CellView:
 
         scene = server.scene
         scene.set_up_direction("+z")
-        # The default fog and full-strength environment light wash out a table-sized scene seen from ~3 m.
+        # No fog (it washes out a table-sized scene seen from ~3 m) and a hemisphere light instead of the
+        # image-based environment map: similar look, and the scene shows at once in software WebGL (no
+        # environment pre-filtering on the client).
         scene.configure_fog(near=8.0, far=30.0, enabled=False)
-        scene.configure_environment_map("warehouse", environment_intensity=0.45)
+        scene.configure_environment_map(None)
+        scene.add_light_hemisphere(
+            "/lights/hemisphere", sky_color=(255, 255, 255), ground_color=(140, 130, 120), intensity=1.2
+        )
         self._build_static(scene)
         self._build_dynamic(scene, roadmap_nodes)
         if gui:
