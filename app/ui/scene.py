@@ -615,7 +615,8 @@ class CellScene:
         port: TCP port of the viser server (0 picks a free one; viser moves to the next free port when
             the port is taken: read :attr:`port` after :meth:`start`).
         host: Interface to bind (default loopback).
-        roadmap: A planner ``Roadmap`` (its ``nodes (N, 3)`` are drawn, toggled in the GUI), or None.
+        roadmap: A planner ``Roadmap`` (its ``nodes (N, 3)`` are drawn, toggled in the GUI); default: the
+            runtime's ``roadmap`` attribute when it has one.
         rate_hz: Highest update rate of the view (snapshots in between are skipped).
         robot_capsules: Override of the robot's capsule model (default: ``CollisionModel(cell)``).
         ghosts: Number of forecast ghost skeletons.
@@ -669,7 +670,9 @@ class CellScene:
             from app.planning.collision import CollisionModel
 
             capsules = CollisionModel(self._cell).robot_capsules
-        nodes = None if self._roadmap is None else np.asarray(self._roadmap.nodes)
+        # Default: the runtime's own roadmap (``Runtime.roadmap``, available once the runtime has started).
+        roadmap = self._roadmap if self._roadmap is not None else getattr(self._runtime, "roadmap", None)
+        nodes = None if roadmap is None else np.asarray(roadmap.nodes)
         server = viser.ViserServer(host=self._host, port=self._requested_port, verbose=False)
         try:
             server.initial_camera.position = (2.3, -2.0, 1.6)

@@ -403,3 +403,17 @@ def test_the_runtimes_own_snapshot_and_subscription_drive_the_scene(cell: Any) -
         rt.sub.put(snap(1.0, 0.2, estopped=True))
         wait_for(lambda: scene.view.handles["state_label"].text.startswith("E-STOP"), "the E-stop to show")
     assert rt.sub.closed
+
+
+def test_roadmap_nodes_default_to_the_runtimes_roadmap(cell: Any) -> None:
+    class Roadmap:
+        nodes = np.random.default_rng(2).uniform(-0.5, 0.5, (30, 3))
+
+    rt = FakeRuntime()
+    rt.roadmap = Roadmap()  # type: ignore[attr-defined]
+    with CellScene(rt, cell, port=0, robot_capsules=fake_capsules) as scene:
+        points = scene.view.handles["roadmap"]
+        assert points.points.shape == (30, 3)
+        assert not points.visible  # toggled on from the GUI
+        scene.view.handles["gui_toggle_roadmap"].value = True
+        wait_for(lambda: points.visible, "the roadmap toggle to show the nodes")
