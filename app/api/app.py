@@ -89,9 +89,28 @@ def _open_repository(settings: Settings) -> tuple[Any, Any]:
 
 
 def _make_runtime(settings: Settings) -> Any:
+    from app.control.engine import EngineOptions
     from app.control.runtime import Runtime
 
-    return Runtime(settings)
+    return Runtime(settings, options=EngineOptions(record_frames=True))  # frames are stored for replay
+
+
+def _frames_getter(runtime: Any) -> Callable[[Any], Any]:
+    """``frames_of(metrics)``: the recorded frames of the trial whose result carries ``metrics`` (the
+    runtime's ``last_result``), as the study's ``RecordedFrames``; None when not recorded."""
+
+    def frames_of(metrics: Any) -> Any:
+        result = getattr(runtime, "last_result", None)
+        if result is None or getattr(result, "metrics", None) is not metrics:
+            return None
+        frames = getattr(result, "frames", None)
+        if frames is None or len(frames) == 0:
+            return None
+        from app.study.runner import frames_from_result
+
+        return frames_from_result(frames)
+
+    return frames_of
 
 
 def _start_scene(settings: Settings, runtime: Any) -> Any:
@@ -157,7 +176,7 @@ def create_app(
             if ids:
                 logger.warning("trials %s were left running by an earlier process: marked aborted", list(ids))
         rt = runtime if runtime is not None else _make_runtime(settings)
-        recorder = TrialRecorder(repository)
+        recorder = TrialRecorder(repository, frames_of=_frames_getter(rt))
         recorder.start()
         rt.add_event_listener(recorder.on_event)
         rt.add_trial_listener(recorder.on_trial_end)

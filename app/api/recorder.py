@@ -12,7 +12,7 @@ import contextlib
 import logging
 import queue
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,6 +29,16 @@ class _TrialEnd:
     events: tuple[Any, ...]
     status: str
     reason: str | None
+    frames: Any = None
+
+
+def end_reason(events: Sequence[Any]) -> str | None:
+    """Why a trial ended, from its ``trial_ended`` event (payload ``reason``), or None."""
+    for ev in reversed(events):
+        if getattr(ev, "kind", None) == "trial_ended":
+            reason = (getattr(ev, "payload", None) or {}).get("reason")
+            return None if reason is None else str(reason)
+    return None
 
 
 class TrialRecorder:
@@ -36,13 +46,23 @@ class TrialRecorder:
 
     Args:
         repo: The repository (``event_writer``, ``finish_trial``).
+        frames_of: ``frames_of(metrics)`` -> the recorded frames (``RecordedFrames``) of the trial that
+            produced ``metrics``, or None; they are stored with the trial for replay.
         queue_size: Bound of the queue of ended trials waiting to be stored.
         put_timeout_s: Longest a trial listener waits when that queue is full (then the result is logged and
             dropped; the trial is marked aborted at the next start).
     """
 
-    def __init__(self, repo: Any, *, queue_size: int = 64, put_timeout_s: float = 1.0) -> None:
+    def __init__(
+        self,
+        repo: Any,
+        *,
+        frames_of: Callable[[Any], Any] | None = None,
+        queue_size: int = 64,
+        put_timeout_s: float = 1.0,
+    ) -> None:
         self._repo = repo
+        self._frames_of = frames_of
         self._queue: queue.Queue[_TrialEnd | None] = queue.Queue(maxsize=queue_size)
         self._put_timeout_s = put_timeout_s
         self._lock = threading.Lock()
@@ -113,9 +133,16 @@ class TrialRecorder:
             logger.exception("trial %s: an event could not be queued for the database", trial_id)
 
     def on_trial_end(self, trial_id: int, metrics: Any, events: Sequence[Any], status: str) -> None:
+        events = tuple(events or ())
         stored_status = status if status in STORED_STATUSES else "aborted"
-        reason = None if status in STORED_STATUSES else str(status)
-        item = _TrialEnd(trial_id, metrics, tuple(events or ()), stored_status, reason)
+        reason = end_reason(events) if status in STORED_STATUSES else str(status)
+        frames = None
+        if self._frames_of is not None:
+            try:
+                frames = self._frames_of(metrics)
+            except Exception:
+                logger.exception("trial %d: its recorded frames could not be taken; stored without", trial_id)
+        item = _TrialEnd(trial_id, metrics, events, stored_status, reason, frames)
         try:
             self._queue.put(item, timeout=self._put_timeout_s)
         except queue.Full:
@@ -143,8 +170,14 @@ class TrialRecorder:
                 writer.close()
             # The events the listener already wrote are the first n_live of the runtime's list.
             rest = item.events[n_live:] if writer is not None else item.events
+            kwargs = {"frames": item.frames} if item.frames is not None else {}
             self._repo.finish_trial(
-                item.trial_id, status=item.status, metrics=item.metrics, reason=item.reason, events=rest
+                item.trial_id,
+                status=item.status,
+                metrics=item.metrics,
+                reason=item.reason,
+                events=rest,
+                **kwargs,
             )
             self.stored += 1
             logger.info("trial %d stored as %s", item.trial_id, item.status)

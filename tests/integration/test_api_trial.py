@@ -81,6 +81,10 @@ def test_trial_over_rest_runs_the_runtime_and_stores_metrics(sim_client: TestCli
     assert done["events_total"] == len(kinds)
     csv_rows = c.get("/api/export/metrics.csv", headers=AUTH).text.strip().splitlines()
     assert len(csv_rows) == 2  # header + this trial
+    repo = c.app.state.hrc.repo
+    frames = repo.load_frames(trial_id)  # recorded for replay, at the camera rate
+    assert frames is not None and len(frames) > 0 and frames.q.shape == (len(frames), 6)
+    assert np.all(np.diff(frames.t) > 0)
 
 
 def test_stop_estop_and_reset_with_the_real_runtime(sim_client: TestClient) -> None:
@@ -91,7 +95,8 @@ def test_stop_estop_and_reset_with_the_real_runtime(sim_client: TestClient) -> N
     ).json()
     stopped = c.post(f"/api/trials/{t['id']}/stop", headers=AUTH)
     assert stopped.status_code == 200
-    assert _wait_ended(c, t["id"])["status"] in ("completed", "aborted")
+    ended = _wait_ended(c, t["id"])
+    assert ended["status"] == "aborted" and ended["abort_reason"] == "operator"
     assert c.post(f"/api/trials/{t['id']}/stop", headers=AUTH).status_code == 409
     estop = c.post("/api/robot/estop", headers=AUTH)
     assert estop.status_code == 200 and estop.json()["estopped"] is True
