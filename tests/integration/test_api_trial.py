@@ -171,3 +171,86 @@ def test_ingest_rejects_bad_messages_without_harming_the_runtime(tmp_path: Path)
                     break
             else:
                 raise AssertionError("the runtime stopped publishing snapshots")
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_sigterm_stops_the_robot_first_then_stores_and_closes(tmp_path: Path) -> None:
+    """A real ``hrc serve`` process: SIGTERM during a trial stops the runtime (and the robot) at once, the
+    trial is stored as aborted with its metrics, then the database is closed and the process exits 0."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import httpx
+
+    port = _free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HRC_")}
+    env.update(
+        HRC_API_TOKEN=TOKEN,
+        HRC_DATA_DIR=str(tmp_path / "data"),
+        HRC_PORT=str(port),
+        HRC_VISER_PORT=str(_free_port()),
+        HRC_ROBOT="sim",
+        HRC_HUMAN_SOURCE="sim",
+    )
+    log_path = tmp_path / "serve.log"
+    with log_path.open("wb") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "app.cli", "serve", "--log-level", "info"],
+            cwd=tmp_path,
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 180.0
+        while True:
+            assert proc.poll() is None, log_path.read_text()
+            try:
+                if httpx.get(f"{base}/api/health", timeout=2.0).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline, "hrc serve did not become healthy:\n" + log_path.read_text()
+            time.sleep(0.2)
+        with httpx.Client(base_url=base, headers=AUTH, timeout=30.0) as http:
+            p = http.post("/api/participants", json={"code": "SIG"}).json()
+            t = http.post(
+                "/api/trials", json={"participant_id": p["id"], "method": "proactive", "duration_s": 600}
+            ).json()
+            assert t["status"] == "running"
+        proc.send_signal(signal.SIGTERM)
+        # uvicorn re-raises the signal after its clean shutdown: the exit status says "ended by SIGTERM"
+        assert proc.wait(timeout=90) in (0, -signal.SIGTERM), log_path.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    log = log_path.read_text()
+    order = [
+        "stopping the robot first",
+        f"trial {t['id']} ended: aborted (shutdown)",
+        "runtime stopped",  # threads joined, robot.stop() done
+        "operator API stopped",  # recorder drained, database closed
+    ]
+    positions = [log.find(line) for line in order]
+    assert all(pos >= 0 for pos in positions) and positions == sorted(positions), log
+    assert positions[1] < log.find(f"trial {t['id']} stored as aborted") < positions[3], log
+    from app.study.db import make_engine
+    from app.study.repository import StudyRepository
+
+    engine = make_engine(f"sqlite:///{(tmp_path / 'data' / 'hrc.db').as_posix()}")
+    try:
+        stored = StudyRepository(engine).get_trial(t["id"])
+    finally:
+        engine.dispose()
+    assert stored.status == "aborted" and stored.abort_reason == "shutdown" and stored.metrics is not None
