@@ -236,9 +236,8 @@ def app_version() -> str:
 
 
 def _include_routes(app: FastAPI) -> None:
-    from app.api import live
     from app.api.deps import AuthDep
-    from app.api.routes import export, health, participants, robot, sessions, summary, trials
+    from app.api.routes import export, health, live, participants, robot, sessions, summary, trials
 
     app.include_router(health.router, prefix=API_PREFIX)
     for module in (participants, sessions, trials, robot, summary, export):

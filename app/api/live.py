@@ -1,4 +1,6 @@
-"""Live WebSockets: ``/api/live`` streams runtime snapshots, ``/api/ingest`` takes skeleton frames in.
+"""The machinery of the live WebSockets (``app.api.routes.live``): snapshot fan-out, bounds, rate limiting.
+
+``/api/live`` streams runtime snapshots, ``/api/ingest`` takes skeleton frames in.
 
 Fan-out (``/api/live``): one broadcaster thread holds a single bounded runtime subscription, keeps only the
 newest snapshot, serialises it to JSON once per tick (at most ``live_rate_hz``, 30 Hz) and hands the text
@@ -30,11 +32,6 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
-
-from fastapi import APIRouter, WebSocket
-from starlette.websockets import WebSocketDisconnect, WebSocketState
-
-from app.api.auth import bearer_token, tokens_match
 
 logger = logging.getLogger(__name__)
 
@@ -266,73 +263,6 @@ class LiveHub:
 
 
 # ---------------------------------------------------------------------------------------------------------
-# authentication of a WebSocket
-
-
-def _ctx(websocket: WebSocket) -> Any:
-    return getattr(websocket.app.state, "hrc", None)
-
-
-async def authenticate(websocket: WebSocket, *, token: str, allow_open: bool, limits: LiveLimits) -> bool:
-    """Accept ``websocket`` if it is authorised; close it (1008) and return False if not.
-
-    A token in the ``Authorization`` header or ``?token=`` is checked before accepting (a wrong one is denied
-    during the handshake). Without either, the socket is accepted and the first message must be
-    ``{"token": "..."}`` within ``limits.auth_timeout_s``.
-    """
-    given = bearer_token(websocket.headers.get("authorization")) or websocket.query_params.get("token")
-    if given is not None:
-        if not tokens_match(given, token):
-            await websocket.close(code=WS_POLICY_VIOLATION, reason="invalid operator token")
-            return False
-        await websocket.accept()
-        return True
-    await websocket.accept()
-    if allow_open:
-        return True
-    try:
-        message = await asyncio.wait_for(websocket.receive(), limits.auth_timeout_s)
-    except TimeoutError:
-        await _send_error(websocket, "unauthorized", 'no token: send {"token": "..."} first')
-        await websocket.close(code=WS_POLICY_VIOLATION, reason="authentication timed out")
-        return False
-    if message["type"] == "websocket.disconnect":
-        return False
-    text = _message_text(message)
-    presented = None
-    if text is not None and len(text) <= limits.max_auth_bytes:
-        with contextlib.suppress(ValueError):
-            obj = json.loads(text)
-            if isinstance(obj, dict) and isinstance(obj.get("token"), str):
-                presented = obj["token"]
-    if not tokens_match(presented, token):
-        await _send_error(websocket, "unauthorized", "missing or invalid operator token")
-        await websocket.close(code=WS_POLICY_VIOLATION, reason="invalid operator token")
-        return False
-    return True
-
-
-def _message_text(message: dict[str, Any]) -> str | None:
-    """The text of a received ASGI WebSocket message (UTF-8 decoded bytes), None if undecodable/empty."""
-    text = message.get("text")
-    if text is not None:
-        return text
-    data = message.get("bytes")
-    if data is None:
-        return None
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError:
-        return None
-
-
-async def _send_error(websocket: WebSocket, code: str, detail: str) -> None:
-    if websocket.application_state == WebSocketState.CONNECTED:
-        with contextlib.suppress(WebSocketDisconnect, RuntimeError, OSError):
-            await websocket.send_text(dumps_strict({"type": "error", "code": code, "detail": detail}))
-
-
-# ---------------------------------------------------------------------------------------------------------
 # rate limiting
 
 
@@ -369,154 +299,3 @@ class RateLimiter:
         self.rejected_in_window += 1
         self.rejected_total += 1
         return False
-
-
-# ---------------------------------------------------------------------------------------------------------
-# routes
-
-router = APIRouter(tags=["live"])
-
-
-@router.websocket("/live")
-async def live_socket(websocket: WebSocket) -> None:
-    """Snapshots of the runtime as JSON text messages (``{"type": "snapshot", ...}``) at up to 30 Hz."""
-    ctx = _ctx(websocket)
-    if ctx is None:
-        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="server starting or stopping")
-        return
-    hub: LiveHub = ctx.hub
-    if not await authenticate(
-        websocket, token=ctx.token, allow_open=ctx.settings.read_only_open, limits=hub.limits
-    ):
-        return
-    q = hub.register()
-    if q is None:
-        await _send_error(
-            websocket, "too_many_clients", f"at most {hub.limits.max_live_clients} live clients"
-        )
-        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="too many live clients")
-        return
-    try:
-        q.put(hub.current_text())
-        sender = asyncio.create_task(_live_sender(websocket, q))
-        receiver = asyncio.create_task(_drain_until_disconnect(websocket))
-        done, pending = await asyncio.wait({sender, receiver}, return_when=asyncio.FIRST_COMPLETED)
-        for task in pending:
-            task.cancel()
-        for task in pending:
-            with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, RuntimeError, OSError):
-                await task
-        for task in done:
-            exc = task.exception()
-            if exc is not None and not isinstance(exc, WebSocketDisconnect | OSError | RuntimeError):
-                logger.warning("live client ended with %r", exc)
-    finally:
-        hub.unregister(q)
-        if q.dropped:
-            logger.info("live client disconnected; %d snapshots dropped for it (slow client)", q.dropped)
-
-
-async def _live_sender(websocket: WebSocket, q: ClientQueue) -> None:
-    while True:
-        text = await q.get(timeout_s=1.0)
-        if text is None:
-            continue
-        await websocket.send_text(text)
-        q.sent += 1
-
-
-async def _drain_until_disconnect(websocket: WebSocket) -> None:
-    """Read (and ignore) client messages until the client disconnects."""
-    while True:
-        message = await websocket.receive()
-        if message["type"] == "websocket.disconnect":
-            return
-
-
-@router.websocket("/ingest")
-async def ingest_socket(websocket: WebSocket) -> None:
-    """Skeleton frames from an external tracker into the runtime's ``StreamSource`` (one JSON text each)."""
-    ctx = _ctx(websocket)
-    if ctx is None:
-        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="server starting or stopping")
-        return
-    hub: LiveHub = ctx.hub
-    limits = hub.limits
-    if not await authenticate(websocket, token=ctx.token, allow_open=False, limits=limits):
-        return
-    if hub.ingest_clients >= limits.max_ingest_clients:
-        await _send_error(websocket, "too_many_clients", f"at most {limits.max_ingest_clients} trackers")
-        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="too many ingest clients")
-        return
-    hub.ingest_clients += 1
-    try:
-        await websocket.send_text(
-            dumps_strict(
-                {
-                    "type": "ready",
-                    "max_message_bytes": limits.ingest_max_bytes,
-                    "max_rate_hz": limits.ingest_rate_hz,
-                    "human_source": ctx.settings.human_source,
-                }
-            )
-        )
-        await _ingest_loop(websocket, ctx.runtime, limits)
-    except WebSocketDisconnect:
-        pass
-    finally:
-        hub.ingest_clients -= 1
-
-
-async def _ingest_loop(websocket: WebSocket, runtime: Any, limits: LiveLimits) -> None:
-    from app.api.runtime_errors import frame_rejected_types, ingest_unavailable_types
-
-    rejected_types = frame_rejected_types()
-    unavailable_types = ingest_unavailable_types()
-    limiter = RateLimiter(limits.ingest_rate_hz, limits.ingest_burst, limits.clock)
-    while True:
-        message = await websocket.receive()
-        if message["type"] == "websocket.disconnect":
-            return
-        raw_len = len(message["text"].encode("utf-8")) if message.get("text") is not None else None
-        if raw_len is None:
-            raw_len = len(message.get("bytes") or b"")
-        if raw_len > limits.ingest_max_bytes:
-            await _send_error(
-                websocket, "too_large", f"message of {raw_len} bytes exceeds {limits.ingest_max_bytes} bytes"
-            )
-            await websocket.close(code=WS_MESSAGE_TOO_BIG, reason="message too big")
-            return
-        if not limiter.allow():
-            if limiter.rejected_in_window > limits.ingest_close_after:
-                await _send_error(
-                    websocket, "rate_limited", "closing: the rate limit was exceeded repeatedly"
-                )
-                await websocket.close(code=WS_POLICY_VIOLATION, reason="rate limit exceeded")
-                return
-            await _send_error(
-                websocket, "rate_limited", f"more than {limits.ingest_rate_hz:g} messages/s; message dropped"
-            )
-            continue
-        text = _message_text(message)
-        if text is None:
-            await _send_error(websocket, "malformed", "messages must be UTF-8 JSON text")
-            continue
-        try:
-            obj = json.loads(text)
-        except ValueError as exc:
-            await _send_error(websocket, "malformed", f"not JSON: {exc}")
-            continue
-        if not isinstance(obj, dict):
-            await _send_error(websocket, "malformed", "a frame must be a JSON object")
-            continue
-        try:
-            runtime.ingest(obj)
-        except rejected_types as exc:
-            await _send_error(websocket, "rejected", str(exc))
-        except unavailable_types as exc:
-            await _send_error(websocket, "unavailable", str(exc))
-        except (ValueError, TypeError, KeyError) as exc:
-            await _send_error(websocket, "rejected", f"invalid frame: {exc}")
-        except Exception:
-            logger.exception("ingest: the runtime failed on a frame; the frame is dropped")
-            await _send_error(websocket, "internal", "the frame could not be processed; it was dropped")
