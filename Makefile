@@ -4,7 +4,7 @@ setup:
 	scripts/setup.sh
 
 run: setup
-	.venv/bin/hrc --help
+	.venv/bin/hrc serve
 
 test:
 	scripts/test.sh
