@@ -175,15 +175,18 @@ def create_app(
             ids = abort_interrupted()
             if ids:
                 logger.warning("trials %s were left running by an earlier process: marked aborted", list(ids))
-        rt = runtime if runtime is not None else _make_runtime(settings)
-        recorder = TrialRecorder(repository, frames_of=_frames_getter(rt))
-        recorder.start()
-        rt.add_event_listener(recorder.on_event)
-        rt.add_trial_listener(recorder.on_trial_end)
-        hub = LiveHub(rt, limits=limits)
-        stop_runtime = StopOnce(rt.stop, name="runtime")
+        recorder: TrialRecorder | None = None
+        hub: LiveHub | None = None
+        stop_runtime: StopOnce | None = None
         view = None
         try:
+            rt = runtime if runtime is not None else _make_runtime(settings)
+            recorder = TrialRecorder(repository, frames_of=_frames_getter(rt))
+            recorder.start()
+            rt.add_event_listener(recorder.on_event)
+            rt.add_trial_listener(recorder.on_trial_end)
+            hub = LiveHub(rt, limits=limits)
+            stop_runtime = StopOnce(rt.stop, name="runtime")
             rt.start()
             hub.start(asyncio.get_running_loop())
             if scene:
@@ -196,13 +199,16 @@ def create_app(
             yield
         finally:
             app.state.hrc = None
-            hub.stop()
+            if hub is not None:
+                hub.stop()
             if view is not None:
                 with contextlib.suppress(Exception):
                     view.stop()
-            stop_runtime()  # the robot stops first: a running trial ends (aborted) through the recorder
+            if stop_runtime is not None:
+                stop_runtime()  # the robot stops first: a running trial ends (aborted) through the recorder
             app.state.stop_runtime = None
-            recorder.close()  # drain: results and events into the database, then flush
+            if recorder is not None:
+                recorder.close()  # drain: results and events into the database, then flush
             if engine is not None:
                 engine.dispose()
             logger.info("operator API stopped")

@@ -133,3 +133,14 @@ def test_trial_settings_never_hold_secrets(settings: Settings) -> None:
     )
     assert "api_token" not in snap
     assert "s3cret" not in snap["database_url"] and "lab:***@db" in snap["database_url"]
+
+
+def test_a_runtime_that_cannot_start_fails_the_start_cleanly(settings: Settings, runtime: Any) -> None:
+    def broken_start() -> None:
+        raise RuntimeError("robot not reachable at 192.168.1.10")
+
+    runtime.start = broken_start
+    app = create_app(settings, runtime=runtime, scene=False)
+    with pytest.raises(RuntimeError, match="not reachable"), TestClient(app):
+        pass
+    assert app.state.hrc is None and runtime.stopped == 1  # stop() still ran (robot.stop in its finally)
