@@ -83,6 +83,27 @@ class CellGeometry:
         )  # (P, L, M)
         return d.min(axis=2)
 
+    def near_person(
+        self, q: np.ndarray, joints: np.ndarray, joints_before: np.ndarray, dt_s: float, *, band_m: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Each part's separation (L,) to the person at ``joints`` and the speed (L,) of the person's
+        capsules within ``band_m`` of the nearest one to it (capsule speed: its faster end, from
+        ``joints_before`` ``dt_s`` earlier)."""
+        q = np.asarray(q, dtype=np.float64).reshape(1, 6)
+        poses = np.stack([np.asarray(joints, dtype=np.float64), np.asarray(joints_before, dtype=np.float64)])
+        ra, rb, rr = self.collision.robot_capsules(q)
+        ha, hb, hr = self.collision.human_capsules(poses)  # (2, M, 3) x 2
+        d = self._capsule_distance(
+            ra[0][:, None, :], rb[0][:, None, :], rr[:, None], ha[0][None], hb[0][None], hr[None, :]
+        )  # (L, M)
+        sep = d.min(axis=1)
+        v_caps = np.maximum(
+            np.linalg.norm(ha[0] - ha[1], axis=-1), np.linalg.norm(hb[0] - hb[1], axis=-1)
+        ) / max(float(dt_s), 1e-6)  # (M,)
+        near = d <= sep[:, None] + band_m
+        v_h = np.where(near, v_caps[None, :], 0.0).max(axis=1)
+        return sep, v_h
+
     def separation(self, q: np.ndarray, joints: np.ndarray) -> float:
         """Minimum surface distance (m) robot-person for ``q`` (6,) and ``joints`` (J, 3)."""
         return float(self.part_separations(q, np.asarray(joints)[None]).min())
@@ -435,12 +456,17 @@ class EngineOptions:
             every servo tick (against the newest frame); ``"off"``.
         record_frames: Keep the frames for the study database.
         tracking_margin_m: Tracking error of a frame (m) (see :class:`SupervisorConfig`).
+        human_accel_mps2, human_speed_max_mps: The person's worst case for the speed governor (see
+            :class:`~app.control.supervisor.SeparationModel`): how fast their speed may change between
+            frames and during a brake, and their fastest approach.
         pick_dwell_s, place_dwell_s: Gripper times (s).
     """
 
     monitor: Literal["frame", "tick", "off"] = "frame"
     record_frames: bool = True
     tracking_margin_m: float = 0.02
+    human_accel_mps2: float = 8.0
+    human_speed_max_mps: float = 2.0
     pick_dwell_s: float = 0.4
     place_dwell_s: float = 0.4
 
@@ -523,7 +549,11 @@ class TrialEngine:
         from app.planning.safety import speed_scale
 
         ssm = stack.ssm
-        self.separation = separation or SeparationModel.from_ssm(ssm)
+        self.separation = separation or SeparationModel.from_ssm(
+            ssm,
+            human_speed_max_mps=self.options.human_speed_max_mps,
+            human_accel_mps2=self.options.human_accel_mps2,
+        )
         robot_state = robot.state()
         self.supervisor = Supervisor(
             planner=stack.planner,

@@ -135,6 +135,14 @@ class RobotGeometry(Protocol):
         """Speed (K, L) in m/s of each part (its fastest point) for ``q``, ``qd`` (K, 6)."""
         ...
 
+    def near_person(
+        self, q: np.ndarray, joints: np.ndarray, joints_before: np.ndarray, dt_s: float, *, band_m: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """For the robot at ``q`` (6,) and the person at ``joints`` (J, 3), who was at ``joints_before``
+        ``dt_s`` earlier: each part's separation (L,) (m) and the speed (L,) (m/s) of the person's parts
+        within ``band_m`` of being the nearest to it (the fastest of them)."""
+        ...
+
 
 MakeTrajectory = Callable[[Any, np.ndarray | None], TrajectoryLike]
 """``make_trajectory(plan, qd0)``: a trajectory through ``plan`` starting with joint velocity ``qd0``."""
@@ -458,6 +466,7 @@ class BackupRequest:
             new trajectory continues it.
         goal: Roadmap goal (station name or node index).
         forecast: The forecast of frame ``key``.
+        deadline_s: Compute-time budget of this plan: D, or the start deadline for a robot at rest.
     """
 
     key: int
@@ -467,6 +476,7 @@ class BackupRequest:
     qd_start: np.ndarray
     goal: Goal
     forecast: HumanForecast
+    deadline_s: float | None = None
 
 
 OutcomeStatus = Literal["ok", "failed", "deadline_miss", "error", "skipped"]
@@ -535,7 +545,7 @@ class BackupComputer:
     def __call__(self, req: BackupRequest) -> PlanOutcome:
         """Plan, build the trajectory and its speed profile; ``ok`` or ``deadline_miss`` by the measured
         compute time (see :meth:`judge`)."""
-        return self.judge(self.compute_raw(req), None)
+        return self.judge(self.compute_raw(req), None, deadline_s=req.deadline_s)
 
     def compute_raw(self, req: BackupRequest) -> PlanOutcome:
         """The plan with its measured compute time, not yet judged against the deadline."""
@@ -547,7 +557,7 @@ class BackupComputer:
                 goal=req.goal,
                 forecast=req.forecast,
                 workers=self.workers,
-                deadline_s=self.deadline_s if self.enforce_deadline else None,
+                deadline_s=(req.deadline_s or self.deadline_s) if self.enforce_deadline else None,
                 qd0=req.qd_start,
             )
             if not res.ok or res.plan is None:
@@ -560,11 +570,15 @@ class BackupComputer:
         dt = self.timer() - t0
         return PlanOutcome("ok", compute_s=dt, traj=traj, profile=prof, plan=res.plan, reason=str(res.reason))
 
-    def judge(self, out: PlanOutcome, compute_s: float | None) -> PlanOutcome:
-        """Apply the deadline: a plan slower than D (by ``compute_s`` when given, else its measured time)
-        is a ``deadline_miss``, whatever it found; so is a search the planner cut at the deadline."""
+    def judge(
+        self, out: PlanOutcome, compute_s: float | None, *, deadline_s: float | None = None
+    ) -> PlanOutcome:
+        """Apply the deadline (``deadline_s``, default D): a plan slower than it (by ``compute_s`` when
+        given, else its measured time) is a ``deadline_miss``, whatever it found; so is a search the
+        planner cut at the deadline."""
         c = out.compute_s if compute_s is None else float(compute_s)
-        if out.status in ("ok", "failed") and (c > self.deadline_s or out.reason == "deadline"):
+        limit = self.deadline_s if deadline_s is None else float(deadline_s)
+        if out.status in ("ok", "failed") and (c > limit or out.reason == "deadline"):
             return PlanOutcome("deadline_miss", compute_s=c, reason=f"{c * 1e3:.1f} ms > D ({out.reason})")
         return PlanOutcome(out.status, c, out.traj, out.profile, out.plan, out.reason)
 
@@ -605,7 +619,9 @@ class InlinePlanJobs:
         req = self._pending.pop(key, None) or request
         if req is None:
             return PlanOutcome("skipped", reason=f"no backup request for frame {key}")
-        return self.compute.judge(self.compute.compute_raw(req), self.fixed_compute_s)
+        return self.compute.judge(
+            self.compute.compute_raw(req), self.fixed_compute_s, deadline_s=req.deadline_s
+        )
 
     def peek(self, key: int) -> PlanOutcome | None:
         return None
@@ -626,6 +642,8 @@ class SupervisorConfig:
     Attributes:
         method: ``proactive`` (the predictor's forecast) or ``reactive`` (the current pose held).
         deadline_s: D, the backup-plan deadline (s).
+        start_deadline_s: Deadline of a plan that starts the robot from rest (default 3 D): the robot stands
+            still until the plan starts, so a longer search costs waiting time only, not safety.
         frame_period_s: F, the camera frame period (s).
         planner_workers: Workers per plan (parallel A*).
         brake_decel_mps2: Deceleration of the robot's fastest point when braking (m/s^2).
@@ -633,7 +651,11 @@ class SupervisorConfig:
         scale_up_rate: Largest increase of the speed scale per second (1/s).
         tracking_margin_m: Tracking error of a frame: subtracted from measured separations and used as the
             margin of the held pose (reactive forecast, emergency plan).
-        human_speed_window_s: Window (s) over which the person's approach speed is measured.
+        human_speed_window_s: Window (s) over which the person's speed is measured.
+        near_band_m: The person's parts within this much of being the nearest to a robot part count for
+            the speed of the person near that part (m).
+        resume_travel_m: After a stop & replan, the robot counts as under way again (a new encounter can
+            stop it again) once it has moved this far (m).
         check_dt_s: Time step of the checks of a plan against a forecast (s).
         check_min_scale: Scale floor used to time the plan in execution for checks when the robot is slowed
             or stopped (the robot is assumed to go at least this fast when it resumes).
@@ -643,6 +665,7 @@ class SupervisorConfig:
 
     method: Method = "proactive"
     deadline_s: float = 0.1
+    start_deadline_s: float | None = None
     frame_period_s: float = 1.0 / 30.0
     planner_workers: int = 1
     brake_decel_mps2: float = 3.0
@@ -650,6 +673,8 @@ class SupervisorConfig:
     scale_up_rate: float = 4.0
     tracking_margin_m: float = 0.02
     human_speed_window_s: float = 0.1
+    near_band_m: float = 0.25
+    resume_travel_m: float = 0.03
     check_dt_s: float = 0.02
     check_min_scale: float = 0.5
     profile_window_s: float = 0.6
@@ -665,6 +690,10 @@ class SupervisorConfig:
     def max_jobs(self) -> int:
         """Backup jobs in flight at most: ceil(D / F)."""
         return max(1, math.ceil(self.deadline_s / self.frame_period_s - 1e-9))
+
+    @property
+    def start_deadline(self) -> float:
+        return 3.0 * self.deadline_s if self.start_deadline_s is None else self.start_deadline_s
 
     @property
     def emergency_horizon(self) -> float:
@@ -876,6 +905,7 @@ class Supervisor:
         self._estop = False
         self._fault = False
         self._stopped_latch = False
+        self._moved_since_stop = 0.0
         self._state: SupervisorState = "idle"
         self._recent_decide_s: deque[float] = deque(maxlen=256)
 
@@ -982,16 +1012,19 @@ class Supervisor:
         # separation of each robot part now (robot at its last commanded pose vs the person as seen), and
         # the person's approach speed: how fast their motion closed the distance over the last window
         old = self._older_frame(frame.t - cfg.human_speed_window_s)
-        poses = frame.joints[None] if old is None else np.stack([frame.joints, old.joints])
-        d = np.asarray(self.geometry.part_separations(q_now, poses), dtype=np.float64) - cfg.tracking_margin_m
-        sep_parts = d[0]
         if old is not None:
-            # the person's speed: their fastest joint's (a directed speed toward a part jumps when the
-            # nearest pair of points changes; the speed of the body's points does not, and bounds it)
-            v_pts = float(np.max(np.linalg.norm(frame.joints - old.joints, axis=-1))) / (frame.t - old.t)
-            v_h0 = np.full(self.n_parts, v_pts)
+            # the person's speed near each part: of the body parts that are (nearly) the nearest to it (a
+            # directed speed jumps when the nearest pair of points changes; the speed of the body does not,
+            # and bounds it)
+            sep_parts, v_h0 = self.geometry.near_person(
+                q_now, frame.joints, old.joints, frame.t - old.t, band_m=cfg.near_band_m
+            )
+            sep_parts = np.asarray(sep_parts, dtype=np.float64) - cfg.tracking_margin_m
+            v_h0 = np.asarray(v_h0, dtype=np.float64)
             t_mid = 0.5 * (frame.t + old.t)
         else:  # no history yet: assume the fastest approach
+            d = np.asarray(self.geometry.part_separations(q_now, frame.joints[None]), dtype=np.float64)
+            sep_parts = d[0] - cfg.tracking_margin_m
             v_h0, t_mid = np.full(self.n_parts, self.ssm.human_speed_max_mps), frame.t
         sep = float(sep_parts.min())
         self._history.append(frame)
@@ -1013,7 +1046,9 @@ class Supervisor:
         req = None
         if goal is not None and self._brake is None:
             req = self._branch_request(seq, T, goal, forecast, active, tau, s)
-            if req is not None:
+            pend = self._pending
+            waiting = pend is not None and pend.plan_id == active.plan_id and not active.complete
+            if req is not None and not waiting:  # a robot waiting for its start plan needs no other
                 self.jobs.submit(req[0])
 
         # 2. check the plan in execution against the latest forecast (outside the lock: it takes a while)
@@ -1022,10 +1057,10 @@ class Supervisor:
         if moving_plan:
             view = ScaledView(active.traj, t_ref=T, tau_ref=tau, scale=max(s, cfg.check_min_scale))
             t_v = self._first_violation(view, forecast, T, view.t_end)
-        # the stop distance: a part that is to move is within S_p(0) of the person
-        _, v_h_now = self.ssm.human_approach(v_h0, frame.t - t_mid)
+        # the stop distance: a part that is to move is within S_p(0) of the person (at their measured speed;
+        # the speed governor allows for what they may do before the next frame)
         to_move = active.profile.window_at(tau) > 1e-6
-        stop_distance = bool(np.any(to_move & (sep_parts <= self.ssm.s0_m + self.ssm.k_human_s * v_h_now)))
+        stop_distance = bool(np.any(to_move & (sep_parts <= self.ssm.s0_m + self.ssm.k_human_s * v_h0)))
 
         # 3. pre-check a finished backup of the pending switch against this (latest) forecast
         with self._lock:
@@ -1048,7 +1083,6 @@ class Supervisor:
                 return self._done("skipped", t_v, sep, c0)
             if self._brake is not None:
                 return self._done("hold", t_v, sep, c0)
-            robot_moving = float(self._v_cmd.max()) > 1e-3
             if moving_plan and (stop_distance or (t_v is not None and t_v <= T + D)):
                 pend = self._pending
                 if (
@@ -1060,7 +1094,9 @@ class Supervisor:
                     and pend.tau_branch <= active.traj.t_end
                 ):
                     return self._done("nominal", t_v, sep, c0)  # the scheduled switch comes first
-                if self._stopped_latch and not robot_moving:
+                if self._stopped_latch:
+                    # stopped for this already and not really under way again (the speed governor keeps
+                    # a creeping robot safe): one stop & replan per encounter
                     self._set_state("stopped", T)
                     return self._done("hold", t_v, sep, c0)
                 reason = "stop_distance" if stop_distance else "predicted_violation"
@@ -1123,8 +1159,10 @@ class Supervisor:
         """The backup request of frame ``seq`` and its branch point (path time in ``active``)."""
         cfg = self.config
         D = cfg.deadline_s
+        deadline = D
         if active.kind == "hold":
-            t_start = max(T + D, self._not_before)
+            deadline = cfg.start_deadline
+            t_start = max(T + deadline, self._not_before)
             tau_b = t_start  # a hold's path time runs with the clock
             q_s = active.traj.q(active.traj.t_end)
             qd_s = np.zeros(6)
@@ -1143,6 +1181,7 @@ class Supervisor:
             qd_start=np.asarray(qd_s, dtype=np.float64).reshape(6),
             goal=goal,
             forecast=forecast,
+            deadline_s=deadline,
         )
         return req, float(tau_b)
 
@@ -1206,6 +1245,7 @@ class Supervisor:
         self._generation += 1
         self.counters.stop_replans += 1
         self._stopped_latch = True
+        self._moved_since_stop = 0.0
         self._emit(t, "stop_replan", {"violation_t": violation_t, "reason": reason})
         self._set_state("collision_avoidance", t)
 
@@ -1376,7 +1416,8 @@ class Supervisor:
         self._s = s_new
         self._v_cmd = max(s, s_new) * vmax
         self._v_inst = s_new * active.profile.speed_at(self._tau)
-        if float(self._v_cmd.max()) > 1e-3:
+        self._moved_since_stop += float(self._v_cmd.max()) * dt
+        if self._moved_since_stop > self.config.resume_travel_m:
             self._stopped_latch = False
         if (
             pend is not None
@@ -1401,12 +1442,15 @@ class Supervisor:
         if out.status != "ok":
             if out.status == "deadline_miss":
                 self.counters.deadline_misses += 1
-                payload = {"elapsed_s": out.compute_s, "deadline_s": self.config.deadline_s}
+                limit = pend.request.deadline_s if pend.request is not None else None
+                payload = {"elapsed_s": out.compute_s, "deadline_s": limit or self.config.deadline_s}
                 self._emit(t, "deadline_miss", payload)
             else:
                 self.counters.plan_failures += 1
                 self._emit(t, "plan_failed", {"reason": f"backup {out.status}: {out.reason}"})
-            if moving and pend.reason == "online_replan":
+            # a missed deadline or a planner fault takes the emergency path; a search that found no path
+            # leaves the plan in execution (its violation is still ahead) to the next frames' backups
+            if moving and pend.reason == "online_replan" and out.status in ("deadline_miss", "error"):
                 self._emergency_path(t, reason=f"backup_{out.status}", violation_t=pend.violation_t)
             return
         if pend.checked_seq != self._seq and self._forecast is not None:
