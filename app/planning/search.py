@@ -65,6 +65,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from app.planning.roadmap import NUM_BRANCHES, Roadmap
 from app.planning.safety import SSMParams, forecast_clearance
@@ -537,7 +539,9 @@ class Planner:
         self._R = min(cfg.max_branch_tries, NUM_BRANCHES)
         self._build_edge_tables()
         self._static_boxes = self._static_box_bounds()
+        self._rev_graph = self._reverse_move_graph()
         self._h_cache: dict[int, np.ndarray] = {}
+        self._h_lists: dict[int, list[list[float]]] = {}
         self._static_memo: dict[tuple[int, int, int, int], int] = {}
         self._succ_memo: dict[int, list[tuple[int, list[tuple[int, float, bool]]]]] = {}
         for node in roadmap.station_nodes.values():
@@ -572,7 +576,7 @@ class Planner:
         R = self._R
         src = np.repeat(np.arange(rm.num_nodes), np.diff(rm.indptr))
         self._ord_tab = np.zeros((E, NUM_BRANCHES, R), dtype=np.int8)
-        self._L_tab = np.full((E, NUM_BRANCHES, R), np.inf, dtype=np.float32)
+        self._L_tab = np.full((E, NUM_BRANCHES, R), np.inf)
         self._same_tab = np.zeros((E, NUM_BRANCHES, R), dtype=bool)
         bidx = np.arange(NUM_BRANCHES)
         for c0 in range(0, E, 2048):
@@ -705,13 +709,45 @@ class Planner:
         return out
 
     def _heuristic_table(self, goal: int) -> np.ndarray:
-        """h (N, 8): time lower bound from every node branch to the goal's nearest branch at cruise speed."""
+        """h (N, 8): time lower bound (s) from every node branch to the goal at cruise speed.
+
+        The larger of two admissible bounds: the straight joint-space move to the goal's nearest branch, and
+        the static time-to-go over the search's own moves (:meth:`_static_to_go`, a backward Dijkstra from
+        the goal's branches). A branch from which no move sequence reaches the goal gets +inf (pruned).
+        """
         tab = self._h_cache.get(goal)
         if tab is None:
-            tab = self._heuristic(self._ik.reshape(-1, 6), goal).reshape(-1, NUM_BRANCHES)
+            straight = self._heuristic(self._ik.reshape(-1, 6), goal)
+            tab = np.maximum(straight, self._static_to_go(goal)).reshape(-1, NUM_BRANCHES)
             tab.setflags(write=False)
             self._h_cache[goal] = tab
+            self._h_lists[goal] = tab.tolist()
         return tab
+
+    def _reverse_move_graph(self) -> csr_matrix:
+        """The search's moves (node, branch) -> (node, branch) as a sparse matrix of the *reversed* graph:
+        entry [dst, src] = the move's length (s at full joint speed, :attr:`_L_tab`) / cruise speed."""
+        rm = self.roadmap
+        E, R = self._L_tab.shape[0], self._R
+        S = rm.num_nodes * NUM_BRANCHES
+        src_node = np.repeat(np.arange(rm.num_nodes), np.diff(rm.indptr))
+        src = (src_node[:, None, None] * NUM_BRANCHES + np.arange(NUM_BRANCHES)[None, :, None]).repeat(R, 2)
+        dst = rm.indices[:, None, None] * NUM_BRANCHES + self._ord_tab.astype(np.int64)
+        # a hair shorter than the timed moves: round-off never makes the bound exceed a path's duration
+        cost = self._L_tab * ((1.0 - 1e-12) / self.config.speed_fraction)
+        keep = np.isfinite(cost) & self._valid[src_node][:, :, None]
+        assert src.shape == dst.shape == cost.shape == (E, NUM_BRANCHES, R)
+        return csr_matrix((cost[keep], (dst[keep], src[keep])), shape=(S, S))
+
+    def _static_to_go(self, goal: int) -> np.ndarray:
+        """Static time-to-go (N * 8,) in s from every node branch to any valid branch of ``goal`` over the
+        moves the search can take (nearest ``max_branch_tries`` branches per edge), each timed at the cruise
+        speed without acceleration: a lower bound of any search path's duration (its moves last at least
+        their length / cruise speed), +inf where the goal cannot be reached."""
+        sources = goal * NUM_BRANCHES + np.flatnonzero(self._valid[goal])
+        if sources.size == 0:
+            return np.full(self.roadmap.num_nodes * NUM_BRANCHES, np.inf)
+        return dijkstra(self._rev_graph, directed=True, indices=sources, min_only=True)
 
     def _heuristic(self, q: np.ndarray, goal: int) -> np.ndarray:
         G = self._ik[goal][self._valid[goal]]
@@ -1023,7 +1059,9 @@ class Planner:
         f = cfg.speed_fraction
         W = max(int(workers), 1)
         run = _Run(self, q_start, t_start, sep, goal=goal, stop_time=stop_time, hold_s=hold_s)
-        h_tab = None if goal is None else self._heuristic_table(goal).tolist()
+        if goal is not None:
+            self._heuristic_table(goal)
+        h_tab = None if goal is None else self._h_lists[goal]
 
         w_h = cfg.heuristic_weight
 

@@ -304,3 +304,37 @@ def test_static_obstacles_block_start_connections() -> None:
     res = planner.plan(q_start=q_of(0.0, 0.0), t_start=0.0, goal="g", forecast=None)
     assert res.ok
     assert [n for n in res.plan.nodes.tolist() if n >= 0] == [1, 2]
+
+
+def _time_to_go(rm: Roadmap, goal: int, speed: float) -> np.ndarray:
+    """Plain Dijkstra from the goal (branch 0, max-norm joint distance / speed): the true time-to-go."""
+    dist = np.full(rm.num_nodes, np.inf)
+    dist[goal] = 0.0
+    heap = [(0.0, goal)]
+    while heap:
+        d, u = heapq.heappop(heap)
+        if d > dist[u]:
+            continue
+        for v in rm.neighbors(u).tolist():
+            nd = d + float(np.max(np.abs(rm.ik[v, 0] - rm.ik[u, 0]))) / speed
+            if nd < dist[v]:
+                dist[v] = nd
+                heapq.heappush(heap, (nd, v))
+    return dist
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_the_static_heuristic_is_the_true_time_to_go_and_never_more(seed: int) -> None:
+    rm = random_graph(seed, n=40)
+    planner = Planner(rm, PointRobot(), config=config())
+    for goal in (1, 7):
+        truth = _time_to_go(rm, goal, 0.5)
+        h = planner._heuristic_table(goal)[:, 0]
+        reach = np.isfinite(truth)
+        assert np.all(h[reach] <= truth[reach] + 1e-9)  # admissible
+        np.testing.assert_allclose(h[reach], truth[reach], atol=1e-9)  # and exact on a one-branch roadmap
+        assert np.all(np.isinf(h[~reach]))  # nodes that cannot reach the goal are pruned
+    # plain A* with it still returns a shortest path (the test above) and the plan lasts at least h
+    res = planner.plan(q_start=rm.ik[0, 0], t_start=0.0, goal="g", forecast=None)
+    assert res.ok
+    assert res.plan.t_end >= planner._heuristic_table(1)[0, 0] - 1e-9
