@@ -148,6 +148,24 @@ class PlanningStack:
                     _STACKS.pop(next(iter(_STACKS)))
             return stack
 
+    @classmethod
+    def build(
+        cls,
+        cell: WorkCell,
+        *,
+        roadmap_config: Any | None = None,
+        planner_config: Any | None = None,
+        cache_dir: str | Path | None = None,
+    ) -> PlanningStack:
+        """A new stack (not cached in the process) with explicit roadmap and planner settings
+        (:class:`app.planning.roadmap.RoadmapConfig`, :class:`app.planning.search.PlannerConfig`)."""
+        return _build_stack(
+            cell,
+            None if cache_dir is None else str(cache_dir),
+            roadmap_config=roadmap_config,
+            planner_config=planner_config,
+        )
+
     def make_trajectory(self, plan: Any, qd0: np.ndarray | None) -> Any:
         from app.planning.trajectory import Trajectory
 
@@ -161,15 +179,21 @@ _STACKS: dict[tuple[str, str | None], PlanningStack] = {}
 _STACK_LOCK = threading.Lock()
 
 
-def _build_stack(cell: WorkCell, cache_dir: str | None) -> PlanningStack:
+def _build_stack(
+    cell: WorkCell,
+    cache_dir: str | None,
+    *,
+    roadmap_config: Any | None = None,
+    planner_config: Any | None = None,
+) -> PlanningStack:
     from app.planning.collision import CollisionModel
     from app.planning.roadmap import load_or_build_roadmap
     from app.planning.search import Planner, PlannerConfig
 
     t0 = time.perf_counter()
     collision = CollisionModel(cell)
-    roadmap = load_or_build_roadmap(cell, cache_dir=cache_dir, collision=collision)
-    config = PlannerConfig()
+    roadmap = load_or_build_roadmap(cell, config=roadmap_config, cache_dir=cache_dir, collision=collision)
+    config = planner_config or PlannerConfig()
     planner = Planner(roadmap, collision, config=config)
     log.info("planning stack for cell %s ready in %.2f s", cell.name, time.perf_counter() - t0)
     return PlanningStack(
@@ -598,6 +622,8 @@ class TrialEngine:
 
     # ---------------------------------------------------------------------------------------------------
     def _emit_abs(self, t: float, kind: str, payload: dict[str, Any]) -> None:
+        if getattr(self, "finished", None) is not None:
+            return
         ev = TrialEvent(t=max(float(t) - self.t0, 0.0), kind=kind, payload=_json_safe(payload))
         self.events.append(ev)
         if self.on_event is not None:
@@ -644,6 +670,8 @@ class TrialEngine:
     def _monitor(self, t: float, frame: HumanFrame) -> None:
         assert self.monitor is not None
         st = self.last_state
+        if not np.any(np.abs(st.qd) > 1e-4):  # at rest: nothing to check (a still robot never violates)
+            return
         before = self._older_frame(frame)
         self.monitor.check(
             t,
@@ -712,9 +740,9 @@ class TrialEngine:
         """End the trial (idempotent)."""
         if self.finished is not None:
             return
-        self.finished = (status, reason)
-        self._emit_abs(t, "trial_ended", {"status": status, "reason": reason})
         self.supervisor.end(t)
+        self._emit_abs(t, "trial_ended", {"status": status, "reason": reason})
+        self.finished = (status, reason)  # from here on no more events
         self.jobs.close()
         self._end_t = float(t)
 

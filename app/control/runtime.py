@@ -537,6 +537,7 @@ class Runtime:
             engine.estop(t, source=source)
             engine.finish(t, "aborted", "estop")
             self._end_trial()
+        self._publish(self._build_snapshot(self.clock.now()))
         log.warning("E-stop (%s)", source)
 
     def reset(self) -> None:
@@ -552,6 +553,7 @@ class Runtime:
             robot.reset_protective_stop()
         with self._lock:
             self._estopped = False
+        self._publish(self._build_snapshot(self.clock.now()))
 
     # -------------------------------------------------------------------------------------------- frames in
     def ingest(self, message: dict[str, Any] | str) -> None:

@@ -1,0 +1,233 @@
+"""The live runtime on the wall clock with the simulated cell (a small roadmap), and the headless runner.
+
+No assertion is on wall-clock time: every wait is bounded and checks what happened (events, listeners,
+snapshots), not how fast.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.config import Settings, load_workcell
+from app.control.engine import EngineOptions, PlanningStack, Snapshot
+from app.control.human import StreamSource
+from app.control.metrics import TrialMetrics
+from app.control.runtime import (
+    IngestUnavailable,
+    Runtime,
+    RuntimeNotReady,
+    Subscription,
+    TrialAlreadyRunning,
+    run_headless_trial,
+)
+from app.control.validation import FrameRejected
+from app.prediction.skeleton import NUM_JOINTS
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> PlanningStack:
+    from app.planning.roadmap import RoadmapConfig
+
+    cache = tmp_path_factory.mktemp("roadmaps")
+    return PlanningStack.build(load_workcell(), roadmap_config=RoadmapConfig(num_nodes=250), cache_dir=cache)
+
+
+def _settings() -> Settings:
+    return Settings(human_source="sim", robot="sim", planner_workers=1)
+
+
+class _Ended:
+    def __init__(self) -> None:
+        self.done = threading.Event()
+        self.calls: list[tuple[int, TrialMetrics, list, str]] = []
+        self.events: list[tuple[int | None, object]] = []
+
+    def on_trial(self, trial_id: int, metrics: TrialMetrics, events: list, status: str) -> None:
+        self.calls.append((trial_id, metrics, events, status))
+        self.done.set()
+
+    def on_event(self, trial_id: int | None, event: object) -> None:
+        self.events.append((trial_id, event))
+
+
+def test_subscription_is_bounded_and_drops_the_oldest() -> None:
+    sub = Subscription(maxsize=2)
+    snaps = [
+        Snapshot(
+            t=float(k),
+            trial_id=None,
+            state="idle",
+            method=None,
+            speed_scale=0.0,
+            separation_m=None,
+            required_separation_m=None,
+            planning_ms=(),
+            counters={},
+            q=np.zeros(6),
+            p_world_tcp=np.zeros(3),
+        )
+        for k in range(3)
+    ]
+    for s in snaps:
+        sub.put(s)
+    assert sub.dropped == 1
+    assert sub.get(0.0).t == 1.0 and sub.get(0.0).t == 2.0
+    assert sub.get(0.0) is None
+    sub.close()
+    sub.put(snaps[0])
+    assert sub.get(0.0) is None and sub.closed
+    with pytest.raises(ValueError):
+        Subscription(0)
+
+
+def test_snapshot_json_is_plain_and_arrays_are_frozen() -> None:
+    snap = Snapshot(
+        t=1.0,
+        trial_id=3,
+        state="nominal",
+        method="proactive",
+        speed_scale=0.5,
+        separation_m=float("inf"),
+        required_separation_m=0.2,
+        planning_ms=(1.5,),
+        counters={"completed_tasks": 1, "min_separation_m": float("inf")},
+        q=np.zeros(6),
+        p_world_tcp=np.ones(3),
+        skeleton=np.zeros((NUM_JOINTS, 3)),
+    )
+    d = snap.to_json()
+    json.dumps(d, allow_nan=False)
+    assert d["separation_m"] is None and d["counters"]["min_separation_m"] is None
+    assert len(d["skeleton"]) == NUM_JOINTS and d["forecast"] is None
+    with pytest.raises(ValueError):
+        snap.q[0] = 1.0
+    with pytest.raises(ValueError, match="q must be"):
+        Snapshot(
+            t=0.0,
+            trial_id=None,
+            state="idle",
+            method=None,
+            speed_scale=0.0,
+            separation_m=None,
+            required_separation_m=None,
+            planning_ms=(),
+            counters={},
+            q=np.zeros(5),
+            p_world_tcp=np.zeros(3),
+        )
+
+
+def test_live_trial_runs_to_its_end_and_reports(stack: PlanningStack) -> None:
+    ended = _Ended()
+    rt = Runtime(_settings(), stack=stack, options=EngineOptions(record_frames=False))
+    rt.add_trial_listener(ended.on_trial)
+    rt.add_event_listener(ended.on_event)
+    with pytest.raises(RuntimeNotReady):
+        rt.start_trial(trial_id=1, method="reactive", duration_s=1.0, seed=1)
+    with rt:
+        sub = rt.subscribe(maxsize=4)
+        first = sub.get(5.0)
+        assert first is not None and first.state == "idle"
+        rt.start_trial(trial_id=7, method="reactive", duration_s=1.5, seed=2)
+        assert rt.running_trial_id == 7
+        with pytest.raises(TrialAlreadyRunning):
+            rt.start_trial(trial_id=8, method="proactive", duration_s=1.0, seed=2)
+        with pytest.raises(IngestUnavailable):
+            rt.ingest({"t": 0.0})
+        got_trial_snapshot = False
+        for _ in range(200):
+            s = sub.get(0.1)
+            if s is not None and s.trial_id == 7:
+                got_trial_snapshot = True
+                json.dumps(s.to_json(), allow_nan=False)
+                break
+        assert got_trial_snapshot
+        assert ended.done.wait(30.0), "the trial listener was not called"
+        sub.close()
+    trial_id, metrics, events, status = ended.calls[0]
+    assert (trial_id, status) == (7, "completed")
+    assert metrics.method == "reactive" and metrics.duration_s == pytest.approx(1.5, abs=0.2)
+    kinds = [e.kind for e in events]
+    assert kinds[0] == "trial_started" and kinds[-1] == "trial_ended"
+    assert {tid for tid, _ in ended.events} == {7}
+    assert rt.running_trial_id is None
+
+
+def test_stop_trial_and_estop_abort_and_reset_is_needed(stack: PlanningStack) -> None:
+    ended = _Ended()
+    rt = Runtime(_settings(), stack=stack)
+    rt.add_trial_listener(ended.on_trial)
+    with rt:
+        rt.start_trial(trial_id=1, method="reactive", duration_s=60.0, seed=1)
+        rt.stop_trial(reason="operator")
+        assert ended.done.wait(10.0)
+        assert ended.calls[-1][3] == "aborted"
+        assert ended.calls[-1][2][-1].payload == {"status": "aborted", "reason": "operator"}
+        ended.done.clear()
+        rt.start_trial(trial_id=2, method="proactive", duration_s=60.0, seed=1)
+        rt.estop(source="test")
+        assert ended.done.wait(10.0)
+        trial_id, _, events, status = ended.calls[-1]
+        assert (trial_id, status) == (2, "aborted")
+        assert any(e.kind == "estop" for e in events)
+        assert rt.robot is not None and rt.robot.state().protective_stop
+        assert rt.snapshot().estopped
+        with pytest.raises(RuntimeNotReady, match="E-stop"):
+            rt.start_trial(trial_id=3, method="reactive", duration_s=1.0, seed=1)
+        rt.reset()
+        assert not rt.robot.state().protective_stop
+        rt.start_trial(trial_id=3, method="reactive", duration_s=60.0, seed=1)
+        assert rt.running_trial_id == 3
+    # stop() ended the running trial as aborted and stopped the robot
+    assert ended.calls[-1][0] == 3 and ended.calls[-1][3] == "aborted"
+
+
+def test_ingest_feeds_a_stream_source(stack: PlanningStack) -> None:
+    stream = StreamSource()
+    rt = Runtime(Settings(human_source="stream"), stack=stack, source=stream)
+    with rt:
+        joints = np.tile([1.3, 0.0, 0.5], (NUM_JOINTS, 1))
+        rt.ingest({"format": "canonical", "t": 1.0, "joints": joints.tolist()})
+        assert stream.frame_at(1e9) is not None
+        with pytest.raises(FrameRejected):
+            rt.ingest({"format": "canonical", "t": 2.0, "joints": [[0.0, 0.0]] * 3})
+
+
+def test_headless_trial_is_reproducible_with_fixed_compute_times(stack: PlanningStack) -> None:
+    settings = Settings()
+    kw = dict(settings=settings, method="reactive", duration_s=6.0, seed=5, stack=stack, fixed_compute_s=0.02)
+    a = run_headless_trial(**kw)
+    b = run_headless_trial(**kw)
+    assert a.status == "completed" and a.reason == "duration"
+    assert [(e.t, e.kind) for e in a.events] == [(e.t, e.kind) for e in b.events]
+    assert a.metrics.to_dict() == b.metrics.to_dict()
+    assert a.frames is not None and a.frames.q.shape == (len(a.frames), 6)
+    assert a.frames.skeleton is not None and a.frames.skeleton.shape[1:] == (NUM_JOINTS, 3)
+    assert a.metrics.frames_received >= 170  # 30 Hz for 6 s
+    summary = a.summary()
+    for key in (
+        "completed_tasks",
+        "avg_planning_time_s",
+        "stop_replans_per_task",
+        "online_replans_per_task",
+        "deadline_misses",
+        "min_separation_m",
+        "violations",
+        "sim_speedup",
+    ):
+        assert key in summary
+    json.dumps(summary, allow_nan=False)
+    # the robot left its start pose: the first leg of the task was planned and executed
+    assert not np.allclose(a.frames.q[-1], a.frames.q[0], atol=1e-3)
+
+
+def test_headless_replay_needs_a_clip(stack: PlanningStack, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="clip"):
+        run_headless_trial(
+            settings=Settings(), method="reactive", duration_s=1.0, seed=0, source="replay", stack=stack
+        )
