@@ -105,6 +105,7 @@ def run_headless_trial(
     human: Any | None = None,
     fixed_compute_s: float | None = None,
     observer: Observer | None = None,
+    robot_factory: Callable[[SimClock, np.ndarray], Any] | None = None,
 ) -> TrialResult:
     """Run one trial on the simulated clock and return its metrics, events and frames.
 
@@ -124,8 +125,9 @@ def run_headless_trial(
         human: A ready human source instead of ``source`` (tests).
         fixed_compute_s: Charge this compute time for every backup plan instead of the measured one.
         observer: Called as ``observer(t, engine)`` after each servo tick.
+        robot_factory: ``(clock, q0) -> RobotBackend`` instead of a :class:`SimRobot` (tests).
     """
-    from app.control.robot import SimRobot
+    from app.control.robot import RobotConnectionError, SimRobot
 
     if not duration_s > 0:
         raise ValueError(f"duration_s must be > 0, got {duration_s}")
@@ -146,7 +148,8 @@ def run_headless_trial(
     if method == "proactive" and predictor is None:
         predictor = make_predictor(method, tracking_margin_m=options.tracking_margin_m)
     clock = SimClock(0.0)
-    robot = SimRobot(clock, q0=np.asarray(cell.robot.home_q, dtype=np.float64))
+    q0 = np.asarray(cell.robot.home_q, dtype=np.float64)
+    robot = SimRobot(clock, q0=q0) if robot_factory is None else robot_factory(clock, q0)
     vsource = make_validated_source(human, cell)
     wall0 = time.perf_counter()
     engine = TrialEngine(
@@ -183,8 +186,11 @@ def run_headless_trial(
         if engine.running:
             engine.finish(clock.now(), "completed", "duration")
     finally:
-        robot.stop()
-        robot.close()
+        try:
+            robot.stop()
+            robot.close()
+        except RobotConnectionError as exc:
+            log.warning("robot could not be stopped at the end of the trial: %s", exc)
     wall = time.perf_counter() - wall0
     status, reason = engine.finished or ("aborted", "unknown")
     metrics = engine.metrics()
