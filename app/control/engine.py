@@ -614,6 +614,7 @@ class TrialEngine:
         self._frames_q: list[np.ndarray] = []
         self._frames_sk: list[np.ndarray] = []
         self.decide_s: list[float] = []
+        self.frame_to_decision_s = 0.0
         if predictor is not None and hasattr(predictor, "reset"):
             predictor.reset()
         self._emit_abs(t0, "trial_started", {"method": method, "seed": self.seed})
@@ -644,6 +645,7 @@ class TrialEngine:
         """Read the source at ``t``; a new valid frame goes through the predictor and the supervisor."""
         if self.finished is not None:
             return None
+        c0 = time.perf_counter()
         frame = self.source.poll(t)
         if frame is None:
             return None
@@ -653,6 +655,7 @@ class TrialEngine:
             forecast = HumanForecast.hold(frame, margin_m=self.options.tracking_margin_m)
         decision = self.supervisor.on_frame(frame, forecast, t_now=t)
         self.decide_s.append(decision.decide_s)
+        self.frame_to_decision_s = time.perf_counter() - c0  # validation + prediction + decision
         self.last_decision = decision
         sep = decision.separation_m + self.config.tracking_margin_m
         self.min_separation_m = min(self.min_separation_m, sep)

@@ -1052,13 +1052,11 @@ class Supervisor:
         D = cfg.deadline_s
 
         # 1. the backup request: from pi_curr(T_i + D), or from rest where the robot must start moving
+        # (it is handed to the plan jobs when this frame's decision schedules a switch to it: a backup plan
+        # is consumed by nothing but the switch its own frame schedules, so the others need not run)
         req = None
         if goal is not None and self._brake is None:
             req = self._branch_request(seq, T, goal, forecast, active, tau, s)
-            pend = self._pending
-            waiting = pend is not None and pend.plan_id == active.plan_id and not active.complete
-            if req is not None and not waiting:  # a robot waiting for its start plan needs no other
-                self.jobs.submit(req[0])
 
         # 2. check the plan in execution against the latest forecast (outside the lock: it takes a while)
         moving_plan = active.kind != "hold" and tau < active.traj.t_end
@@ -1197,6 +1195,7 @@ class Supervisor:
     def _schedule(
         self, req: BackupRequest, tau_b: float, active: _Active, reason: SwitchReason, t_v: float | None
     ) -> None:
+        self.jobs.submit(req)
         self._pending = _Pending(
             key=req.key,
             t_switch=req.t_start,
