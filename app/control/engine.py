@@ -707,9 +707,7 @@ class TrialEngine:
             self._stale = stale
             self.supervisor.set_stale(stale, t)
         cmd = self.supervisor.servo(t)
-        if self.supervisor.status().estopped:
-            pass  # the runtime stopped the robot; nothing is commanded until reset
-        else:
+        if not self.supervisor.estopped:  # after an E-stop nothing is commanded until reset
             try:
                 self.robot.servo(cmd.q, cmd.qd, t)
             except RobotConnectionError as exc:

@@ -663,6 +663,7 @@ class SupervisorConfig:
         human_speed_window_s: Window (s) over which the person's speed is measured.
         near_band_m: The person's parts within this much of being the nearest to a robot part count for
             the speed of the person near that part (m).
+        retry_after_s: After a failed plan to start (or resume) moving, the next attempt waits this long (s).
         resume_travel_m: After a stop & replan, the robot counts as under way again (a new encounter can
             stop it again) once it has moved this far (m).
         check_dt_s: Time step of the checks of a plan against a forecast (s).
@@ -683,6 +684,7 @@ class SupervisorConfig:
     tracking_margin_m: float = 0.02
     human_speed_window_s: float = 0.1
     near_band_m: float = 0.25
+    retry_after_s: float = 0.2
     resume_travel_m: float = 0.03
     check_dt_s: float = 0.04
     check_min_scale: float = 0.5
@@ -915,6 +917,7 @@ class Supervisor:
         self._fault = False
         self._stopped_latch = False
         self._moved_since_stop = 0.0
+        self._retry_after = -math.inf
         self._state: SupervisorState = "idle"
         self._recent_decide_s: deque[float] = deque(maxlen=256)
 
@@ -942,6 +945,10 @@ class Supervisor:
     @property
     def state(self) -> SupervisorState:
         return self._state
+
+    @property
+    def estopped(self) -> bool:
+        return self._estop
 
     @property
     def latest_forecast(self) -> HumanForecast | None:
@@ -1124,6 +1131,8 @@ class Supervisor:
                 if goal is None or req is None:
                     return self._done("hold", t_v, sep, c0)
                 if self._pending is not None and self._pending.plan_id == active.plan_id:
+                    return self._done("hold", t_v, sep, c0)
+                if self._retry_after > T:  # the last start/resume plan failed: give the scene time
                     return self._done("hold", t_v, sep, c0)
                 reason_sw: SwitchReason = "start" if active.kind == "hold" else "resume"
                 self._schedule(req[0], req[1], active, reason_sw, None)
@@ -1447,6 +1456,8 @@ class Supervisor:
         self._record_plan(out, t)
         active = self._active
         moving = active.kind != "hold" and active.complete
+        if out.status != "ok" and pend.reason in ("start", "resume"):
+            self._retry_after = t + self.config.retry_after_s
         if out.status != "ok":
             if out.status == "deadline_miss":
                 self.counters.deadline_misses += 1
