@@ -293,7 +293,8 @@ class SafetyMonitor:
         bad_parts = moving & (sep < req)
         bad = bool(bad_parts.any())
         i = int(np.argmax(np.where(bad_parts, req - sep, -np.inf))) if bad else int(np.argmin(sep))
-        sample = MonitorSample(t, float(sep.min()), float(req[i]), float(v_r[i]), float(v_h[i]), bad)
+        sep_i = float(sep[i]) if bad else float(sep.min())
+        sample = MonitorSample(t, sep_i, float(req[i]), float(v_r[i]), float(v_h[i]), bad)
         self.samples += 1
         self.min_separation_m = min(self.min_separation_m, float(sep.min()))
         if moving.any():
@@ -625,6 +626,10 @@ class TrialEngine:
     def _emit_abs(self, t: float, kind: str, payload: dict[str, Any]) -> None:
         if getattr(self, "finished", None) is not None:
             return
+        payload = {  # times in payloads are trial times too
+            k: (v - self.t0 if k in _TIME_KEYS and isinstance(v, (int, float)) else v)
+            for k, v in payload.items()
+        }
         ev = TrialEvent(t=max(float(t) - self.t0, 0.0), kind=kind, payload=_json_safe(payload))
         self.events.append(ev)
         if self.on_event is not None:
@@ -676,7 +681,8 @@ class TrialEngine:
         if not np.any(np.abs(st.qd) > 1e-4):  # at rest: nothing to check (a still robot never violates)
             return
         before = self._older_frame(frame)
-        self.monitor.check(
+        episodes = self.monitor.violation_episodes
+        sample = self.monitor.check(
             t,
             st.q,
             st.qd,
@@ -684,6 +690,16 @@ class TrialEngine:
             None if before is None else before.joints,
             0.0 if before is None else frame.t - before.t,
         )
+        if self.monitor.violation_episodes > episodes:
+            log.error(
+                "safety monitor: separation %.3f m < S_p %.3f m", sample.separation_m, sample.required_m
+            )
+            payload = {
+                "separation_m": sample.separation_m,
+                "required_m": sample.required_m,
+                "speed_mps": sample.robot_speed_mps,
+            }
+            self._emit_abs(t, "violation", payload)
 
     def _older_frame(self, frame: HumanFrame) -> HumanFrame | None:
         prev = self.last_frame if self.last_frame is not frame else self._prev_frame
@@ -808,6 +824,9 @@ def make_validated_source(source: Any, cell: WorkCell) -> ValidatedSource:
     if isinstance(source, ValidatedSource):
         return source
     return ValidatedSource(source, validator=FrameValidator.for_workcell(cell), watchdog=StaleWatchdog(0.1))
+
+
+_TIME_KEYS = frozenset({"t_switch", "violation_t"})
 
 
 def _json_safe(payload: dict[str, Any]) -> dict[str, Any]:

@@ -231,3 +231,34 @@ def test_headless_replay_needs_a_clip(stack: PlanningStack, tmp_path: Path) -> N
         run_headless_trial(
             settings=Settings(), method="reactive", duration_s=1.0, seed=0, source="replay", stack=stack
         )
+
+
+def test_geometry_parts_and_the_safety_monitor(stack: PlanningStack) -> None:
+    from app.control.engine import SafetyMonitor
+
+    geo = stack.geometry
+    q = np.asarray(stack.cell.robot.home_q, dtype=float)
+    qd = np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0])
+    v1 = geo.part_speeds(q, qd)[0]
+    assert v1.shape == (len(stack.collision.robot_radii),)
+    np.testing.assert_allclose(geo.part_speeds(q, 2 * qd)[0], 2 * v1, rtol=1e-3, atol=1e-6)
+    assert not np.any(geo.part_speeds(q, np.zeros(6)))
+    # a person (all joints in a small cluster) 0.5 m beyond the tool, away from the base
+    tcp = stack.kin.fk_tcp(q[None])[0, :3, 3]
+    person = (
+        np.tile(tcp + np.array([-0.5, 0.0, 0.0]), (NUM_JOINTS, 1)) + np.linspace(0, 0.05, NUM_JOINTS)[:, None]
+    )
+    sep = geo.part_separations(q, person[None])[0]
+    assert 0.2 < sep.min() < 0.5
+    sep2, v_h = geo.near_person(q, person, person - np.array([0.03, 0.0, 0.0]), 0.1, band_m=0.2)
+    np.testing.assert_allclose(sep2, sep)
+    assert v_h.max() == pytest.approx(0.3, rel=1e-6)  # 3 cm in 0.1 s
+    mon = SafetyMonitor(stack.collision, stack.ssm)
+    still = mon.check(0.0, q, np.zeros(6), person, person - np.array([0.2, 0.0, 0.0]), 0.1)
+    assert not still.violation  # a robot at rest never violates, however fast the person comes
+    # the person rushes at the moving robot at 2 m/s from 0.3 m: S_p > 0.6 m
+    fast = mon.check(0.1, q, qd, person, person - np.array([0.2, 0.0, 0.0]), 0.1)
+    assert fast.violation and fast.required_m > fast.separation_m
+    assert mon.violation_episodes == 1 and mon.worst is not None
+    slow_far = mon.check(0.2, q, 0.01 * qd, person - np.array([1.5, 0.0, 0.0]), None, 0.0)
+    assert not slow_far.violation
