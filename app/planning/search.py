@@ -231,79 +231,58 @@ def _profile(
     return dur, u_end, peak
 
 
-def _profile_fraction(
-    tau: np.ndarray, u0: np.ndarray, L: np.ndarray, h: np.ndarray, f: float, A: float, end_rest: np.ndarray
-) -> np.ndarray:
-    """Fraction (0..1) of a move's path covered ``tau`` seconds after its start (the model of _profile).
+def _profile_samples(
+    s: np.ndarray,
+    s_prev: np.ndarray,
+    u0: np.ndarray,
+    L: np.ndarray,
+    dur: np.ndarray,
+    f: np.ndarray,
+    A: float,
+    end_rest: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Path fraction (0..1) covered at profile time ``s`` and the largest path speed over ``[s_prev, s]``
+    (fraction of full speed) of moves timed by :func:`_profile` (one entry per sample, ``u0 <= f``).
 
-    ``h`` is the move's actual duration (longer than the profile's when clamped to ``min_edge_s``: the
-    profile is then stretched uniformly). All arguments are arrays of the same shape (one entry per sample).
+    The profile accelerates at ``A`` from ``u0`` to the cruise speed ``f``; a move that ends at rest brakes
+    at ``A`` to stop at ``dur`` (or, when it cannot, uniformly from ``u0``). Its path speed is unimodal, so
+    the largest speed over an interval is the speed at the interval's point nearest the peak.
     """
-    dur, _, _ = _profile(u0, L, f, A, end_rest)
-    s = tau * np.where(h > 0, dur / np.maximum(h, 1e-12), 1.0)  # time on the profile's own clock
-    u0c = np.minimum(u0, f)
-    t1 = (f - u0c) / A
-    pos = np.where(s <= t1, (u0c + 0.5 * A * s) * s, (u0c + 0.5 * A * t1) * t1 + f * (s - t1))
+    t1 = (f - u0) / A  # end of the acceleration toward the cruise speed
+    pos = np.where(s <= t1, (u0 + 0.5 * A * s) * s, (u0 + 0.5 * A * t1) * t1 + f * (s - t1))
+    speed = np.minimum(u0 + A * s, f)  # increasing: the largest at the interval's end
     if end_rest.any():
-        idx = np.flatnonzero(end_rest)
-        ue, Le, se, de = u0c[idx], L[idx], s[idx], dur[idx]
-        up = np.minimum(f, np.sqrt((2.0 * A * Le + ue * ue) / 2.0))
-        can = ue * ue <= 2.0 * A * Le
-        ta = (up - ue) / A
-        rem = de - se
+        up = np.minimum(f, np.sqrt((2.0 * A * L + u0 * u0) / 2.0))
+        can = u0 * u0 <= 2.0 * A * L
+        ta = (up - u0) / A
+        rem = dur - s
         p_rest = np.where(
-            se <= ta,
-            (ue + 0.5 * A * se) * se,
-            np.where(rem <= up / A, Le - 0.5 * A * rem * rem, (ue + 0.5 * A * ta) * ta + up * (se - ta)),
+            s <= ta,
+            (u0 + 0.5 * A * s) * s,
+            np.where(rem <= up / A, L - 0.5 * A * rem * rem, (u0 + 0.5 * A * ta) * ta + up * (s - ta)),
         )
-        a_forced = ue / np.maximum(de, 1e-12)
-        pos[idx] = np.where(can, p_rest, ue * se - 0.5 * a_forced * se * se)
-    return np.minimum(np.maximum(np.where(L > 1e-12, pos / np.maximum(L, 1e-12), 1.0), 0.0), 1.0)
-
-
-def _person_parts(model: RobotModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Body parts for the broad phase: joint groups whose bounding boxes contain whole person capsules.
-
-    Returns ``(part_of_joint (P, J) bool, caps_flat (C,), caps_start (P + 1,))``: which joints bound each
-    part, and for part p the person capsules ``caps_flat[caps_start[p]:caps_start[p + 1]]`` it contains.
-    Parts: torso with head, shoulders and hips; each arm; each leg (every capsule has both ends in one).
-    """
-    from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS
-
-    groups = (
-        ("pelvis", "spine", "chest", "neck", "head", "l_shoulder", "r_shoulder", "l_hip", "r_hip"),
-        ("l_shoulder", "l_elbow", "l_wrist", "l_hand"),
-        ("r_shoulder", "r_elbow", "r_wrist", "r_hand"),
-        ("l_hip", "l_knee", "l_ankle"),
-        ("r_hip", "r_knee", "r_ankle"),
-    )
-    member = np.zeros((len(groups), NUM_JOINTS), dtype=bool)
-    for p, g in enumerate(groups):
-        member[p, [JOINT_INDEX[n] for n in g]] = True
-    # which joints each person capsule runs between: feed joint indices as coordinates
-    coded = np.repeat(np.arange(NUM_JOINTS, dtype=np.float64)[None, :, None], 3, axis=2)
-    ha, hb, _ = model.human_capsules(coded)
-    ja, jb = ha[0, :, 0].astype(np.int64), hb[0, :, 0].astype(np.int64)
-    caps: list[list[int]] = [[] for _ in groups]
-    for m, (x, y) in enumerate(zip(ja.tolist(), jb.tolist(), strict=True)):
-        p = next((p for p in range(len(groups)) if member[p, x] and member[p, y]), None)
-        if p is None:
-            raise ValueError(f"person capsule {m} (joints {x}-{y}) is not inside one body part")
-        caps[p].append(m)
-    start = np.cumsum([0] + [len(c) for c in caps])
-    return member, np.array([m for c in caps for m in c], dtype=np.int64), start
+        a_forced = u0 / np.maximum(dur, 1e-12)
+        p_forced = u0 * s - 0.5 * a_forced * s * s
+        # speed: up (plateau or apex) from ta on, braking over the last up / A seconds
+        sp = np.minimum(np.minimum(u0 + A * np.minimum(s, ta), up), A * (dur - s_prev))
+        sp_forced = np.maximum(u0 - a_forced * s_prev, 0.0)  # decreasing: largest at the start
+        pos = np.where(end_rest, np.where(can, p_rest, p_forced), pos)
+        speed = np.where(end_rest, np.where(can, sp, sp_forced), speed)
+    frac = np.where(L > 1e-12, pos / np.maximum(L, 1e-12), 1.0)
+    return np.minimum(np.maximum(frac, 0.0), 1.0), speed
 
 
 class _Separation:
     """Pass/fail of robot samples (and whole moves) against a forecast person.
 
-    Three conservative stages: (0) a whole move: one sphere per robot capsule that contains it during the move
-    against the body-part boxes over the move's time window; (1) each sample: a sphere per robot capsule
-    (known without forward kinematics, see :meth:`Planner._moves_ok`) against the part boxes at that time;
-    (2) for the (sample, robot capsule, part) triples still close, the exact distance between the robot
-    capsule and each person capsule of the part (:func:`app.planning.collision.segment_distance`). The part
-    boxes are precomputed at the forecast's own samples (a pose between two samples is a blend of them, so
-    it lies in the union of their boxes; beyond the horizon the last pose is held).
+    Two stages, the first conservative: (0/1) a sphere per robot capsule (for a whole move one that contains
+    the capsule during the move, see :meth:`Planner._moves_ok`; for a sample one known without forward
+    kinematics) against a box that contains the whole person over the time window; (2) for the samples still
+    close, the exact minimum surface distance robot-person
+    (:meth:`app.planning.collision.CollisionModel.distance_to_human_paired`) against the pose interpolated
+    at the sample's time. The boxes are precomputed once per query at the forecast's own samples (a pose
+    between two samples is a blend of them, so it lies in the union of their boxes; beyond the horizon the
+    last pose is held), with a sparse table for unions over longer windows.
     """
 
     def __init__(
@@ -311,7 +290,6 @@ class _Separation:
         model: RobotModel,
         forecast: HumanForecast | None,
         ssm: SSMParams,
-        parts: tuple[np.ndarray, np.ndarray, np.ndarray],
         *,
         extra_m: float,
         offsets: tuple[float, ...] = (0.0,),
@@ -320,26 +298,18 @@ class _Separation:
         self.model = model
         self.forecast = forecast
         self.ssm = ssm
-        self.member, self.caps_flat, self.caps_start = parts
         self.extra_m = extra_m
         self.offsets = offsets
         self.floor_m = floor_m
         self.samples = 0
-        self.exact_pairs = 0
+        self.exact_samples = 0
         if forecast is None:
             return
         joints = forecast.joints  # (H, J, 3)
-        self._human_r = np.asarray(model.human_capsules(joints[:1])[2], dtype=np.float64)
-        P = self.member.shape[0]
-        part_r = np.array(
-            [
-                self._human_r[self.caps_flat[self.caps_start[p] : self.caps_start[p + 1]]].max(initial=0.0)
-                for p in range(P)
-            ]
-        )
-        m4 = self.member[None, :, :, None]
-        lo = np.where(m4, joints[:, None], np.inf).min(axis=2) - part_r[:, None]  # (H, P, 3)
-        hi = np.where(m4, joints[:, None], -np.inf).max(axis=2) + part_r[:, None]
+        r_max = float(np.max(model.human_capsules(joints[:1])[2]))
+        lo = joints.min(axis=1) - r_max  # (H, 3): every capsule of the pose lies inside
+        # the margin rides along as a 4th column of the upper table (unions take its maximum)
+        hi = np.concatenate([joints.max(axis=1) + r_max, forecast.margins[:, None]], axis=1)
         # sparse table of unions over index ranges [i, i + 2^k)
         self._lo_tab, self._hi_tab = [lo], [hi]
         k = 1
@@ -350,24 +320,30 @@ class _Separation:
             self._hi_tab.append(np.maximum(phi[:-half], phi[half:]))
             k += 1
         self._times = forecast.times
+        self._H = forecast.times.shape[0]
+        self._joints = joints
+        self._djoints = np.diff(joints, axis=0)
+        self._dtimes = np.diff(forecast.times)
+        self._margin_arr = forecast.margins
         self._cap = max(forecast.max_margin_m, float(forecast.margins.max()))
         # boxes around two consecutive samples (a sample's own box when there is only one)
         self._lo_pair = self._lo_tab[1] if len(self._lo_tab) > 1 else lo
         self._hi_pair = self._hi_tab[1] if len(self._hi_tab) > 1 else hi
+        self._n_pair = self._lo_pair.shape[0]
 
     def _boxes(self, t0: np.ndarray, t1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Part boxes (n, P, 3) x 2 that contain the person over each window [t0, t1] (t0 <= t1)."""
+        """Boxes that contain the person over each window [t0, t1] (t0 <= t1): lower corners (n, 3) and
+        upper corners with the largest forecast margin at the samples of the window appended (n, 4)."""
         times = self._times
-        H = times.shape[0]
+        H = self._H
         i0 = np.minimum(np.maximum(np.searchsorted(times, t0, side="right") - 1, 0), H - 1)
-        i1 = np.minimum(np.searchsorted(times, t1, side="left"), H - 1)
-        i1 = np.maximum(i1, i0)
-        span = i1 - i0 + 1
-        k = np.floor(np.log2(span)).astype(np.int64)
-        lo = np.empty((t0.shape[0], *self._lo_tab[0].shape[1:]))
-        hi = np.empty_like(lo)
-        for kk in np.unique(k).tolist():
-            sel = np.flatnonzero(k == kk)
+        i1 = np.maximum(np.minimum(np.searchsorted(times, t1, side="left"), H - 1), i0)
+        k = np.floor(np.log2(i1 - i0 + 1)).astype(np.int64)
+        lo = np.empty((t0.shape[0], 3))
+        hi = np.empty((t0.shape[0], 4))
+        uk = np.unique(k)
+        for kk in uk.tolist():
+            sel = slice(None) if uk.size == 1 else np.flatnonzero(k == kk)
             a, b = i0[sel], i1[sel] - (1 << kk) + 1
             lo[sel] = np.minimum(self._lo_tab[kk][a], self._lo_tab[kk][b])
             hi[sel] = np.maximum(self._hi_tab[kk][a], self._hi_tab[kk][b])
@@ -377,14 +353,24 @@ class _Separation:
         """The forecast's margins at times ``t`` (as :meth:`HumanForecast.poses_at`, without the poses)."""
         fc = self.forecast
         assert fc is not None
-        m = np.interp(t, fc.times, fc.margins)
+        m = np.interp(t, self._times, self._margin_arr)
         if fc.growth_mps > 0.0:
-            m = np.minimum(m + fc.growth_mps * np.maximum(t - fc.times[-1], 0.0), self._cap)
+            m = np.minimum(m + fc.growth_mps * np.maximum(t - self._times[-1], 0.0), self._cap)
         return m
 
     def _required(self, v: np.ndarray, t: np.ndarray) -> np.ndarray:
         req = forecast_clearance(v, self._margins(t), self.ssm) + self.extra_m
         return req if self.floor_m is None else np.minimum(req, self.floor_m)
+
+    def _poses(self, t: np.ndarray) -> np.ndarray:
+        """Poses (n, J, 3) at times ``t`` (n,): :meth:`HumanForecast.poses_at`'s interpolation."""
+        if self._H == 1:
+            return np.broadcast_to(self._joints, (t.shape[0], *self._joints.shape[1:]))
+        times = self._times
+        tc = np.minimum(np.maximum(t, times[0]), times[-1])
+        i0 = np.minimum(np.searchsorted(times, tc, side="right"), self._H - 1) - 1
+        w = (tc - times[i0]) / self._dtimes[i0]
+        return self._joints[i0] + w[:, None, None] * self._djoints[i0]
 
     def near_moves(
         self, cen: np.ndarray, rad: np.ndarray, t0: np.ndarray, t1: np.ndarray, v: np.ndarray
@@ -398,12 +384,16 @@ class _Separation:
             return np.zeros(M, dtype=bool)
         lo_off, hi_off = min(self.offsets), max(self.offsets)
         lo, hi = self._boxes(t0 + lo_off, t1 + hi_off)
-        # the margin only grows with time: the window's end needs the most
-        req = np.maximum(self._required(v, t1 + hi_off), self._required(np.zeros(M), t0 + lo_off))
-        c = cen[:, :, None, :]
-        g = np.maximum(np.maximum(lo[:, None] - c, c - hi[:, None]), 0.0)  # (M, L, P, 3)
-        gap = np.sqrt(np.einsum("mlpk,mlpk->mlp", g, g)) - rad[:, :, None]
-        return (gap < req[:, None, None]).any(axis=(1, 2))
+        # the largest requirement over the window: its largest margin (at a forecast sample inside it, at
+        # either end, or grown beyond the horizon at its end)
+        m_hi = np.maximum(hi[:, 3], np.maximum(self._margins(t0 + lo_off), self._margins(t1 + hi_off)))
+        hi = hi[:, :3]
+        req = forecast_clearance(v, m_hi, self.ssm) + self.extra_m
+        if self.floor_m is not None:
+            req = np.minimum(req, self.floor_m)
+        g = np.maximum(np.maximum(lo[:, None] - cen, cen - hi[:, None]), 0.0)  # (M, L, 3)
+        gap = np.sqrt(np.einsum("mlk,mlk->ml", g, g)) - rad
+        return (gap < req[:, None]).any(axis=1)
 
     def check(
         self,
@@ -433,52 +423,19 @@ class _Separation:
         req = self._required(v, t)
         n = q.shape[0]
         self.samples += n
-        hr = self._human_r
-        if cen is not None and rad is not None:
-            i = np.searchsorted(self._times, t, side="right") - 1
-            np.maximum(i, 0, out=i)
-            np.minimum(i, self._lo_pair.shape[0] - 1, out=i)
-            lo, hi = self._lo_pair[i], self._hi_pair[i]
-            c = cen[:, :, None, :]  # (n, L, 1, 3)
-            g = np.maximum(np.maximum(lo[:, None] - c, c - hi[:, None]), 0.0)  # (n, L, P, 3)
-            gap = np.sqrt(np.einsum("nlpk,nlpk->nlp", g, g)) - rad[:, :, None]
-            si, li, pi = np.nonzero(gap < req[:, None, None])
-        else:
-            si = li = pi = None
         ok = np.ones(n, dtype=bool)
-        if si is not None and si.size == 0:
-            return ok.reshape(n_off, S).all(axis=0) if n_off > 1 else ok
-        from app.planning.collision import segment_distance
-
-        us, inv = np.unique(np.arange(n) if si is None else si, return_inverse=True)
-        joints, _ = self.forecast.poses_at(t[us])
-        ra, rb, rr = self.model.robot_capsules(q[us])
-        ha, hb, _ = self.model.human_capsules(joints)
-        if si is None:  # every (capsule, person capsule) pair
-            L, M = ra.shape[1], ha.shape[1]
-            k = np.repeat(np.arange(us.size), L * M)
-            lk = np.tile(np.repeat(np.arange(L), M), us.size)
-            mk = np.tile(np.arange(M), us.size * L)
+        if cen is not None and rad is not None:
+            i = np.minimum(np.maximum(np.searchsorted(self._times, t, side="right") - 1, 0), self._n_pair - 1)
+            lo, hi = self._lo_pair[i][:, None], self._hi_pair[i][:, None, :3]
+            g = np.maximum(np.maximum(lo - cen, cen - hi), 0.0)  # (n, L, 3)
+            gap = np.sqrt(np.einsum("nlk,nlk->nl", g, g)) - rad
+            near = np.flatnonzero((gap < req[:, None]).any(axis=1))
         else:
-            cnt = np.diff(self.caps_start)[pi]
-            k = np.repeat(inv, cnt)
-            lk = np.repeat(li, cnt)
-            first = np.repeat(self.caps_start[pi] - (np.cumsum(cnt) - cnt), cnt)
-            mk = self.caps_flat[first + np.arange(int(cnt.sum()))]
-        # bounding spheres of the exact robot capsules and of the person capsules first
-        rc = 0.5 * (ra + rb)
-        rrho = 0.5 * np.linalg.norm(rb - ra, axis=-1) + rr
-        hc = 0.5 * (ha + hb)
-        hrho = 0.5 * np.linalg.norm(hb - ha, axis=-1) + hr
-        dc = rc[k, lk] - hc[k, mk]
-        gap = np.sqrt(np.einsum("ij,ij->i", dc, dc)) - rrho[k, lk] - hrho[k, mk]
-        near = np.flatnonzero(gap < req[us[k]])
-        k, lk, mk = k[near], lk[near], mk[near]
-        self.exact_pairs += k.size
-        if k.size:
-            d = segment_distance(ra[k, lk], rb[k, lk], ha[k, mk], hb[k, mk]) - rr[lk] - hr[mk]
-            bad = d < req[us[k]]
-            ok[us[k[bad]]] = False
+            near = np.arange(n)
+        if near.size:
+            self.exact_samples += near.size
+            d = self.model.distance_to_human_paired(q[near], self._poses(t[near]))
+            ok[near] = d >= req[near]
         return ok.reshape(n_off, S).all(axis=0) if n_off > 1 else ok
 
 
@@ -527,7 +484,6 @@ class Planner:
         self._A = float(np.min(self.qdd_max / self.qd_max)) * cfg.accel_fraction
         self._ik = roadmap.ik
         self._valid = roadmap.valid
-        self._parts = _person_parts(collision)
         N = roadmap.num_nodes
         pts, cen, rad = self._points_and_spheres(roadmap.ik.reshape(-1, 6))
         self._pts_all = pts.reshape(N, NUM_BRANCHES, -1, 3)
@@ -541,9 +497,8 @@ class Planner:
         self._static_boxes = self._static_box_bounds()
         self._rev_graph = self._reverse_move_graph()
         self._h_cache: dict[int, np.ndarray] = {}
-        self._h_lists: dict[int, list[list[float]]] = {}
+        self._next_cache: dict[int, list[int]] = {}
         self._static_memo: dict[tuple[int, int, int, int], int] = {}
-        self._succ_memo: dict[int, list[tuple[int, list[tuple[int, float, bool]]]]] = {}
         for node in roadmap.station_nodes.values():
             if self._valid[node].any():
                 self._heuristic_table(node)
@@ -595,6 +550,17 @@ class Planner:
             same &= self._valid[u][:, :, None]
             self._same_tab[c0:c1] = same
         self._L_tab.setflags(write=False)
+        # the same tables with one row per (CSR entry, parent branch): row = e * 8 + b
+        self._ord_flat = self._ord_tab.reshape(E * NUM_BRANCHES, R).astype(np.int64)
+        self._L_flat = self._L_tab.reshape(E * NUM_BRANCHES, R)
+        self._same_flat = self._same_tab.reshape(E * NUM_BRANCHES, R)
+        self._indptr = rm.indptr
+        self._indices = rm.indices
+        self._src_state = (src[:, None] * NUM_BRANCHES + np.arange(NUM_BRANCHES)).reshape(-1)
+        self._ord_list = self._ord_flat[:, 0].tolist()
+        self._L_list = self._L_flat[:, 0].tolist()
+        self._same_list = self._same_flat[:, 0].tolist()
+        self._indices_list = rm.indices.tolist()
 
     def _static_box_bounds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """World-axis bounds (B, 3) x 2 of the static boxes and the (link, box) pairs that count, if known."""
@@ -721,8 +687,25 @@ class Planner:
             tab = np.maximum(straight, self._static_to_go(goal)).reshape(-1, NUM_BRANCHES)
             tab.setflags(write=False)
             self._h_cache[goal] = tab
-            self._h_lists[goal] = tab.tolist()
+            self._next_cache[goal] = self._next_rows(tab)
         return tab
+
+    def _next_rows(self, h: np.ndarray) -> list[int]:
+        """Per node branch (index ``node * 8 + branch``), the option-table row of the move a search would
+        try first that is best by ``L / cruise + h`` (the next step of the static shortest path through the
+        nearest-branch moves), or -1: the speculative chain (:meth:`_Run.speculate`) follows it."""
+        rows = np.arange(self._L_flat.shape[0])
+        src = self._src_state
+        cost = (
+            self._L_flat[:, 0] / self.config.speed_fraction
+            + h.reshape(-1)[self._indices[rows // NUM_BRANCHES] * NUM_BRANCHES + self._ord_flat[:, 0]]
+        )
+        order = np.lexsort((cost, src))
+        first = order[np.r_[True, src[order][1:] != src[order][:-1]]]
+        first = first[np.isfinite(cost[first])]
+        out = np.full(self.roadmap.num_nodes * NUM_BRANCHES, -1, dtype=np.int64)
+        out[src[first]] = first
+        return out.tolist()
 
     def _reverse_move_graph(self) -> csr_matrix:
         """The search's moves (node, branch) -> (node, branch) as a sparse matrix of the *reversed* graph:
@@ -771,7 +754,6 @@ class Planner:
             self.collision,
             forecast,
             self.config.ssm,
-            self._parts,
             extra_m=extra_m,
             offsets=offsets,
             floor_m=floor_m,
@@ -1012,27 +994,6 @@ class Planner:
         return traj.to_plan(_map_nodes(waypoints, traj)), traj
 
     # ------------------------------------------------------------------------------------------ search
-    def _succ(self, u: int, b: int) -> list[tuple[int, list[tuple[int, float, bool]]]]:
-        """Successors of node ``u`` at branch ``b``: (node, [(branch, length, roadmap-checked)] nearest
-        first, at most ``max_branch_tries``), from the precomputed tables; memoised per planner."""
-        key = u * NUM_BRANCHES + b
-        got = self._succ_memo.get(key)
-        if got is None:
-            rm = self.roadmap
-            a, z = int(rm.indptr[u]), int(rm.indptr[u + 1])
-            order = self._ord_tab[a:z, b].tolist()
-            length = self._L_tab[a:z, b].astype(np.float64).tolist()
-            same = self._same_tab[a:z, b].tolist()
-            got = []
-            for i, v in enumerate(rm.indices[a:z].tolist()):
-                opts = [
-                    (o, ln, s) for o, ln, s in zip(order[i], length[i], same[i], strict=True) if ln < math.inf
-                ]
-                if opts:
-                    got.append((v, opts))
-            self._succ_memo[key] = got
-        return got
-
     def _search(
         self,
         q_start: np.ndarray,
@@ -1047,81 +1008,125 @@ class Planner:
     ) -> tuple[Plan | None, int, str]:
         """Lazy time-variant A*. Returns (waypoints or None, validated expansions, reason).
 
-        Successor moves are generated in plain Python from the precomputed tables and pushed unchecked,
-        timed by the path-speed profile; a move is checked (static scene where the roadmap did not check it,
-        forecast person, wait, goal hold) only when its state is popped, ``workers`` states at a time in one
-        vectorised check. A failed move pushes its alternatives: the next branches, the slower speeds, the
-        waits. The f-values of unchecked states are their times + the heuristic, so the order and the
-        result are those of A* over the checked moves.
+        Successor moves are generated for whole batches of states at once from the precomputed tables and
+        pushed unchecked, timed by the path-speed profile; a move is checked (static scene where the roadmap
+        did not check it, forecast person, wait, goal hold) only when its state is popped, ``workers``
+        states at a time in one vectorised check. A failed move pushes its alternatives: the next branches,
+        the slower speeds, the waits. The f-values of unchecked states are their times + the heuristic, so
+        the order and the result are those of A* over the checked moves.
         """
         cfg = self.config
-        N = self.roadmap.num_nodes
-        f = cfg.speed_fraction
         W = max(int(workers), 1)
-        run = _Run(self, q_start, t_start, sep, goal=goal, stop_time=stop_time, hold_s=hold_s)
-        if goal is not None:
-            self._heuristic_table(goal)
-        h_tab = None if goal is None else self._h_lists[goal]
-
-        w_h = cfg.heuristic_weight
-
-        def heur(node: int, branch: int, t: float) -> float:
-            if stop_time is not None:
-                return max(stop_time - t, 0.0)
-            return 0.0 if h_tab is None else w_h * h_tab[node][branch]
-
-        # the latest arrival after which the person blocks the goal for good (an admissible prune: with a
-        # heuristic weight w > 1 the pushed key t + w h >= t + h, so compare t + h itself)
+        h_tab = None if goal is None else self._heuristic_table(goal)
+        # the latest arrival after which the person blocks the goal for good
         t_last = math.inf if goal is None else self._latest_goal_arrival(sep, goal, t_start, hold_s)
         t_last = min(t_last, t_start + cfg.max_plan_s)
-        AT = [math.inf] * N
+        run = _Run(
+            self,
+            q_start,
+            t_start,
+            sep,
+            goal=goal,
+            stop_time=stop_time,
+            hold_s=hold_s,
+            h_tab=h_tab,
+            t_last=t_last,
+        )
+        run.row[0] = _NO_ROW
+        AT = run.AT
         heap: list[tuple[float, float, int]] = []
 
-        def push(sid: int) -> None:
-            t = run.t[sid]
-            hv = heur(run.node[sid], run.branch[sid], t)
-            if t + hv / w_h <= t_last:
-                heapq.heappush(heap, (t + hv, -t, sid))
+        def push(got: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+            ids, keys, ts = got
+            for item in zip(keys.tolist(), (-ts).tolist(), ids.tolist(), strict=True):
+                heapq.heappush(heap, item)
 
-        for sid in run.start_options():
-            push(sid)
+        push(run.start_moves())
+        goal_i = -2 if goal is None else goal
+        stop = math.inf if stop_time is None else stop_time
+        # lookahead: the best popped state of a batch takes a chain of moves ahead along the static
+        # shortest path into the same batch (the batch's other slots go to the next states in order)
+        spec_len = W // 2 if goal is not None and W > 1 else 0
         expanded = 0
+
+        # states popped before their (speculative) parent was accepted wait here for it
+        deferred: dict[int, list[tuple[float, float, int]]] = {}
+
+        def accept(sid: int, t: float, node: int) -> bool:
+            """Mark a checked state expanded; True when it ends the search."""
+            nonlocal expanded
+            AT[node] = t
+            run.accepted[sid] = True
+            expanded += 1
+            if node == goal_i or t >= stop:
+                return True
+            for entry in deferred.pop(sid, ()):
+                heapq.heappush(heap, entry)
+            return False
+
         while heap:
             if deadline is not None and self._timer() > deadline:
                 return None, expanded, "deadline"
             if expanded >= cfg.max_expansions:
                 return None, expanded, f"no plan within {cfg.max_expansions} expansions"
             batch: list[int] = []
+            popped: list[int] = []
             while heap and len(batch) < W:
                 entry = heapq.heappop(heap)
                 sid = entry[2]
-                node = run.node[sid]
-                if run.t[sid] >= AT[node] - _EPS_T:
+                node = int(run.node[sid])
+                t = -entry[1]
+                if t >= AT[node] - _EPS_T:
                     continue  # a checked state reached this node no later
-                final = (node == goal) or (stop_time is not None and run.t[sid] >= stop_time)
+                par = int(run.parent[sid])
+                if not run.accepted[par]:  # a speculative chain's state whose parent is not through yet
+                    if run.status[par] != 2:
+                        deferred.setdefault(par, []).append(entry)
+                    continue
+                final = node == goal_i or t >= stop
                 if final and batch:  # states popped before it (f <= its f) may still improve it
                     heapq.heappush(heap, entry)
                     break
+                st = int(run.status[sid])
+                if st == 1:  # checked ahead of time (a speculative chain): passed
+                    if accept(sid, t, node):
+                        return run.reconstruct(sid), expanded, "ok"
+                    push(run.children(np.array([sid], dtype=np.int64)))
+                    continue
+                if st == 2:
+                    for got in run.alternatives(np.array([sid], dtype=np.int64)):
+                        push(got)
+                    continue
                 batch.append(sid)
+                popped.append(sid)
                 if final:
                     break
+                if len(popped) == 1 and spec_len:
+                    chain = run.speculate(sid, min(spec_len, W - 1))
+                    push(chain)
+                    batch.extend(chain[0].tolist())
             if not batch:
-                break
-            ok = run.check(batch)
-            for sid, good in zip(batch, ok, strict=True):
-                node = run.node[sid]
-                if not good:
-                    for alt in run.alternatives(sid, AT):
-                        push(alt)
+                continue
+            run.check(np.array(batch, dtype=np.int64))
+            # the popped states now (the chains wait in the heap for their turn)
+            expand: list[int] = []
+            failed: list[int] = []
+            for sid in popped:
+                if run.status[sid] != 1:
+                    failed.append(sid)
                     continue
-                if run.t[sid] >= AT[node] - _EPS_T:
+                node = int(run.node[sid])
+                t = float(run.t[sid])
+                if t >= AT[node] - _EPS_T:
                     continue
-                AT[node] = run.t[sid]
-                expanded += 1
-                if node == goal or (stop_time is not None and run.t[sid] >= stop_time):
+                if accept(sid, t, node):
                     return run.reconstruct(sid), expanded, "ok"
-                for child in run.children(sid, AT, f):
-                    push(child)
+                expand.append(sid)
+            if failed:
+                for got in run.alternatives(np.array(failed, dtype=np.int64)):
+                    push(got)
+            if expand:
+                push(run.children(np.array(expand, dtype=np.int64)))
         if goal is not None and t_last < t_start + cfg.max_plan_s and not expanded:
             if t_last < t_start:
                 return None, expanded, "goal blocked by the person for good"
@@ -1182,7 +1187,6 @@ class Planner:
         u0: np.ndarray,
         L: np.ndarray,
         end_rest: np.ndarray,
-        peak: np.ndarray,
         f: np.ndarray,
         hold: np.ndarray,
         hold_s: float,
@@ -1190,22 +1194,29 @@ class Planner:
         """Check moves (and the hold at their end where ``hold``) against the forecast; boolean (M,).
 
         Per move: the start configuration ``q_a`` with its capsule points/spheres, the target roadmap node
-        ``cv`` at branch ``b`` (configuration ``target``), departure, duration, entry speed, length, whether
-        it ends at rest, its peak path speed and its cruise speed ``f``.
+        ``cv`` at branch ``b`` (configuration ``target``), departure, duration, entry speed (``<= f``),
+        length, whether it ends at rest and its cruise speed ``f``.
+
+        The robot speed of a sample (for ``S_r + S_s``) is the largest speed the path-speed profile reaches
+        between the previous sample and this one, turned into m/s with the move's largest chord (the
+        furthest any capsule point travels between the two configurations) per unit of path, times
+        ``speed_factor`` (arcs are longer than chords); the hold after a move is at rest.
         """
         M = q_a.shape[0]
         if sep.forecast is None or M == 0:
             return np.ones(M, dtype=bool)
         cfg = self.config
+        A = self._A
         dq = target - q_a
         cum = np.concatenate([np.zeros((M, 1)), np.cumsum(np.abs(dq) * self._lever, axis=1)], axis=1)
         travel = cum[:, self._moved_by]  # (M, L): how far joints 1..J(l) can carry capsule l
         cen_b, rad_b = self._cen_all[cv, b], self._rad_all[cv, b]
-        # robot speed for S_r + S_s: the largest chord speed of the capsule points, average -> peak, x factor
         chord = np.max(np.linalg.norm(self._pts_all[cv, b] - pts_a, axis=-1), axis=-1)
-        Ls = np.maximum(L, 1e-12)
-        ratio = np.where(L > 1e-12, np.maximum(peak * h / Ls, 1.0), 1.0)
-        v_move = np.where(h > 0, chord / np.maximum(h, 1e-12) * ratio, 0.0) * cfg.speed_factor
+        dur, _, peak = _profile_arrays(u0, L, f, A, end_rest)
+        moving = L > 1e-12
+        clock = np.where(h > 0, dur / np.maximum(h, 1e-12), 1.0)  # profile seconds per real second
+        # m/s per unit of path speed
+        kv = np.where(moving, cfg.speed_factor * chord * clock / np.maximum(L, 1e-12), 0.0)
         # stage 0: moves far from the person over their whole time window pass without samples; a capsule
         # point is within frac * T of its start and (1 - frac) * T of its end, so within
         # T / 2 + (rho_a + rho_b) / 2 of the middle of the two sphere centres
@@ -1214,84 +1225,51 @@ class Planner:
             0.5 * (rad_a + rad_b + travel),
             t_dep,
             t_dep + h + np.where(hold, hold_s, 0.0),
-            v_move,
+            kv * peak,
         )
         result = np.ones(M, dtype=bool)
         if not near.any():
             return result
-        sel = np.flatnonzero(near)
-        (
-            q_a,
-            pts_a,
-            cen_a,
-            rad_a,
-            cv,
-            b,
-            target,
-            t_dep,
-            h,
-            u0,
-            L,
-            end_rest,
-            peak,
-            f,
-            hold,
-            dq,
-            travel,
-            cen_b,
-            rad_b,
-            v_move,
-        ) = (
-            x[sel]
-            for x in (
-                q_a,
-                pts_a,
-                cen_a,
-                rad_a,
-                cv,
-                b,
-                target,
-                t_dep,
-                h,
-                u0,
-                L,
-                end_rest,
-                peak,
-                f,
-                hold,
-                dq,
-                travel,
-                cen_b,
-                rad_b,
-                v_move,
+        if not near.all():
+            sel = np.flatnonzero(near)
+            q_a, cen_a, rad_a, cen_b, rad_b, t_dep, h, u0, L, end_rest, f, hold, dq, travel = (
+                x[sel]
+                for x in (q_a, cen_a, rad_a, cen_b, rad_b, t_dep, h, u0, L, end_rest, f, hold, dq, travel)
             )
-        )
-        M = sel.size
+            dur, clock, kv = dur[sel], clock[sel], kv[sel]
+        else:
+            sel = slice(None)
+        M = q_a.shape[0]
         # samples: the move every sample_dt_s (its end included), then the hold
         n = np.maximum(np.ceil(h / cfg.sample_dt_s - 1e-9), 1).astype(np.int64)
         n_hold_1 = max(math.ceil(hold_s / cfg.sample_dt_s - 1e-9), 0)
-        n_hold = np.where(hold, n_hold_1, 0)
-        tot = n + n_hold
+        tot = n + np.where(hold, n_hold_1, 0)
         owner = np.repeat(np.arange(M), tot)
         i = np.arange(owner.shape[0]) - np.repeat(np.cumsum(tot) - tot, tot) + 1
         n_o, h_o = n[owner], h[owner]
         in_move = i <= n_o
-        tau = np.where(in_move, i / n_o * h_o, h_o)
-        frac = np.empty(owner.shape[0])
-        for fv in np.unique(f).tolist():
-            grp = f[owner] == fv
-            frac[grp] = _profile_fraction(
-                tau[grp], u0[owner][grp], L[owner][grp], h_o[grp], fv, self._A, end_rest[owner][grp]
-            )
+        tau = np.where(in_move, i / n_o, 1.0) * h_o
+        c_o = clock[owner]
+        frac, speed = _profile_samples(
+            tau * c_o,
+            np.where(in_move, i - 1, n_o) / n_o * h_o * c_o,
+            u0[owner],
+            L[owner],
+            dur[owner],
+            f[owner],
+            A,
+            end_rest[owner],
+        )
         frac = np.where(in_move, frac, 1.0)
         q = q_a[owner] + frac[:, None] * dq[owner]
         t = t_dep[owner] + tau + np.where(in_move, 0.0, (i - n_o) * (hold_s / max(n_hold_1, 1)))
-        v = np.where(in_move, v_move[owner], 0.0)
+        v = np.where(in_move, kv[owner] * speed, 0.0)
         # capsule l lies within its start sphere grown by frac * T_l and its end sphere grown by
         # (1 - frac) * T_l; take the smaller sphere
         fo = frac[:, None]
-        ra = rad_a[owner] + fo * travel[owner]
-        rb = rad_b[owner] + (1.0 - fo) * travel[owner]
+        tr = travel[owner]
+        ra = rad_a[owner] + fo * tr
+        rb = rad_b[owner] + (1.0 - fo) * tr
         use_a = ra <= rb
         cen = np.where(use_a[..., None], cen_a[owner], cen_b[owner])
         rad = np.where(use_a, ra, rb)
@@ -1301,12 +1279,18 @@ class Planner:
 
 
 class _Run:
-    """The records of one search: unchecked and checked states, in plain lists and growable arrays.
+    """The records of one search: every generated state in growable numpy arrays (one row per state).
 
     Owned by one query (never shared, never written to the roadmap). A state is a move from a parent state
-    to a roadmap node at an IK branch: departure, duration, entry/exit path speed, cruise speed, and the
-    alternative it is (0 = nearest branch at cruise speed; others are pushed when it fails).
+    to a roadmap node at an IK branch: departure, duration, entry/exit path speed, cruise speed, the
+    alternative it is (0 = nearest branch at cruise speed; others are generated when it fails) and the row of
+    the option table it came from (its successor branches, for the alternatives). Row 0 is the start.
+    Generation, timing and checking work on whole arrays of states at once.
     """
+
+    _FLOAT = ("t", "u", "u0", "dep", "fc", "L", "h", "peak", "wait_ok")
+    _INT = ("node", "branch", "parent", "row", "spec_child")
+    _BOOL = ("end", "same", "checked", "accepted", "qset")
 
     def __init__(
         self,
@@ -1318,104 +1302,143 @@ class _Run:
         goal: int | None,
         stop_time: float | None,
         hold_s: float,
+        h_tab: np.ndarray | None,
+        t_last: float,
     ) -> None:
         self.p = planner
         self.sep = sep
         self.goal = goal
         self.stop_time = stop_time
         self.hold_s = hold_s
+        self.h_tab = h_tab
+        self.t_last = t_last
         cfg = planner.config
         self.f = cfg.speed_fraction
         self.A = planner._A
         self.min_edge = cfg.min_edge_s
-        # per state (lists)
-        self.node: list[int] = [-1]
-        self.branch: list[int] = [-1]
-        self.t: list[float] = [t_start]
-        self.u: list[float] = [0.0]
-        self.parent: list[int] = [-1]
-        self.dep: list[float] = [t_start]
-        self.fc: list[float] = [self.f]
-        self.L: list[float] = [0.0]
-        self.h: list[float] = [0.0]
-        self.end: list[bool] = [False]
-        self.peak: list[float] = [0.0]
-        self.same: list[bool] = [True]
-        self.alt: list[int] = [0]
-        self.opts: list[list[tuple[int, float, bool]] | None] = [None]
-        # per checked state: configuration, capsule points and spheres (start: computed here)
-        pts, cen, rad = planner._points_and_spheres(q_start[None])
-        self.q = np.empty((64, 6))
+        self.w_h = cfg.heuristic_weight
+        self.AT = np.full(planner.roadmap.num_nodes, np.inf)
+        cap = 256
+        for name in self._FLOAT:
+            setattr(self, name, np.zeros(cap))
+        for name in self._INT:
+            setattr(self, name, np.full(cap, -1, dtype=np.int64))
+        for name in self._BOOL:
+            setattr(self, name, np.zeros(cap, dtype=bool))
+        self.alt = np.zeros(cap, dtype=np.int8)
+        self.status = np.zeros(cap, dtype=np.int8)  # check result: 0 not yet, 1 passed, 2 failed
+        self.q = np.empty((cap, 6))  # the configuration once checked (or precomputed: ``qset``)
+        self.n = 1
+        self.t[0] = self.dep[0] = t_start
+        self.fc[0] = self.f
+        self.same[0] = self.checked[0] = self.accepted[0] = self.qset[0] = True
+        self.status[0] = 1
+        self.next_rows = None if goal is None else planner._next_cache.get(goal)
+        self.wait_ok[:] = np.nan  # per checked state: until when standing still there is safe (NaN: unknown)
         self.q[0] = q_start
-        self.checked_q = np.zeros(64, dtype=bool)
-        self.checked_q[0] = True
+        pts, cen, rad = planner._points_and_spheres(q_start[None])
         self.start_pts, self.start_cen, self.start_rad = pts[0], cen[0], rad[0]
-        self.wait_safe_until: dict[int, float] = {}
+        # option tables: rows e * 8 + b of the planner's edge tables, then the start's rows (-1 - j)
+        self.start_b = np.zeros((1, planner._R), dtype=np.int64)
+        self.start_L = np.full((1, planner._R), np.inf)
 
     # -- records
-    def _new(
-        self,
-        node: int,
-        branch: int,
-        t: float,
-        u: float,
-        parent: int,
-        dep: float,
-        fc: float,
-        L: float,
-        h: float,
-        end: bool,
-        peak: float,
-        same: bool,
-        alt: int,
-        opts: list[tuple[int, float, bool]] | None,
-    ) -> int:
-        self.node.append(node)
-        self.branch.append(branch)
-        self.t.append(t)
-        self.u.append(u)
-        self.parent.append(parent)
-        self.dep.append(dep)
-        self.fc.append(fc)
-        self.L.append(L)
-        self.h.append(h)
-        self.end.append(end)
-        self.peak.append(peak)
-        self.same.append(same)
-        self.alt.append(alt)
-        self.opts.append(opts)
-        sid = len(self.node) - 1
-        if sid >= self.q.shape[0]:
-            grow = self.q.shape[0] * 2
-            self.q = np.concatenate([self.q, np.empty((grow, 6))])
-            self.checked_q = np.concatenate([self.checked_q, np.zeros(grow, dtype=bool)])
-        return sid
+    def _grow(self, m: int) -> None:
+        cap = self.t.shape[0]
+        if self.n + m <= cap:
+            return
+        new = max(2 * cap, self.n + m)
+        for name in (*self._FLOAT, *self._INT, *self._BOOL, "alt", "status", "q"):
+            old = getattr(self, name)
+            arr = np.empty((new, *old.shape[1:]), dtype=old.dtype)
+            arr[:cap] = old
+            if name == "wait_ok":
+                arr[cap:] = np.nan
+            elif name in self._BOOL or name == "status":
+                arr[cap:] = 0
+            elif name in self._INT:
+                arr[cap:] = -1
+            setattr(self, name, arr)
 
-    def _move(
+    def _options(self, row: np.ndarray, k: int | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Branch, length and roadmap-checked flag of option ``k`` of each option-table row."""
+        p = self.p
+        glob = row >= 0
+        if glob.all():
+            return p._ord_flat[row, k], p._L_flat[row, k], p._same_flat[row, k]
+        g = np.where(glob, row, 0)
+        s = np.where(glob, 0, -1 - row)
+        b = np.where(glob, p._ord_flat[g, k], self.start_b[s, k])
+        L = np.where(glob, p._L_flat[g, k], self.start_L[s, k])
+        return b, L, glob & p._same_flat[g, k]
+
+    def moves(
         self,
-        parent: int,
-        node: int,
-        opt: tuple[int, float, bool],
-        t_dep: float,
-        u0: float,
-        fc: float,
+        parent: np.ndarray,
+        node: np.ndarray,
+        branch: np.ndarray,
+        L: np.ndarray,
+        same: np.ndarray,
+        t_dep: np.ndarray,
+        u0: np.ndarray,
+        fc: np.ndarray | float,
         alt: int,
-        opts: list[tuple[int, float, bool]] | None,
-        AT: list[float],
-    ) -> int | None:
-        branch, L, same = opt
-        end = node == self.goal
-        h, u1, peak = _profile_py(u0, L, fc, self.A, end)
-        if L > 1e-12:
-            h = max(h, self.min_edge)
+        row: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Time moves (arrays of one entry per move), keep those that could improve their node's arrival
+        and pass the prune, and record them. Returns (state ids, keys t + w h, arrival times)."""
+        fin = np.isfinite(L)
+        if not fin.all():
+            parent, node, branch, L, same, t_dep, u0, row = (
+                x[fin] for x in (parent, node, branch, L, same, t_dep, u0, row)
+            )
+            if isinstance(fc, np.ndarray):
+                fc = fc[fin]
+        m = parent.shape[0]
+        fc = np.broadcast_to(np.asarray(fc, dtype=np.float64), (m,))
+        end = node == self.goal if self.goal is not None else np.zeros(m, dtype=bool)
+        u0 = np.minimum(u0, fc)
+        h, u1, peak = _profile_arrays(u0, L, fc, self.A, end)
+        h = np.where(L > 1e-12, np.maximum(h, self.min_edge), h)
         ta = t_dep + h
-        if ta >= AT[node] - _EPS_T:
-            return None
-        return self._new(node, branch, ta, u1, parent, t_dep, fc, L, h, end, peak, same, alt, opts)
+        w = self.w_h
+        if self.h_tab is not None:
+            hv = self.h_tab[node, branch]
+        elif self.stop_time is not None:
+            hv, w = np.maximum(self.stop_time - ta, 0.0), 1.0
+        else:
+            hv = np.zeros(m)
+        # an admissible prune: with a weight w > 1 the key t + w h >= t + h, so compare t + h itself
+        keep = (ta < self.AT[node] - _EPS_T) & (ta + hv <= self.t_last)
+        if not keep.all():
+            idx = np.flatnonzero(keep)
+            parent, node, branch, L, same, t_dep, u0, row, fc, end, h, u1, peak, ta, hv = (
+                x[idx] for x in (parent, node, branch, L, same, t_dep, u0, row, fc, end, h, u1, peak, ta, hv)
+            )
+            m = idx.size
+        self._grow(m)
+        ids = np.arange(self.n, self.n + m)
+        self.n += m
+        self.node[ids] = node
+        self.branch[ids] = branch
+        self.parent[ids] = parent
+        self.t[ids] = ta
+        self.u[ids] = u1
+        self.u0[ids] = u0
+        self.dep[ids] = t_dep
+        self.fc[ids] = fc
+        self.L[ids] = L
+        self.h[ids] = h
+        self.peak[ids] = peak
+        self.end[ids] = end
+        self.same[ids] = same
+        self.alt[ids] = alt
+        self.row[ids] = row
+        return ids, ta + w * hv, ta
 
-    # -- generation (plain Python)
-    def start_options(self) -> list[int]:
-        """Unchecked moves from the start to its nearest roadmap nodes (all checked against the scene)."""
+    # -- generation
+    def start_moves(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Moves from the start to its nearest roadmap nodes (each checked against the scene when popped)."""
         p = self.p
         q = self.q[0]
         aligned = p._align(p._ik, q[None, None, :])
@@ -1423,66 +1446,180 @@ class _Run:
         best = L.min(axis=1)
         k = min(p.config.start_neighbors, int(np.isfinite(best).sum()))
         if k == 0:
-            return []
+            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         nodes = np.argpartition(best, k - 1)[:k]
         order = np.argsort(L[nodes], axis=1, kind="stable")[:, : p._R]
-        Lo = np.take_along_axis(L[nodes], order, axis=1)
-        AT = [math.inf] * p.roadmap.num_nodes
-        out = []
-        for v, bs, ls in zip(nodes.tolist(), order.tolist(), Lo.tolist(), strict=True):
-            opts = [(b, ln, False) for b, ln in zip(bs, ls, strict=True) if ln < math.inf]
-            if opts:
-                sid = self._move(0, v, opts[0], self.t[0], 0.0, self.f, 0, opts, AT)
-                if sid is not None:
-                    out.append(sid)
-        return out
+        self.start_b = order.astype(np.int64)
+        self.start_L = np.take_along_axis(L[nodes], order, axis=1)
+        row = -1 - np.arange(k)
+        zeros = np.zeros(k)
+        return self.moves(
+            np.zeros(k, dtype=np.int64),
+            nodes.astype(np.int64),
+            self.start_b[:, 0],
+            self.start_L[:, 0],
+            np.zeros(k, dtype=bool),
+            zeros + self.t[0],
+            zeros,
+            self.f,
+            0,
+            row,
+        )
 
-    def children(self, sid: int, AT: list[float], f: float) -> list[int]:
-        """Unchecked moves from a checked state to its roadmap neighbours (nearest branch, cruise speed)."""
-        out = []
-        t, u = self.t[sid], self.u[sid]
-        for v, opts in self.p._succ(self.node[sid], self.branch[sid]):
-            child = self._move(sid, v, opts[0], t, u, f, 0, opts, AT)
-            if child is not None:
-                out.append(child)
-        return out
+    def children(self, sids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Moves from checked states to all their roadmap neighbours (nearest branch, cruise speed)."""
+        p = self.p
+        u, bu = self.node[sids], self.branch[sids]
+        a, z = p._indptr[u], p._indptr[u + 1]
+        cnt = z - a
+        owner = np.repeat(np.arange(sids.size), cnt)
+        e = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt - a, cnt)
+        row = e * NUM_BRANCHES + bu[owner]
+        par = sids[owner]
+        spec = self.spec_child[par]
+        has = spec >= 0
+        if has.any():  # the speculative chain already holds that move
+            keep = ~has | (p._indices[e] != self.node[np.maximum(spec, 0)])
+            e, row, par = e[keep], row[keep], par[keep]
+        return self.moves(
+            par,
+            p._indices[e],
+            p._ord_flat[row, 0],
+            p._L_flat[row, 0],
+            p._same_flat[row, 0],
+            self.t[par],
+            self.u[par],
+            self.f,
+            0,
+            row,
+        )
 
-    def alternatives(self, sid: int, AT: list[float]) -> list[int]:
+    def speculate(self, sid: int, max_len: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A chain of moves ahead of the unchecked state ``sid`` along the static shortest path (nearest
+        branch, cruise speed: the moves a search would try first), to be checked in the same batch as
+        ``sid`` (lookahead: when the way is clear, one batch checks the whole rest of the path).
+
+        The chain's states are ordinary states (timed like children, pushed with their keys); their parent
+        must still be accepted before they are. Stops at the goal, at a node already reached no later, at
+        the prune, after ``max_len`` moves.
+        """
+        nxt = self.next_rows
+        if nxt is None or max_len <= 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+        p = self.p
+        node, b = int(self.node[sid]), int(self.branch[sid])
+        par = int(self.parent[sid])
+        q_prev = p._align(p._ik[node, b], self.q[par]) if not self.qset[sid] else self.q[sid]
+        self.q[sid] = q_prev
+        self.qset[sid] = True
+        t, u = float(self.t[sid]), float(self.u[sid])
+        f, A, goal, AT, h_tab = self.f, self.A, self.goal, self.AT, self.h_tab
+        assert h_tab is not None
+        chain: list[tuple[int, int, int, float, bool, float, float, float, float, float]] = []
+        qs = []
+        while len(chain) < max_len and node != goal:
+            row = nxt[node * NUM_BRANCHES + b]
+            if row < 0:
+                break
+            v = p._indices_list[row // NUM_BRANCHES]
+            bv = p._ord_list[row]
+            L = p._L_list[row]
+            end = v == goal
+            h, u1, peak = _profile_py(u, L, f, A, end)
+            if L > 1e-12:
+                h = max(h, self.min_edge)
+            ta = t + h
+            hv = float(h_tab[v, bv])
+            if ta >= AT[v] - _EPS_T or ta + hv > self.t_last:
+                break
+            q_prev = p._align(p._ik[v, bv], q_prev)
+            qs.append(q_prev)
+            chain.append((row, v, bv, L, p._same_list[row], t, min(u, f), h, u1, peak))
+            node, b, t, u = v, bv, ta, u1
+        m = len(chain)
+        if m == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+        self._grow(m)
+        ids = np.arange(self.n, self.n + m)
+        self.n += m
+        cols = list(zip(*chain, strict=True))
+        self.row[ids] = cols[0]
+        self.node[ids] = cols[1]
+        self.branch[ids] = cols[2]
+        self.L[ids] = cols[3]
+        self.same[ids] = cols[4]
+        self.dep[ids] = cols[5]
+        self.u0[ids] = cols[6]
+        self.h[ids] = cols[7]
+        self.u[ids] = cols[8]
+        self.peak[ids] = cols[9]
+        self.t[ids] = self.dep[ids] + self.h[ids]
+        self.parent[ids] = np.concatenate([[sid], ids[:-1]])
+        self.spec_child[self.parent[ids]] = ids
+        self.fc[ids] = f
+        self.end[ids] = self.node[ids] == goal
+        self.alt[ids] = 0
+        self.q[ids] = qs
+        self.qset[ids] = True
+        ta = self.t[ids]
+        return ids, ta + self.w_h * h_tab[self.node[ids], self.branch[ids]], ta
+
+    def alternatives(self, failed: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """When the nearest branch at cruise speed fails: the next branches, slower, and after a wait."""
-        if self.alt[sid] != 0 or self.opts[sid] is None:
-            return []
+        failed = failed[(self.alt[failed] == 0) & (self.row[failed] != _NO_ROW)]
+        out: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        if failed.size == 0:
+            return out
         cfg = self.p.config
-        par, node, opts = self.parent[sid], self.node[sid], self.opts[sid]
+        par, node, row = self.parent[failed], self.node[failed], self.row[failed]
         t, u = self.t[par], self.u[par]
-        out = []
-        for opt in opts[1:]:
-            out.append(self._move(par, node, opt, t, u, self.f, 1, None, AT))
-        if self.sep.forecast is not None:
-            for fs in cfg.slow_speed_fractions:
-                if fs < self.f:
-                    out.append(self._move(par, node, opts[0], t, min(u, fs), fs, 2, None, AT))
-            K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
-            for k in range(1, K + 1):
-                out.append(self._move(par, node, opts[0], t + k * cfg.wait_step_s, 0.0, self.f, 3, None, AT))
-        return [s for s in out if s is not None]
+        for k in range(1, self.p._R):
+            b, L, same = self._options(row, k)
+            out.append(self.moves(par, node, b, L, same, t, u, self.f, 1, row))
+        if self.sep.forecast is None:
+            return out
+        b, L, same = self._options(row, 0)
+        for fs in cfg.slow_speed_fractions:
+            if fs < self.f:
+                out.append(self.moves(par, node, b, L, same, t, np.minimum(u, fs), fs, 2, row))
+        K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
+        if K > 0:
+            k = np.tile(np.arange(1, K + 1), failed.size)
+            rep = np.repeat(np.arange(failed.size), K)
+            out.append(
+                self.moves(
+                    par[rep],
+                    node[rep],
+                    b[rep],
+                    L[rep],
+                    same[rep],
+                    t[rep] + k * cfg.wait_step_s,
+                    np.zeros(rep.size),
+                    self.f,
+                    3,
+                    row[rep],
+                )
+            )
+        return out
 
     # -- checking (vectorised)
-    def check(self, batch: list[int]) -> list[bool]:
-        """Check a batch of unchecked moves; stores the configuration of every move that passes."""
+    def check(self, batch: np.ndarray) -> np.ndarray:
+        """Check a batch of moves; stores the configuration of every move that passes. Returns (M,) bool."""
         p = self.p
-        idx = np.array(batch, dtype=np.int64)
-        par = np.array([self.parent[s] for s in batch], dtype=np.int64)
-        cv = np.array([self.node[s] for s in batch], dtype=np.int64)
-        b = np.array([self.branch[s] for s in batch], dtype=np.int64)
+        par = self.parent[batch]
+        cv = self.node[batch]
+        b = self.branch[batch]
         q_par = self.q[par]
         target = p._align(p._ik[cv, b], q_par)
-        M = idx.size
-        ok = np.ones(M, dtype=bool)
+        pre = self.qset[batch]
+        if pre.any():  # a speculative chain: its configurations were aligned one after the other
+            target[pre] = self.q[batch[pre]]
+        ok = np.ones(batch.size, dtype=bool)
         # static scene: moves the roadmap checked (same branch, edge bit, the same move) need nothing more
-        same = np.array([self.same[s] for s in batch], dtype=bool)
-        pn = np.array([self.node[s] for s in par.tolist()], dtype=np.int64)
-        pb = np.array([self.branch[s] for s in par.tolist()], dtype=np.int64)
-        chk = np.flatnonzero(same & (pn >= 0))
+        same = self.same[batch].copy()
+        pn = self.node[par]
+        pb = self.branch[par]
+        chk = np.flatnonzero(same)
         if chk.size:
             ref = p._ik[pn[chk], pb[chk]]
             ref_t = p._align(p._ik[cv[chk], b[chk]], ref)
@@ -1495,21 +1632,25 @@ class _Run:
             live = np.flatnonzero(ok)
             if live.size:
                 ok[live] = self._check_forecast(
-                    idx[live], par[live], cv[live], b[live], q_par[live], target[live]
+                    batch[live], par[live], cv[live], b[live], q_par[live], target[live]
                 )
-        good = idx[ok]
+        good = batch[ok]
         self.q[good] = target[ok]
-        self.checked_q[good] = True
-        return ok.tolist()
+        self.checked[good] = True
+        self.status[batch] = np.where(ok, 1, 2)
+        return ok
 
     def _parent_geometry(self, par: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         p = self.p
-        pn = np.array([self.node[s] for s in par.tolist()], dtype=np.int64)
-        pb = np.array([self.branch[s] for s in par.tolist()], dtype=np.int64)
+        pn = self.node[par]
+        pb = self.branch[par]
         on = pn >= 0
-        pts = np.where(on[:, None, None], p._pts_all[pn.clip(0), pb.clip(0)], self.start_pts[None])
-        cen = np.where(on[:, None, None], p._cen_all[pn.clip(0), pb.clip(0)], self.start_cen[None])
-        rad = np.where(on[:, None], p._rad_all[pn.clip(0), pb.clip(0)], self.start_rad[None])
+        if on.all():
+            return p._pts_all[pn, pb], p._cen_all[pn, pb], p._rad_all[pn, pb]
+        pn, pb = pn.clip(0), pb.clip(0)
+        pts = np.where(on[:, None, None], p._pts_all[pn, pb], self.start_pts[None])
+        cen = np.where(on[:, None, None], p._cen_all[pn, pb], self.start_cen[None])
+        rad = np.where(on[:, None], p._rad_all[pn, pb], self.start_rad[None])
         return pts, cen, rad
 
     def _check_forecast(
@@ -1524,75 +1665,58 @@ class _Run:
         p = self.p
         cfg = p.config
         ok = np.ones(idx.size, dtype=bool)
-        pts, cen, rad = self._parent_geometry(par)
         # waits: the parent must be able to stand still until the departure
-        dep = np.array([self.dep[s] for s in idx.tolist()])
-        t_par = np.array([self.t[s] for s in par.tolist()])
-        waiting = np.flatnonzero(dep > t_par + _EPS_T)
+        dep = self.dep[idx]
+        waiting = np.flatnonzero(dep > self.t[par] + _EPS_T)
         if waiting.size:
-            todo = sorted({int(par[i]) for i in waiting.tolist()} - set(self.wait_safe_until))
-            if todo:
+            wp = par[waiting]
+            todo = np.unique(wp[np.isnan(self.wait_ok[wp])])
+            if todo.size:
                 K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
                 sub = max(1, math.ceil(cfg.wait_step_s / cfg.sample_dt_s - 1e-9))
                 n = K * sub
-                tp = np.array(todo, dtype=np.int64)
-                ts = np.array([self.t[s] for s in todo])[:, None] + (cfg.wait_step_s / sub) * np.arange(
-                    1, n + 1
-                )
-                rep = np.repeat(np.arange(tp.size), n)
-                pg = self._parent_geometry(tp)
+                ts = self.t[todo][:, None] + (cfg.wait_step_s / sub) * np.arange(1, n + 1)
+                rep = np.repeat(np.arange(todo.size), n)
+                _, cen, rad = self._parent_geometry(todo)
                 res = self.sep.check(
-                    self.q[tp][rep], ts.reshape(-1), np.zeros(rep.size), pg[1][rep], pg[2][rep]
-                )
-                res = res.reshape(tp.size, n)
-                for j, s in enumerate(todo):
-                    bad = np.flatnonzero(~res[j])
-                    self.wait_safe_until[s] = float(ts[j, bad[0]]) if bad.size else math.inf
-            safe = np.array([self.wait_safe_until[int(par[i])] for i in waiting.tolist()])
-            ok[waiting] = dep[waiting] < safe - _EPS_T
+                    self.q[todo][rep], ts.reshape(-1), np.zeros(rep.size), cen[rep], rad[rep]
+                ).reshape(todo.size, n)
+                first_bad = np.argmin(res, axis=1)
+                self.wait_ok[todo] = np.where(res.all(axis=1), np.inf, ts[np.arange(todo.size), first_bad])
+            ok[waiting] = dep[waiting] < self.wait_ok[wp] - _EPS_T
         live = np.flatnonzero(ok)
         if live.size == 0:
             return ok
         sl = idx[live]
-        get = lambda arr: np.array([arr[s] for s in sl.tolist()])  # noqa: E731
-        hold = cv[live] == self.goal if self.goal is not None else np.full(live.size, self.hold_s > 0)
+        pts, cen, rad = self._parent_geometry(par[live])
+        cvl = cv[live]
+        hold = cvl == self.goal if self.goal is not None else np.full(live.size, self.hold_s > 0)
         ok[live] = p._moves_ok(
             self.sep,
             q_par[live],
-            pts[live],
-            cen[live],
-            rad[live],
-            cv[live],
+            pts,
+            cen,
+            rad,
+            cvl,
             b[live],
             target[live],
             dep[live],
-            get(self.h),
-            np.array(self._u0(sl)),
-            get(self.L),
-            get(self.end).astype(bool),
-            get(self.peak),
-            get(self.fc),
+            self.h[sl],
+            self.u0[sl],
+            self.L[sl],
+            self.end[sl],
+            self.fc[sl],
             hold,
             self.hold_s,
         )
         return ok
-
-    def _u0(self, sids: np.ndarray) -> list[float]:
-        """Entry path speed of each move (0 after a wait, the parent's exit speed capped at the cruise)."""
-        out = []
-        for s in sids.tolist():
-            if self.alt[s] == 3:
-                out.append(0.0)
-            else:
-                out.append(min(self.u[self.parent[s]], self.fc[s]))
-        return out
 
     def reconstruct(self, sid: int) -> Plan:
         chain = []
         s = sid
         while s >= 0:
             chain.append(s)
-            s = self.parent[s]
+            s = int(self.parent[s])
         chain.reverse()
         if len(chain) > 1:
             a, c = chain[0], chain[1]
@@ -1603,13 +1727,38 @@ class _Run:
             if i > 0:
                 par = chain[i - 1]
                 if self.dep[s] > self.t[par] + _EPS_T:  # waited at the parent
-                    times.append(self.dep[s])
+                    times.append(float(self.dep[s]))
                     qs.append(self.q[par])
-                    nodes.append(self.node[par])
-            times.append(self.t[s])
+                    nodes.append(int(self.node[par]))
+            times.append(float(self.t[s]))
             qs.append(self.q[s])
-            nodes.append(self.node[s])
+            nodes.append(int(self.node[s]))
         return Plan(times=np.array(times), q=np.array(qs), nodes=np.array(nodes))
+
+
+_NO_ROW = -(2**62)  # option-table row of the start state (it has no alternatives)
+
+
+def _profile_arrays(
+    u0: np.ndarray, L: np.ndarray, f: np.ndarray, A: float, end_rest: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_profile` with a cruise speed per move (all arrays of one shape; ``u0 <= f`` already)."""
+    u0sq = u0 * u0
+    two_al = 2.0 * A * L
+    u1 = np.minimum(np.sqrt(u0sq + two_al), f)
+    dur = (u1 - u0) / A + np.maximum(L - (u1 * u1 - u0sq) / (2.0 * A), 0.0) / f
+    if not end_rest.any():
+        return dur, u1, u1
+    up = np.minimum(f, np.sqrt((two_al + u0sq) / 2.0))
+    can = u0sq <= two_al
+    cruise = np.maximum(L - (up * up - u0sq) / (2.0 * A) - up * up / (2.0 * A), 0.0)
+    t_rest = (up - u0) / A + cruise / np.maximum(up, 1e-12) + up / A
+    dur_rest = np.where(can, t_rest, 2.0 * L / np.maximum(u0, 1e-12))
+    return (
+        np.where(end_rest, dur_rest, dur),
+        np.where(end_rest, 0.0, u1),
+        np.where(end_rest, np.where(can, up, u0), u1),
+    )
 
 
 def _profile_py(u0: float, L: float, f: float, A: float, end_rest: bool) -> tuple[float, float, float]:
