@@ -1448,6 +1448,9 @@ class _Run:
         if k == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         nodes = np.argpartition(best, k - 1)[:k]
+        at_node = nodes[best[nodes] <= 1e-9]
+        if at_node.size:  # the start is a roadmap configuration: the roadmap's edges take it from there
+            nodes, k = at_node[:1], 1
         order = np.argsort(L[nodes], axis=1, kind="stable")[:, : p._R]
         self.start_b = order.astype(np.int64)
         self.start_L = np.take_along_axis(L[nodes], order, axis=1)
