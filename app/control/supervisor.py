@@ -3,15 +3,25 @@ decision between *Nominal Execution* and *Collision Avoidance*, and speed scalin
 
 For every new frame at ``T_i`` the :class:`Supervisor`
 
-1. requests a *backup plan* from ``s = pi_curr(T_i + D)`` toward the current goal against the latest
-   forecast, under the deadline ``D``; its result is usable from ``T_i + D`` (a :class:`PlanJobs` runs it: a
-   worker pool in live mode, lazily and charged to simulated time in headless mode);
+1. prepares the *backup plan* request from ``s = pi_curr(T_i + D)`` toward the current goal against the
+   latest forecast, under the deadline ``D``; its result is usable from ``T_i + D``. Where the robot must
+   start moving (at rest, or after an emergency plan) the plan starts from its current position (a plan from
+   rest may take ``start_deadline_s``, 3 D by default: the robot stands still meanwhile);
 2. checks the plan in execution against the *latest* forecast (:meth:`PlannerLike.first_violation`) and the
-   current separation against the protective separation distance S_p (ISO/TS 15066);
+   robot's parts against the stop distance S_p(0) (ISO/TS 15066, the person's measured speed);
 3. decides: *Nominal Execution* (continue; speed scaled by separation), or *Collision Avoidance*: a violation
    predicted after ``T_i + D`` schedules a switch to the backup plan at ``T_i + D`` (an *online replan*); a
    violation before ``T_i + D`` or a violated stop distance stops the robot and switches to the *emergency
-   plan* (the person held at the current pose, horizon ``F + D``; a *stop & replan*).
+   plan* (the person held at the current pose, horizon ``F + D``; a *stop & replan*). A backup that misses
+   its deadline, or a planner that raises, takes the emergency path too.
+
+A backup plan of frame ``i`` is used by nothing but the switch that frame ``i``'s decision schedules (later
+frames branch from the plan in execution at their own time, and a switch invalidates the backups that
+branched from the plan it replaces), so the request goes to the :class:`PlanJobs` only when the decision
+schedules that switch: the decisions are those of computing every frame's backup, without the plans nobody
+uses (live: on a worker pool, at most ``ceil(D / F)`` in flight; headless: when the switch is due, its
+measured compute time charged as if it had started at ``T_i``). The emergency plan is likewise computed when
+a stop is decided, from the point where the brake brings the robot to rest.
 
 The reactive baseline is the same machine fed :meth:`HumanForecast.hold` of the current pose.
 
@@ -20,12 +30,13 @@ advances by ``scale * dt``; speed scaling therefore changes the timing along the
 robot will be at ``T_i + D`` is predicted with the fastest scale the ramp allows, so that the robot reaches
 the branch point of a backup plan at or after ``T_i + D`` and the switch is continuous in position and path
 velocity. Every plan is checked against the latest forecast, in wall time with the current scale, before it
-is executed; a backup is re-checked at the switch.
+is executed: a backup is re-checked at the switch, an emergency plan when the robot has come to rest.
 
-Between frames a *speed governor* keeps the ISO/TS 15066 invariant at every servo tick: the separation to the
-last seen pose, reduced by the person's worst-case approach since that frame and the robot's own travel, must
-allow the robot to brake to rest (at ``brake_decel_mps2``) without the person coming closer than S_p of the
-robot's speed at any instant of the braking. Speed is the largest robot-point speed (capsule end points).
+Between frames a *speed governor* keeps ISO/TS 15066's protective separation at every servo tick, per robot
+part (capsule): the part's separation to the last seen pose, reduced by the person's worst-case approach
+since that frame (:class:`SeparationModel`: their measured speed near the part, speeding up at most at
+``human_accel_mps2``) and by the part's own travel, must let the robot brake to rest without the person
+coming closer than ``S_p(part speed, person speed)`` at any instant of the braking.
 
 This module is pure: no threads of its own, no clock; time comes in as arguments. One lock makes it safe to
 call :meth:`Supervisor.on_frame` and :meth:`Supervisor.servo` from different threads.
