@@ -708,15 +708,29 @@ class CollisionModel:
         V, e = _human_features(joints)
         return _cross_min_distance(U, a, self.robot_radii, V, e, self.human_radii)
 
-    def distance_to_human_paired(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+    def distance_to_human_paired(
+        self,
+        q: np.ndarray,
+        joints: np.ndarray,
+        *,
+        segments: tuple[np.ndarray, np.ndarray] | None = None,
+        links: np.ndarray | None = None,
+        capsules: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Minimum signed surface distance between configuration k and person pose k (time-sampled edges).
 
         Args:
             q: Configurations (K, 6), rad.
             joints: Person poses (K, J, 3), world frame, m.
+            segments: The robot's segments for ``q`` from :meth:`robot_segments` (saves the forward
+                kinematics when the caller has them already).
+            links: Indices of the robot capsules (:data:`ROBOT_LINKS`) to include; default all.
+            capsules: Indices of the person capsules (:data:`HUMAN_CAPSULES`) to include; default all.
+                With subsets the result is the minimum over those pairs only (a caller that has shown the
+                other pairs to be far uses it to save work).
 
         Returns:
-            (K,) distances in m (negative: overlap).
+            (K,) distances in m (negative: overlap; +inf when a subset is empty).
         """
         q = self._check_q(q, "distance_to_human_paired")
         joints = self._check_joints(joints, "distance_to_human_paired")
@@ -727,9 +741,28 @@ class CollisionModel:
             )
         if q.shape[0] == 0:
             return np.empty(0)
-        a_c, d_c = self._robot_segments_cm(q)
+        a_c, d_c = self._robot_segments_cm(q) if segments is None else segments
+        if a_c.shape != (_NL, 3, q.shape[0]) or d_c.shape != a_c.shape:
+            raise ValueError(
+                f"distance_to_human_paired: segments must be ({_NL}, 3, K) each, got {a_c.shape}"
+            )
+        ra, ia, ib, rh = self.robot_radii, _HUMAN_A, _HUMAN_B, self.human_radii
+        if links is not None:
+            if len(links) == 0:
+                return np.full(q.shape[0], np.inf)
+            a_c, d_c, ra = a_c[links], d_c[links], ra[links]
+        if capsules is not None:
+            if len(capsules) == 0:
+                return np.full(q.shape[0], np.inf)
+            ia, ib, rh = ia[capsules], ib[capsules], rh[capsules]
         jt = np.ascontiguousarray(joints.transpose(1, 2, 0))  # (J, 3, K)
-        return _paired_min_distance(a_c, d_c, self.robot_radii, jt, _HUMAN_A, _HUMAN_B, self.human_radii)
+        return _paired_min_distance(a_c, d_c, ra, jt, ia, ib, rh)
+
+    def robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Robot capsule segments for configurations q (K, 6), component-major: starts and directions
+        (end - start), each (L, 3, K) in the world frame (m), in the order of :data:`ROBOT_LINKS`."""
+        q = self._check_q(q, "robot_segments")
+        return self._robot_segments_cm(q)
 
     # ------------------------------------------------------------------ robot vs static scene
     def _static_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

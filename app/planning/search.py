@@ -57,6 +57,7 @@ Paper, section II-A, and where this goes further:
 from __future__ import annotations
 
 import heapq
+import inspect
 import logging
 import math
 import time
@@ -118,6 +119,8 @@ class PlannerConfig:
             ``w > 1`` is weighted A* (plans at most ``w`` times longer, usually far fewer expansions).
         slow_speed_fractions: When every branch is blocked at the cruise speed, the nearest one is tried
             again at these lower cruise speeds (a slower robot needs less ``S_r + S_s``) before waiting.
+            The slowest (0.08: a creep, about 0.25 rad/s per joint) lets the robot approach a station next
+            to a hand that rests there, the way speed and separation monitoring would slow it at run time.
         goal_hold_s: After arriving at the goal the robot must be able to stand there this long (s).
         start_neighbors: Number of roadmap nodes the start configuration is connected to.
         check_step_rad: Largest joint step (rad) between configurations checked against the static scene.
@@ -146,7 +149,7 @@ class PlannerConfig:
     max_wait_s: float = 0.6
     max_branch_tries: int = 2
     heuristic_weight: float = 1.0
-    slow_speed_fractions: tuple[float, ...] = (0.2,)
+    slow_speed_fractions: tuple[float, ...] = (0.2, 0.08)
     goal_hold_s: float = 0.3
     start_neighbors: int = 8
     check_step_rad: float = 0.05
@@ -272,6 +275,15 @@ def _profile_samples(
     return np.minimum(np.maximum(frac, 0.0), 1.0), speed
 
 
+def _accepts_subsets(model: RobotModel) -> bool:
+    """Whether ``model.distance_to_human_paired`` takes ``links`` / ``capsules`` subsets."""
+    try:
+        params = inspect.signature(model.distance_to_human_paired).parameters
+    except (TypeError, ValueError):
+        return False
+    return "links" in params and "capsules" in params and hasattr(model, "human_capsules")
+
+
 class _Separation:
     """Pass/fail of robot samples (and whole moves) against a forecast person.
 
@@ -330,6 +342,20 @@ class _Separation:
         self._lo_pair = self._lo_tab[1] if len(self._lo_tab) > 1 else lo
         self._hi_pair = self._hi_tab[1] if len(self._hi_tab) > 1 else hi
         self._n_pair = self._lo_pair.shape[0]
+        # per person capsule boxes (for the exact stage to skip capsules far from the robot), sparse table
+        self._subsets = _accepts_subsets(model)
+        if self._subsets:
+            ha, hb, hr = model.human_capsules(joints)
+            clo = np.minimum(ha, hb) - np.asarray(hr)[None, :, None]  # (H, M, 3)
+            chi = np.maximum(ha, hb) + np.asarray(hr)[None, :, None]
+            self._clo_tab, self._chi_tab = [clo], [chi]
+            k = 1
+            while (1 << k) <= clo.shape[0]:
+                plo, phi = self._clo_tab[-1], self._chi_tab[-1]
+                half = 1 << (k - 1)
+                self._clo_tab.append(np.minimum(plo[:-half], plo[half:]))
+                self._chi_tab.append(np.maximum(phi[:-half], phi[half:]))
+                k += 1
 
     def _boxes(self, t0: np.ndarray, t1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Boxes that contain the person over each window [t0, t1] (t0 <= t1): lower corners (n, 3) and
@@ -434,9 +460,34 @@ class _Separation:
             near = np.arange(n)
         if near.size:
             self.exact_samples += near.size
-            d = self.model.distance_to_human_paired(q[near], self._poses(t[near]))
-            ok[near] = d >= req[near]
+            tn, rn = t[near], req[near]
+            if self._subsets and cen is not None and rad is not None:
+                # only the robot capsules near the person's box at some sample, and only the person
+                # capsules whose box over the samples' time window comes near those robot capsules
+                close = gap[near] < rn[:, None]  # (n', L)
+                links = np.flatnonzero(close.any(axis=0))
+                cn, rdn = cen[near][:, links], rad[near][:, links]
+                r_lo = (cn - rdn[..., None]).min(axis=(0, 1)) - rn.max()
+                r_hi = (cn + rdn[..., None]).max(axis=(0, 1)) + rn.max()
+                c_lo, c_hi = self._capsule_boxes(float(tn.min()), float(tn.max()))
+                caps = np.flatnonzero(np.all((c_lo <= r_hi) & (c_hi >= r_lo), axis=1))
+                d = self.model.distance_to_human_paired(q[near], self._poses(tn), links=links, capsules=caps)
+            else:
+                d = self.model.distance_to_human_paired(q[near], self._poses(tn))
+            ok[near] = d >= rn
         return ok.reshape(n_off, S).all(axis=0) if n_off > 1 else ok
+
+    def _capsule_boxes(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        """Boxes (M, 3) x 2 that contain each person capsule over the window [t0, t1]."""
+        times, H = self._times, self._H
+        i0 = min(max(int(np.searchsorted(times, t0, side="right")) - 1, 0), H - 1)
+        i1 = max(min(int(np.searchsorted(times, t1, side="left")), H - 1), i0)
+        k = (i1 - i0 + 1).bit_length() - 1
+        a, b = i0, i1 - (1 << k) + 1
+        return (
+            np.minimum(self._clo_tab[k][a], self._clo_tab[k][b]),
+            np.maximum(self._chi_tab[k][a], self._chi_tab[k][b]),
+        )
 
 
 class Planner:
