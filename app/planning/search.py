@@ -1145,8 +1145,7 @@ class Planner:
                     push(run.children(np.array([sid], dtype=np.int64)))
                     continue
                 if st == 2:
-                    for got in run.alternatives(np.array([sid], dtype=np.int64)):
-                        push(got)
+                    push(run.alternatives(np.array([sid], dtype=np.int64)))
                     continue
                 batch.append(sid)
                 popped.append(sid)
@@ -1174,8 +1173,7 @@ class Planner:
                     return run.reconstruct(sid), expanded, "ok"
                 expand.append(sid)
             if failed:
-                for got in run.alternatives(np.array(failed, dtype=np.int64)):
-                    push(got)
+                push(run.alternatives(np.array(failed, dtype=np.int64)))
             if expand:
                 push(run.children(np.array(expand, dtype=np.int64)))
         if goal is not None and t_last < t_start + cfg.max_plan_s and not expanded:
@@ -1243,6 +1241,43 @@ class Planner:
         hold_s: float,
     ) -> np.ndarray:
         """Check moves (and the hold at their end where ``hold``) against the forecast; boolean (M,).
+        The arguments are those of :meth:`_move_samples`."""
+        M = q_a.shape[0]
+        result = np.ones(M, dtype=bool)
+        if sep.forecast is None or M == 0:
+            return result
+        sel, owner, q, t, v, cen, rad = self._move_samples(
+            sep, q_a, pts_a, cen_a, rad_a, cv, b, target, t_dep, h, u0, L, end_rest, f, hold, hold_s
+        )
+        if sel.size:
+            ok_s = sep.check(q, t, v, cen, rad)
+            result[sel] = np.bincount(owner, weights=~ok_s, minlength=sel.size) == 0
+        return result
+
+    def _move_samples(
+        self,
+        sep: _Separation,
+        q_a: np.ndarray,
+        pts_a: np.ndarray,
+        cen_a: np.ndarray,
+        rad_a: np.ndarray,
+        cv: np.ndarray,
+        b: np.ndarray,
+        target: np.ndarray,
+        t_dep: np.ndarray,
+        h: np.ndarray,
+        u0: np.ndarray,
+        L: np.ndarray,
+        end_rest: np.ndarray,
+        f: np.ndarray,
+        hold: np.ndarray,
+        hold_s: float,
+    ) -> tuple[np.ndarray, ...]:
+        """The samples of the moves (and the holds at their end where ``hold``) that stage 0 cannot pass.
+
+        Returns ``(sel (M',), owner (S,), q (S, 6), t (S,), v (S,), cen (S, L, 3), rad (S, L))``: the moves
+        that need samples and, per sample, its move (index into ``sel``), configuration, time, robot speed
+        (m/s) and the spheres that contain the robot's capsules. A move passes when all its samples pass.
 
         Per move: the start configuration ``q_a`` with its capsule points/spheres, the target roadmap node
         ``cv`` at branch ``b`` (configuration ``target``), departure, duration, entry speed (``<= f``),
@@ -1254,8 +1289,6 @@ class Planner:
         ``speed_factor`` (arcs are longer than chords); the hold after a move is at rest.
         """
         M = q_a.shape[0]
-        if sep.forecast is None or M == 0:
-            return np.ones(M, dtype=bool)
         cfg = self.config
         A = self._A
         dq = target - q_a
@@ -1278,19 +1311,14 @@ class Planner:
             t_dep + h + np.where(hold, hold_s, 0.0),
             kv * peak,
         )
-        result = np.ones(M, dtype=bool)
-        if not near.any():
-            return result
-        if not near.all():
-            sel = np.flatnonzero(near)
+        sel = np.flatnonzero(near)
+        if sel.size < M:
             q_a, cen_a, rad_a, cen_b, rad_b, t_dep, h, u0, L, end_rest, f, hold, dq, travel = (
                 x[sel]
                 for x in (q_a, cen_a, rad_a, cen_b, rad_b, t_dep, h, u0, L, end_rest, f, hold, dq, travel)
             )
             dur, clock, kv = dur[sel], clock[sel], kv[sel]
-        else:
-            sel = slice(None)
-        M = q_a.shape[0]
+        M = sel.size
         # samples: the move every sample_dt_s (its end included), then the hold
         n = np.maximum(np.ceil(h / cfg.sample_dt_s - 1e-9), 1).astype(np.int64)
         n_hold_1 = max(math.ceil(hold_s / cfg.sample_dt_s - 1e-9), 0)
@@ -1324,9 +1352,7 @@ class Planner:
         use_a = ra <= rb
         cen = np.where(use_a[..., None], cen_a[owner], cen_b[owner])
         rad = np.where(use_a, ra, rb)
-        ok_s = sep.check(q, t, v, cen, rad)
-        result[sel] = np.bincount(owner, weights=~ok_s, minlength=M) == 0
-        return result
+        return sel, owner, q, t, v, cen, rad
 
 
 class _Run:
@@ -1433,7 +1459,7 @@ class _Run:
         t_dep: np.ndarray,
         u0: np.ndarray,
         fc: np.ndarray | float,
-        alt: int,
+        alt: int | np.ndarray,
         row: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Time moves (arrays of one entry per move), keep those that could improve their node's arrival
@@ -1445,6 +1471,8 @@ class _Run:
             )
             if isinstance(fc, np.ndarray):
                 fc = fc[fin]
+            if isinstance(alt, np.ndarray):
+                alt = alt[fin]
         m = parent.shape[0]
         fc = np.broadcast_to(np.asarray(fc, dtype=np.float64), (m,))
         end = node == self.goal if self.goal is not None else np.zeros(m, dtype=bool)
@@ -1467,6 +1495,8 @@ class _Run:
                 x[idx] for x in (parent, node, branch, L, same, t_dep, u0, row, fc, end, h, u1, peak, ta, hv)
             )
             m = idx.size
+            if isinstance(alt, np.ndarray):
+                alt = alt[idx]
         self._grow(m)
         ids = np.arange(self.n, self.n + m)
         self.n += m
@@ -1618,43 +1648,35 @@ class _Run:
         ta = self.t[ids]
         return ids, ta + self.w_h * h_tab[self.node[ids], self.branch[ids]], ta
 
-    def alternatives(self, failed: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def alternatives(self, failed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """When the nearest branch at cruise speed fails: the next branches, slower, and after a wait."""
         failed = failed[(self.alt[failed] == 0) & (self.row[failed] != _NO_ROW)]
-        out: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         if failed.size == 0:
-            return out
+            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         cfg = self.p.config
         par, node, row = self.parent[failed], self.node[failed], self.row[failed]
         t, u = self.t[par], self.u[par]
-        for k in range(1, self.p._R):
-            b, L, same = self._options(row, k)
-            out.append(self.moves(par, node, b, L, same, t, u, self.f, 1, row))
-        if self.sep.forecast is None:
-            return out
-        b, L, same = self._options(row, 0)
-        for fs in cfg.slow_speed_fractions:
-            if fs < self.f:
-                out.append(self.moves(par, node, b, L, same, t, np.minimum(u, fs), fs, 2, row))
-        K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
-        if K > 0:
-            k = np.tile(np.arange(1, K + 1), failed.size)
-            rep = np.repeat(np.arange(failed.size), K)
-            out.append(
-                self.moves(
-                    par[rep],
-                    node[rep],
-                    b[rep],
-                    L[rep],
-                    same[rep],
-                    t[rep] + k * cfg.wait_step_s,
-                    np.zeros(rep.size),
-                    self.f,
-                    3,
-                    row[rep],
-                )
-            )
-        return out
+        n = failed.size
+        # (kind, option, cruise, wait steps) per alternative
+        kinds = [(1, k, self.f, 0) for k in range(1, self.p._R)]
+        if self.sep.forecast is not None:
+            kinds += [(2, 0, fs, 0) for fs in cfg.slow_speed_fractions if fs < self.f]
+            K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
+            kinds += [(3, 0, self.f, k) for k in range(1, K + 1)]
+        if not kinds:
+            return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+        spec = np.array(kinds, dtype=np.float64)  # (A, 4)
+        a = spec.shape[0]
+        alt = np.repeat(spec[:, 0].astype(np.int8), n)
+        opt = np.repeat(spec[:, 1].astype(np.int64), n)
+        fc = np.repeat(spec[:, 2], n)
+        wait = np.repeat(spec[:, 3], n)
+        par_r, node_r, row_r = np.tile(par, a), np.tile(node, a), np.tile(row, a)
+        b, L, same = self._options(row_r, opt)
+        u0 = np.where(wait > 0, 0.0, np.minimum(np.tile(u, a), fc))
+        return self.moves(
+            par_r, node_r, b, L, same, np.tile(t, a) + wait * cfg.wait_step_s, u0, fc, alt, row_r
+        )
 
     # -- checking (vectorised)
     def check(self, batch: np.ndarray) -> np.ndarray:
@@ -1716,53 +1738,62 @@ class _Run:
         q_par: np.ndarray,
         target: np.ndarray,
     ) -> np.ndarray:
+        """Moves against the forecast, with the waits before them, in one vectorised check."""
         p = self.p
         cfg = p.config
+        sep = self.sep
         ok = np.ones(idx.size, dtype=bool)
-        # waits: the parent must be able to stand still until the departure
+        # waits: the parent must be able to stand still until the departure (checked once per parent)
         dep = self.dep[idx]
         waiting = np.flatnonzero(dep > self.t[par] + _EPS_T)
+        todo = np.zeros(0, dtype=np.int64)
+        parts: list[tuple[np.ndarray, ...]] = []
         if waiting.size:
             wp = par[waiting]
             todo = np.unique(wp[np.isnan(self.wait_ok[wp])])
             if todo.size:
                 K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
                 sub = max(1, math.ceil(cfg.wait_step_s / cfg.sample_dt_s - 1e-9))
-                n = K * sub
-                ts = self.t[todo][:, None] + (cfg.wait_step_s / sub) * np.arange(1, n + 1)
-                rep = np.repeat(np.arange(todo.size), n)
-                _, cen, rad = self._parent_geometry(todo)
-                res = self.sep.check(
-                    self.q[todo][rep], ts.reshape(-1), np.zeros(rep.size), cen[rep], rad[rep]
-                ).reshape(todo.size, n)
-                first_bad = np.argmin(res, axis=1)
-                self.wait_ok[todo] = np.where(res.all(axis=1), np.inf, ts[np.arange(todo.size), first_bad])
-            ok[waiting] = dep[waiting] < self.wait_ok[wp] - _EPS_T
-        live = np.flatnonzero(ok)
-        if live.size == 0:
-            return ok
-        sl = idx[live]
-        pts, cen, rad = self._parent_geometry(par[live])
-        cvl = cv[live]
-        hold = cvl == self.goal if self.goal is not None else np.full(live.size, self.hold_s > 0)
-        ok[live] = p._moves_ok(
-            self.sep,
-            q_par[live],
+                n_w = K * sub
+                ts = self.t[todo][:, None] + (cfg.wait_step_s / sub) * np.arange(1, n_w + 1)
+                rep = np.repeat(np.arange(todo.size), n_w)
+                _, cen_w, rad_w = self._parent_geometry(todo)
+                parts.append((self.q[todo][rep], ts.reshape(-1), np.zeros(rep.size), cen_w[rep], rad_w[rep]))
+        n_wait = parts[0][0].shape[0] if parts else 0
+        pts, cen, rad = self._parent_geometry(par)
+        hold = cv == self.goal if self.goal is not None else np.full(idx.size, self.hold_s > 0)
+        sel, owner, *samples = p._move_samples(
+            sep,
+            q_par,
             pts,
             cen,
             rad,
-            cvl,
-            b[live],
-            target[live],
-            dep[live],
-            self.h[sl],
-            self.u0[sl],
-            self.L[sl],
-            self.end[sl],
-            self.fc[sl],
+            cv,
+            b,
+            target,
+            dep,
+            self.h[idx],
+            self.u0[idx],
+            self.L[idx],
+            self.end[idx],
+            self.fc[idx],
             hold,
             self.hold_s,
         )
+        parts.append(tuple(samples))
+        if len(parts) > 1:
+            res = sep.check(*(np.concatenate(x) for x in zip(*parts, strict=True)))
+        else:
+            res = sep.check(*parts[0])
+        if todo.size:
+            res_w = res[:n_wait].reshape(todo.size, -1)
+            t_w = parts[0][1].reshape(todo.size, -1)
+            first_bad = t_w[np.arange(todo.size), np.argmin(res_w, axis=1)]
+            self.wait_ok[todo] = np.where(res_w.all(axis=1), np.inf, first_bad)
+        if waiting.size:
+            ok[waiting] = dep[waiting] < self.wait_ok[par[waiting]] - _EPS_T
+        if sel.size:
+            ok[sel] &= np.bincount(owner, weights=~res[n_wait:], minlength=sel.size) == 0
         return ok
 
     def reconstruct(self, sid: int) -> Plan:
