@@ -166,8 +166,10 @@ def hrc_server(tmp_path_factory: pytest.TempPathFactory, chromium_path: str) -> 
                 shutil.copy(log_path, ARTIFACTS / "e2e-server.log")
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser(chromium_path: str) -> Iterator[Any]:
+    # Module scope: Playwright's sync API keeps an asyncio loop running on the main thread while it is
+    # open, which would break every later test that calls asyncio.run().
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
