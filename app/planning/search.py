@@ -72,6 +72,7 @@ from scipy.sparse.csgraph import dijkstra
 from app.planning.roadmap import NUM_BRANCHES, Roadmap
 from app.planning.safety import SSMParams, forecast_clearance
 from app.planning.trajectory import Plan, Trajectory, TrajectoryError, fit_knots
+from app.prediction.skeleton import NUM_JOINTS
 
 if TYPE_CHECKING:
     from app.prediction.forecast import HumanForecast
@@ -275,13 +276,13 @@ def _profile_samples(
     return np.minimum(np.maximum(frac, 0.0), 1.0), speed
 
 
-def _accepts_subsets(model: RobotModel) -> bool:
-    """Whether ``model.distance_to_human_paired`` takes ``links`` / ``capsules`` subsets."""
+def _paired_options(model: RobotModel) -> set[str]:
+    """The keyword options of ``model.distance_to_human_paired`` (``segments``, ``links``, ``capsules``)."""
     try:
         params = inspect.signature(model.distance_to_human_paired).parameters
     except (TypeError, ValueError):
-        return False
-    return "links" in params and "capsules" in params and hasattr(model, "human_capsules")
+        return set()
+    return {name for name in ("segments", "links", "capsules") if name in params}
 
 
 class _Separation:
@@ -306,6 +307,7 @@ class _Separation:
         extra_m: float,
         offsets: tuple[float, ...] = (0.0,),
         floor_m: float | None = None,
+        subsets: bool = False,
     ) -> None:
         self.model = model
         self.forecast = forecast
@@ -343,7 +345,7 @@ class _Separation:
         self._hi_pair = self._hi_tab[1] if len(self._hi_tab) > 1 else hi
         self._n_pair = self._lo_pair.shape[0]
         # per person capsule boxes (for the exact stage to skip capsules far from the robot), sparse table
-        self._subsets = _accepts_subsets(model)
+        self._subsets = subsets
         if self._subsets:
             ha, hb, hr = model.human_capsules(joints)
             clo = np.minimum(ha, hb) - np.asarray(hr)[None, :, None]  # (H, M, 3)
@@ -548,6 +550,12 @@ class Planner:
         self._static_boxes = self._static_box_bounds()
         self._rev_graph = self._reverse_move_graph()
         self._h_cache: dict[int, np.ndarray] = {}
+        # the exact verification can reuse its forward kinematics when the model takes segments
+        opts = _paired_options(collision)
+        self._subsets_ok = {"links", "capsules"} <= opts
+        self._segments_ok = "segments" in opts and hasattr(collision, "robot_segments")
+        self._robot_r = np.asarray(collision.robot_capsules(np.zeros((1, 6)))[2], dtype=np.float64)
+        self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
         self._next_cache: dict[int, list[int]] = {}
         self._static_memo: dict[tuple[int, int, int, int], int] = {}
         for node in roadmap.station_nodes.values():
@@ -808,6 +816,7 @@ class Planner:
             extra_m=extra_m,
             offsets=offsets,
             floor_m=floor_m,
+            subsets=self._subsets_ok,
         )
 
     # ------------------------------------------------------------------------------------------ public
@@ -1015,16 +1024,81 @@ class Planner:
             if moving.size:
                 bad[moving] |= self._static_bad(q[moving])
         if forecast is not None:
-            v = self.robot_speed(traj, ts)
             joints, margins = forecast.poses_at(ts)
-            d = self.collision.distance_to_human_paired(q, joints)
-            req = forecast_clearance(v, margins, self.config.ssm)
-            if floor_m is not None:
-                req = np.minimum(req, floor_m)
-            bad |= d < req
+            if self._segments_ok:
+                bad |= self._separation_bad(traj, ts, q, joints, margins, floor_m)
+            else:
+                v = self.robot_speed(traj, ts)
+                d = self.collision.distance_to_human_paired(q, joints)
+                req = forecast_clearance(v, margins, self.config.ssm)
+                if floor_m is not None:
+                    req = np.minimum(req, floor_m)
+                bad |= d < req
         if not np.any(bad):
             return None
         return float(ts[np.argmax(bad)])
+
+    def _separation_bad(
+        self,
+        traj: Trajectory,
+        ts: np.ndarray,
+        q: np.ndarray,
+        joints: np.ndarray,
+        margins: np.ndarray,
+        floor_m: float | None,
+    ) -> np.ndarray:
+        """(K,) bool: samples of ``traj`` at ``ts`` (configurations ``q``) closer to the person (poses
+        ``joints`` (K, J, 3), margins (K,)) than :func:`forecast_clearance` for the robot's speed there.
+
+        The same requirement as :meth:`robot_speed` + ``distance_to_human_paired`` (exact), with the forward
+        kinematics done once per sample time and the exact distance only where a capsule's bounding sphere
+        comes within the requirement of the box around the person's pose."""
+        eps = 1e-4
+        model = self.collision
+        a0, d0 = model.robot_segments(q)  # (L, 3, K)
+        a1, d1 = model.robot_segments(traj.q(ts + eps))
+        step = np.maximum(
+            np.sqrt(np.einsum("lik,lik->lk", a1 - a0, a1 - a0)),
+            np.sqrt(np.einsum("lik,lik->lk", (a1 + d1) - (a0 + d0), (a1 + d1) - (a0 + d0))),
+        )
+        v = step.max(axis=0) / eps
+        req = forecast_clearance(v, margins, self.config.ssm)
+        if floor_m is not None:
+            req = np.minimum(req, floor_m)
+        cen = a0 + 0.5 * d0
+        rad = 0.5 * np.sqrt(np.einsum("lik,lik->lk", d0, d0)) + self._robot_r[:, None]
+        jt = joints.transpose(2, 0, 1)  # (3, K, J)
+        lo = (jt.min(axis=2) - self._human_r_max)[None]  # (1, 3, K)
+        hi = (jt.max(axis=2) + self._human_r_max)[None]
+        g = np.maximum(np.maximum(lo - cen, cen - hi), 0.0)
+        gap = np.sqrt(np.einsum("lik,lik->lk", g, g)) - rad
+        close = gap < req[None]  # (L, K)
+        near = np.flatnonzero(close.any(axis=0))
+        bad = np.zeros(q.shape[0], dtype=bool)
+        if near.size == 0:
+            return bad
+        segments = (a0[..., near], d0[..., near])
+        if not self._subsets_ok:
+            d = model.distance_to_human_paired(q[near], joints[near], segments=segments)
+        else:
+            # only the capsules that come near: robot links near the person's box at some sample, person
+            # capsules whose box over those samples comes near the box of those links
+            links = np.flatnonzero(close[:, near].any(axis=1))
+            r_max = float(req[near].max())
+            cl, rl = cen[links][..., near], rad[links][:, near, None].transpose(0, 2, 1)
+            r_lo = (cl - rl).min(axis=2).min(axis=0) - r_max
+            r_hi = (cl + rl).max(axis=2).max(axis=0) + r_max
+            jn = joints[near]
+            ha, hb, hr = model.human_capsules(np.stack([jn.min(axis=0), jn.max(axis=0)]))
+            # a capsule between two joints lies within the box of their ranges over the samples
+            c_lo = np.minimum(ha[0], hb[0]) - hr[:, None]
+            c_hi = np.maximum(ha[1], hb[1]) + hr[:, None]
+            caps = np.flatnonzero(np.all((c_lo <= r_hi) & (c_hi >= r_lo), axis=1))
+            d = model.distance_to_human_paired(
+                q[near], joints[near], segments=segments, links=links, capsules=caps
+            )
+        bad[near] = d < req[near]
+        return bad
 
     def _finish(
         self,
@@ -1122,6 +1196,7 @@ class Planner:
                 return None, expanded, f"no plan within {cfg.max_expansions} expansions"
             batch: list[int] = []
             popped: list[int] = []
+            finals: list[tuple[float, float, int]] = []
             while heap and len(batch) < W:
                 entry = heapq.heappop(heap)
                 sid = entry[2]
@@ -1135,10 +1210,10 @@ class Planner:
                         deferred.setdefault(par, []).append(entry)
                     continue
                 final = node == goal_i or t >= stop
-                if final and batch:  # states popped before it (f <= its f) may still improve it
+                st = int(run.status[sid])
+                if final and batch and st != 0:  # states popped before it (f <= its f) may improve it
                     heapq.heappush(heap, entry)
                     break
-                st = int(run.status[sid])
                 if st == 1:  # checked ahead of time (a speculative chain): passed
                     if accept(sid, t, node):
                         return run.reconstruct(sid), expanded, "ok"
@@ -1149,8 +1224,9 @@ class Planner:
                     continue
                 batch.append(sid)
                 popped.append(sid)
-                if final:
-                    break
+                if final:  # checked now, accepted only once nothing pending can beat it
+                    finals.append(entry)
+                    continue
                 if len(popped) == 1 and spec_len:
                     chain = run.speculate(sid, min(spec_len, W - 1))
                     push(chain)
@@ -1161,7 +1237,7 @@ class Planner:
             # the popped states now (the chains wait in the heap for their turn)
             expand: list[int] = []
             failed: list[int] = []
-            for sid in popped:
+            for k, sid in enumerate(popped):
                 if run.status[sid] != 1:
                     failed.append(sid)
                     continue
@@ -1169,9 +1245,17 @@ class Planner:
                 t = float(run.t[sid])
                 if t >= AT[node] - _EPS_T:
                     continue
+                if node == goal_i or t >= stop:
+                    if k == 0:  # popped first: nothing in this batch can reach its node sooner
+                        accept(sid, t, node)
+                        return run.reconstruct(sid), expanded, "ok"
+                    continue  # back to the heap below, checked
                 if accept(sid, t, node):
                     return run.reconstruct(sid), expanded, "ok"
                 expand.append(sid)
+            for entry in finals:
+                if run.status[entry[2]] == 1 and entry[2] != popped[0]:
+                    heapq.heappush(heap, entry)
             if failed:
                 push(run.alternatives(np.array(failed, dtype=np.int64)))
             if expand:
