@@ -468,9 +468,9 @@ class _Separation:
                 # capsules whose box over the samples' time window comes near those robot capsules
                 close = gap[near] < rn[:, None]  # (n', L)
                 links = np.flatnonzero(close.any(axis=0))
-                cn, rdn = cen[near][:, links], rad[near][:, links]
-                r_lo = (cn - rdn[..., None]).min(axis=(0, 1)) - rn.max()
-                r_hi = (cn + rdn[..., None]).max(axis=(0, 1)) + rn.max()
+                cn, rdn = cen[near][:, links].reshape(-1, 3), rad[near][:, links].reshape(-1, 1)
+                r_lo = (cn - rdn).min(axis=0) - rn.max()
+                r_hi = (cn + rdn).max(axis=0) + rn.max()
                 c_lo, c_hi = self._capsule_boxes(float(tn.min()), float(tn.max()))
                 caps = np.flatnonzero(np.all((c_lo <= r_hi) & (c_hi >= r_lo), axis=1))
                 d = self.model.distance_to_human_paired(q[near], self._poses(tn), links=links, capsules=caps)
@@ -1616,6 +1616,11 @@ class _Run:
         at_node = nodes[best[nodes] <= 1e-9]
         if at_node.size:  # the start is a roadmap configuration: the roadmap's edges take it from there
             nodes, k = at_node[:1], 1
+            n = int(nodes[0])
+            if n != self.goal:  # the start state is that node (statically free, checked against the person)
+                self.node[0], self.branch[0] = n, int(np.argmin(L[n]))
+                self.AT[n] = self.t[0]
+                return self.children(np.zeros(1, dtype=np.int64))
         order = np.argsort(L[nodes], axis=1, kind="stable")[:, : p._R]
         self.start_b = order.astype(np.int64)
         self.start_L = np.take_along_axis(L[nodes], order, axis=1)
@@ -1948,10 +1953,14 @@ def _map_nodes(waypoints: Plan, traj: Trajectory) -> np.ndarray:
     """Roadmap node of each trajectory knot (matched in order by configuration; -1 for added knots)."""
     kq = traj.knot_q
     out = np.full(kq.shape[0], -1, dtype=np.int64)
+    # match[i, jj]: knot i is waypoint jj (within 1e-9 rad, as np.allclose with atol=1e-9)
+    match = (np.abs(kq[:, None, :] - waypoints.q[None, :, :]) <= 1e-9 + 1e-5 * np.abs(waypoints.q[None])).all(
+        2
+    )
     j = 0
-    for i in range(kq.shape[0]):
-        for jj in range(j, waypoints.q.shape[0]):
-            if np.allclose(waypoints.q[jj], kq[i], atol=1e-9):
+    for i, row in enumerate(match.tolist()):
+        for jj in range(j, len(row)):
+            if row[jj]:
                 out[i] = waypoints.nodes[jj]
                 j = jj
                 break
