@@ -308,6 +308,8 @@ class _Separation:
         offsets: tuple[float, ...] = (0.0,),
         floor_m: float | None = None,
         subsets: bool = False,
+        cap_ends: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        robot_r: np.ndarray | None = None,
     ) -> None:
         self.model = model
         self.forecast = forecast
@@ -345,7 +347,11 @@ class _Separation:
         self._hi_pair = self._hi_tab[1] if len(self._hi_tab) > 1 else hi
         self._n_pair = self._lo_pair.shape[0]
         # per person capsule boxes (for the exact stage to skip capsules far from the robot), sparse table
-        self._subsets = subsets
+        # the exact stage's shortcuts need the collision model's segments and capsule subsets
+        self._subsets = subsets and cap_ends is not None and robot_r is not None
+        if self._subsets:
+            assert cap_ends is not None and robot_r is not None
+            self._cap_ends, self._robot_r = cap_ends, robot_r
         if self._subsets:
             ha, hb, hr = model.human_capsules(joints)
             clo = np.minimum(ha, hb) - np.asarray(hr)[None, :, None]  # (H, M, 3)
@@ -430,10 +436,13 @@ class _Separation:
         v: np.ndarray,
         cen: np.ndarray | None = None,
         rad: np.ndarray | None = None,
+        groups: np.ndarray | None = None,
     ) -> np.ndarray:
         """Boolean (S,): robot ``q[k]`` (6,) at time ``t[k]`` moving at ``v[k]`` m/s keeps the separation.
 
         ``cen`` (S, L, 3) / ``rad`` (S, L): spheres that contain the robot capsules at each sample, if known.
+        ``groups`` (S,) int: samples of one group (a move) are only of interest together: once one of them
+        certainly fails, the others of its group are reported as failing without being computed.
         """
         S = q.shape[0]
         if self.forecast is None or S == 0:
@@ -442,6 +451,8 @@ class _Separation:
         if n_off > 1:
             t = (t[None, :] + np.asarray(self.offsets)[:, None]).reshape(-1)
             q = np.broadcast_to(q, (n_off, S, 6)).reshape(-1, 6)
+            if groups is not None:
+                groups = np.tile(groups, n_off)
             v = np.broadcast_to(v, (n_off, S)).reshape(-1)
             if cen is not None and rad is not None:
                 cen = np.broadcast_to(cen, (n_off, *cen.shape)).reshape(-1, *cen.shape[1:])
@@ -461,8 +472,8 @@ class _Separation:
         else:
             near = np.arange(n)
         if near.size:
-            self.exact_samples += near.size
             tn, rn = t[near], req[near]
+            poses = self._poses(tn)
             if self._subsets and cen is not None and rad is not None:
                 # only the robot capsules near the person's box at some sample, and only the person
                 # capsules whose box over the samples' time window comes near those robot capsules
@@ -473,11 +484,48 @@ class _Separation:
                 r_hi = (cn + rdn).max(axis=0) + rn.max()
                 c_lo, c_hi = self._capsule_boxes(float(tn.min()), float(tn.max()))
                 caps = np.flatnonzero(np.all((c_lo <= r_hi) & (c_hi >= r_lo), axis=1))
-                d = self.model.distance_to_human_paired(q[near], self._poses(tn), links=links, capsules=caps)
+                a_c, d_c = self.model.robot_segments(q[near])
+                if groups is not None and links.size and caps.size:
+                    # a sample certainly too close fails its whole move: no exact distances for the rest
+                    dead = self._upper_bound(a_c, d_c, poses, links, caps) < rn
+                    if dead.any():
+                        ok[near[dead]] = False
+                        alive = ~np.isin(groups[near], groups[near[dead]])
+                        near, tn, rn, poses = near[alive], tn[alive], rn[alive], poses[alive]
+                        a_c, d_c = a_c[..., alive], d_c[..., alive]
+                self.exact_samples += near.size
+                d = self.model.distance_to_human_paired(
+                    q[near], poses, segments=(a_c, d_c), links=links, capsules=caps
+                )
             else:
-                d = self.model.distance_to_human_paired(q[near], self._poses(tn))
+                self.exact_samples += near.size
+                d = self.model.distance_to_human_paired(q[near], poses)
             ok[near] = d >= rn
         return ok.reshape(n_off, S).all(axis=0) if n_off > 1 else ok
+
+    def _upper_bound(
+        self, a_c: np.ndarray, d_c: np.ndarray, poses: np.ndarray, links: np.ndarray, caps: np.ndarray
+    ) -> np.ndarray:
+        """An upper bound (n,) of the surface distance between the robot capsules ``links`` (segments
+        ``a_c``, ``d_c`` (L, 3, n)) and the person capsules ``caps`` in ``poses`` (n, J, 3): the distance
+        between a point on a robot capsule's axis (either end) and a joint on a person capsule's axis, less
+        both radii, is never below the capsules' distance."""
+        ia, ib, hr = self._cap_ends
+        r_joint = np.full(poses.shape[1], -np.inf)
+        np.maximum.at(r_joint, ia[caps], hr[caps])
+        np.maximum.at(r_joint, ib[caps], hr[caps])
+        joints = np.flatnonzero(np.isfinite(r_joint))
+        a, d = a_c[links], d_c[links]
+        pts = np.concatenate([a, a + d])  # (2L', 3, n): both ends of each axis
+        jt = poses[:, joints].transpose(2, 1, 0)  # (3, J', n)
+        sq = np.zeros((pts.shape[0], joints.size, pts.shape[2]))
+        for k in range(3):
+            diff = pts[:, k, None, :] - jt[k][None]
+            diff *= diff
+            sq += diff
+        dist = np.sqrt(sq, out=sq)
+        dist -= np.tile(self._robot_r[links], 2)[:, None, None] + r_joint[joints][None, :, None]
+        return dist.reshape(-1, dist.shape[2]).min(axis=0)
 
     def _capsule_boxes(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
         """Boxes (M, 3) x 2 that contain each person capsule over the window [t0, t1]."""
@@ -556,6 +604,14 @@ class Planner:
         self._segments_ok = "segments" in opts and hasattr(collision, "robot_segments")
         self._robot_r = np.asarray(collision.robot_capsules(np.zeros((1, 6)))[2], dtype=np.float64)
         self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
+        # which joints each person capsule runs between (joint indices fed in as coordinates) and its radius
+        coded = np.repeat(np.arange(NUM_JOINTS, dtype=np.float64)[None, :, None], 3, axis=2)
+        ha, hb, hr = collision.human_capsules(coded)
+        self._cap_ends = (
+            np.asarray(ha)[0, :, 0].astype(np.int64),
+            np.asarray(hb)[0, :, 0].astype(np.int64),
+            np.asarray(hr, dtype=np.float64),
+        )
         self._next_cache: dict[int, list[int]] = {}
         self._static_memo: dict[tuple[int, int, int, int], int] = {}
         for node in roadmap.station_nodes.values():
@@ -816,7 +872,9 @@ class Planner:
             extra_m=extra_m,
             offsets=offsets,
             floor_m=floor_m,
-            subsets=self._subsets_ok,
+            subsets=self._subsets_ok and self._segments_ok,
+            cap_ends=self._cap_ends,
+            robot_r=self._robot_r,
         )
 
     # ------------------------------------------------------------------------------------------ public
@@ -1870,10 +1928,13 @@ class _Run:
             self.hold_s,
         )
         parts.append(tuple(samples))
+        # groups: every wait sample on its own (the first unsafe instant matters), then each move's samples
+        groups = [np.arange(n_wait)] if n_wait else []
+        groups.append(owner + n_wait)
         if len(parts) > 1:
-            res = sep.check(*(np.concatenate(x) for x in zip(*parts, strict=True)))
+            res = sep.check(*(np.concatenate(x) for x in zip(*parts, strict=True)), np.concatenate(groups))
         else:
-            res = sep.check(*parts[0])
+            res = sep.check(*parts[0], groups[0])
         if todo.size:
             res_w = res[:n_wait].reshape(todo.size, -1)
             t_w = parts[0][1].reshape(todo.size, -1)
