@@ -13,6 +13,7 @@ work cell), :class:`CellGeometry` (the supervisor's view of the robot's body) an
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -236,19 +237,24 @@ class MonitorSample:
 class SafetyMonitor:
     """Checks the *executed* motion: at each call, the separation between the robot (its measured state) and
     a pose of the person, against ISO/TS 15066's S_p for the robot's actual speed and the person's directed
-    speed toward it (:func:`app.planning.safety.protective_separation`). It shares nothing with the
+    speed toward it (:func:`app.planning.safety.protective_separation`, with the stopping time ``T_s`` of
+    the robot's current speed: ``v_top / stop_decel_mps2``). It shares nothing with the
     supervisor: its own distance and speed computations, the robot's reported state, the poses it is given.
 
     Args:
         collision: The collision model (``distance_to_human``, ``robot_capsules``).
         ssm: :class:`app.planning.safety.SSMParams`.
-        moving_mps: A robot whose points all move slower than this counts as standing still.
+        moving_mps: A robot part slower than this counts as standing still.
+        stop_decel_mps2: The robot's stopping deceleration (``T_s = v / stop_decel_mps2``).
     """
 
-    def __init__(self, collision: Any, ssm: Any, *, moving_mps: float = 0.01) -> None:
+    def __init__(
+        self, collision: Any, ssm: Any, *, moving_mps: float = 0.01, stop_decel_mps2: float = 2.0
+    ) -> None:
         from app.planning.safety import protective_separation
 
         self._sp = protective_separation
+        self.stop_decel_mps2 = float(stop_decel_mps2)
         self.collision = collision
         self.geometry = CellGeometry(collision)
         self.ssm = ssm
@@ -286,8 +292,10 @@ class SafetyMonitor:
         if joints_before is not None and dt_before_s > 0:
             v_h = np.maximum((d[1] - sep) / dt_before_s, 0.0)
         v_r = self.geometry.part_speeds(q, np.asarray(qd, dtype=np.float64))[0]
+        # T_s: the robot's stopping time from its current speed (its fastest part's)
+        params = dataclasses.replace(self.ssm, t_stop_s=float(v_r.max()) / self.stop_decel_mps2)
         req = np.array(
-            [float(self._sp(float(v), self.ssm, v_human_mps=float(h))) for v, h in zip(v_r, v_h, strict=True)]
+            [float(self._sp(float(v), params, v_human_mps=float(h))) for v, h in zip(v_r, v_h, strict=True)]
         )
         moving = v_r > self.moving_mps
         bad_parts = moving & (sep < req)
@@ -481,6 +489,8 @@ class EngineOptions:
             every servo tick (against the newest frame); ``"off"``.
         record_frames: Keep the frames for the study database.
         tracking_margin_m: Tracking error of a frame (m) (see :class:`SupervisorConfig`).
+        plan_margin_m: Extra clearance (m) the plans keep from the forecast person (both methods alike): room
+            for the speed governor, which slows a robot that passes close to a person.
         human_accel_mps2, human_speed_max_mps: The person's worst case for the speed governor (see
             :class:`~app.control.supervisor.SeparationModel`): how fast their speed may change between
             frames and during a brake, and their fastest approach.
@@ -492,6 +502,7 @@ class EngineOptions:
     tracking_margin_m: float = 0.02
     human_accel_mps2: float = 8.0
     human_speed_max_mps: float = 2.0
+    plan_margin_m: float = 0.0
     pick_dwell_s: float = 0.4
     place_dwell_s: float = 0.4
 
@@ -656,8 +667,12 @@ class TrialEngine:
             return None
         if self.method == "proactive":
             forecast = self.predictor.update(frame)
+            if self.options.plan_margin_m > 0:
+                extra = self.options.plan_margin_m
+                forecast = dataclasses.replace(forecast, margins=forecast.margins + extra)
         else:
-            forecast = HumanForecast.hold(frame, margin_m=self.options.tracking_margin_m)
+            margin = self.options.tracking_margin_m + self.options.plan_margin_m
+            forecast = HumanForecast.hold(frame, margin_m=margin)
         decision = self.supervisor.on_frame(frame, forecast, t_now=t)
         self.decide_s.append(decision.decide_s)
         self.frame_to_decision_s = time.perf_counter() - c0  # validation + prediction + decision

@@ -344,54 +344,72 @@ def _forward_max(x: np.ndarray, w: int) -> np.ndarray:
 
 @dataclass(frozen=True, slots=True)
 class SeparationModel:
-    """ISO/TS 15066 protective separation with constant speeds, and the braking envelope built on it.
+    """ISO/TS 15066 protective separation, and the braking envelope built on it.
 
-    ``S_p(v_r, v_h) = s0_m + k_robot_s * v_r + k_human_s * v_h`` where ``v_r`` is the robot's speed and
-    ``v_h`` the person's *directed* speed toward the robot (ISO/TS 15066 5.5.4.2.3: the measured speed where
-    the system monitors it, as here). With :class:`app.planning.safety.SSMParams`: ``s0 = C + Z_d + Z_r``,
-    ``k_robot = T_r + T_s / 2``, ``k_human = T_r + T_s`` (:meth:`from_ssm`).
+    ``S_p = S_h + S_r + S_s + C + Z_d + Z_r`` with ``S_h = v_h (T_r + T_s)``, ``S_r = v_r T_r``,
+    ``S_s = v_r T_s / 2``, where ``v_r`` is the speed of the robot part, ``v_h`` the person's speed toward it
+    (ISO/TS 15066 5.5.4.2.3: the measured speed where the system monitors it, as here) and ``T_s`` the
+    robot's stopping time *from its current speed*: ``T_s = v_top / stop_decel_mps2`` with ``v_top`` the
+    speed of the robot's fastest part (a robot creeping at 1 cm/s stops in milliseconds, not in the 0.2 s
+    it needs at 1 m/s). With :class:`app.planning.safety.SSMParams` (:meth:`from_ssm`):
+    ``s0 = C + Z_d + Z_r``, ``T_r = t_reaction_s``.
 
-    The *envelope* answers: how fast may the robot move at separation ``d`` so that, braking now at ``a``,
-    the separation stays at or above ``S_p(v_r(t), v_h(t))`` at every instant until it is at rest, while the
-    person approaches as fast as a person can: speeding up from ``v_h0`` at ``human_accel_mps2`` to at most
+    The *envelope* answers: how fast may the robot move at separation ``d`` so that, braking now, the
+    separation stays at or above ``S_p`` at every instant until it is at rest, while the person approaches
+    as fast as a person can: speeding up from ``v_h0`` at ``human_accel_mps2`` to at most
     ``human_speed_max_mps`` (their approach and the robot's own travel both counted)?
 
     Attributes:
         s0_m: ``C + Z_d + Z_r`` (m).
-        k_robot_s: ``T_r + T_s / 2`` (s).
-        k_human_s: ``T_r + T_s`` (s).
+        t_reaction_s: ``T_r`` (s).
+        stop_decel_mps2: The robot's stopping deceleration for ``T_s`` (m/s^2).
         human_speed_max_mps: Fastest approach of a person (m/s).
-        human_accel_mps2: Fastest change of a person's approach speed (m/s^2).
+        human_accel_mps2: Fastest change of a person's speed (m/s^2).
     """
 
     s0_m: float = 0.11
-    k_robot_s: float = 0.2
-    k_human_s: float = 0.3
+    t_reaction_s: float = 0.1
+    stop_decel_mps2: float = 2.0
     human_speed_max_mps: float = 2.0
     human_accel_mps2: float = 8.0
 
     def __post_init__(self) -> None:
-        for name in ("s0_m", "k_robot_s", "k_human_s", "human_speed_max_mps", "human_accel_mps2"):
+        for name in ("s0_m", "t_reaction_s", "stop_decel_mps2", "human_speed_max_mps", "human_accel_mps2"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"SeparationModel.{name} must be finite and >= 0, got {v}")
+        if self.stop_decel_mps2 <= 0:
+            raise ValueError("SeparationModel.stop_decel_mps2 must be > 0")
 
     @classmethod
     def from_ssm(
-        cls, params: Any, *, human_speed_max_mps: float = 2.0, human_accel_mps2: float = 8.0
+        cls,
+        params: Any,
+        *,
+        human_speed_max_mps: float = 2.0,
+        human_accel_mps2: float = 8.0,
+        stop_decel_mps2: float = 2.0,
     ) -> SeparationModel:
-        """From :class:`app.planning.safety.SSMParams`."""
+        """From :class:`app.planning.safety.SSMParams` (``C``, ``Z_d``, ``Z_r``, ``T_r``)."""
         return cls(
             s0_m=float(params.intrusion_m + params.z_human_m + params.z_robot_m),
-            k_robot_s=float(params.t_reaction_s + params.t_stop_s / 2),
-            k_human_s=float(params.t_reaction_s + params.t_stop_s),
+            t_reaction_s=float(params.t_reaction_s),
+            stop_decel_mps2=stop_decel_mps2,
             human_speed_max_mps=human_speed_max_mps,
             human_accel_mps2=human_accel_mps2,
         )
 
+    def sp(self, v_part: Any, v_top: Any, v_human: Any) -> Any:
+        """``S_p`` (m) of a part moving at ``v_part`` on a robot whose fastest part moves at ``v_top``, the
+        person approaching at ``v_human`` (arrays broadcast)."""
+        v_part = np.maximum(v_part, 0.0)
+        t_s = np.maximum(v_top, 0.0) / self.stop_decel_mps2
+        t_r = self.t_reaction_s
+        return self.s0_m + np.maximum(v_human, 0.0) * (t_r + t_s) + v_part * (t_r + 0.5 * t_s)
+
     def required(self, v_robot_mps: float, v_human_mps: float = 0.0) -> float:
-        """``S_p`` (m)."""
-        return self.s0_m + self.k_robot_s * max(v_robot_mps, 0.0) + self.k_human_s * max(v_human_mps, 0.0)
+        """``S_p`` (m) of the robot's fastest part."""
+        return float(self.sp(v_robot_mps, v_robot_mps, v_human_mps))
 
     def human_approach(self, v_h0: Any, dt: Any) -> tuple[np.ndarray, np.ndarray]:
         """Worst-case approach distance (m) and speed (m/s) of the person ``dt`` (s) after moving at
@@ -410,9 +428,9 @@ class SeparationModel:
     def max_speed(
         self, separation_m: Any, *, v_human_mps: Any, decel_mps2: Any, v_cap_mps: float = 3.0
     ) -> Any:
-        """Largest safe speed (m/s) of a robot part at ``separation_m`` with the person approaching it at
-        ``v_human_mps`` now, braking at ``decel_mps2`` (0 when even a creeping part is not safe). Arguments
-        broadcast; a float for scalar arguments."""
+        """Largest safe speed (m/s) of a robot moving as one part at ``separation_m`` with the person
+        approaching at ``v_human_mps`` now, braking at ``decel_mps2`` (0 when even a creeping robot is not
+        safe). Arguments broadcast; a float for scalar arguments."""
         d, vh0, a = np.broadcast_arrays(
             np.asarray(separation_m, dtype=np.float64),
             np.asarray(v_human_mps, dtype=np.float64),
@@ -424,7 +442,8 @@ class SeparationModel:
         t = _ENV_U[None, None, :] * v / a
         x_h, v_h = self.human_approach(vh0, t)
         travel = v * t - 0.5 * a * t**2
-        need = self.s0_m + self.k_robot_s * (v - a * t) + self.k_human_s * v_h
+        vt = v - a * t
+        need = self.sp(vt, vt, v_h)
         ok = np.all(d - x_h - travel - need >= 0.0, axis=2)  # (P, NV)
         ok &= np.isfinite(d[:, :, 0]) | (d[:, :, 0] > 0)
         n_ok = np.cumprod(ok, axis=1).sum(axis=1)  # leading feasible speeds
@@ -438,16 +457,17 @@ class SeparationModel:
     ) -> float:
         """Largest path-speed scale in [0, 1] that is safe for every part: part i moves at
         ``s * v_parts_mps[i]`` and a brake lowers the scale at ``rate`` (1/s), so every part stops after
-        ``s / rate``. Arrays (L,)."""
+        ``s / rate``. Arrays (L,) (the parts that move)."""
         d1 = np.asarray(separation_m, dtype=np.float64)
         vh1 = np.asarray(v_human_mps, dtype=np.float64)
         vp1 = np.asarray(v_parts_mps, dtype=np.float64)
         if d1.size == 0:
             return 1.0
+        vtop = float(vp1.max())
         # quick accept (most ticks): every term at its largest over a full-speed brake
         t_b = 1.0 / max(rate, 1e-6)
         x_b, v_b = self.human_approach(vh1, t_b)
-        worst = self.s0_m + (self.k_robot_s + t_b) * vp1 + self.k_human_s * v_b + x_b
+        worst = self.sp(vp1, vtop, v_b) + x_b + vp1 * t_b
         if bool(np.all(d1 >= worst)):
             return 1.0
         d, vh0, vp = d1[:, None, None], vh1[:, None, None], vp1[:, None, None]
@@ -457,7 +477,8 @@ class SeparationModel:
         a = rate * vp
         v = sc * vp
         travel = v * t - 0.5 * a * t**2
-        need = self.s0_m + self.k_robot_s * (v - a * t) + self.k_human_s * v_h
+        s_t = sc - rate * t  # the scale during the brake
+        need = self.sp(s_t * vp, s_t * vtop, v_h)
         ok = np.all(d - x_h - travel - need >= 0.0, axis=2).all(axis=0)  # (NS,) every part
         n_ok = int(np.cumprod(ok).sum())
         return float(_SCALES[n_ok - 1]) if n_ok > 0 else 0.0
@@ -1085,7 +1106,7 @@ class Supervisor:
         # the stop distance: a part that is to move is within S_p(0) of the person (at their measured speed;
         # the speed governor allows for what they may do before the next frame)
         to_move = active.profile.window_at(tau) > 1e-6
-        stop_distance = bool(np.any(to_move & (sep_parts <= self.ssm.s0_m + self.ssm.k_human_s * v_h0)))
+        stop_distance = bool(np.any(to_move & (sep_parts <= self.ssm.s0_m + self.ssm.t_reaction_s * v_h0)))
 
         # 3. pre-check a finished backup of the pending switch against this (latest) forecast
         with self._lock:
@@ -1601,7 +1622,9 @@ class Supervisor:
                 state=self._effective_state(),
                 scale=self._s,
                 separation_m=float(self._sep_m[i]),
-                required_separation_m=self.ssm.required(float(self._v_cmd[i]), float(v_h[i])),
+                required_separation_m=float(
+                    self.ssm.sp(float(self._v_cmd[i]), float(self._v_cmd.max()), float(v_h[i]))
+                ),
                 q=self._q_cmd.copy(),
                 plan=None if active.kind == "hold" else active.traj,
                 plan_tau=self._tau,
