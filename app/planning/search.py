@@ -127,6 +127,9 @@ class PlannerConfig:
         check_step_rad: Largest joint step (rad) between configurations checked against the static scene.
         static_margin_m: Clearance (m) from the static scene for on-the-fly checks (as the roadmap's).
         max_expansions: Bound on expanded states per search.
+        probe_after_expansions: After this many expansions without a plan the search checks whether the
+            goal can still be entered once the forecast person holds still (:meth:`Planner._approach_probe`);
+            when it cannot, states that could only arrive later are dropped (a clear, early failure).
         max_plan_s: Plans that cannot reach the goal within this long (s, by the admissible heuristic) are
             not searched for (the supervisor replans every frame; a longer detour is not worth the time).
         verify_dt_s: Time step (s) of the fitted trajectory's verification.
@@ -156,6 +159,7 @@ class PlannerConfig:
     check_step_rad: float = 0.05
     static_margin_m: float = 0.0
     max_expansions: int = 20000
+    probe_after_expansions: int = 60
     max_plan_s: float = 8.0
     verify_dt_s: float = 0.01
     fallback_slack_s: float = 0.3
@@ -837,6 +841,20 @@ class Planner:
         assert src.shape == dst.shape == cost.shape == (E, NUM_BRANCHES, R)
         return csr_matrix((cost[keep], (dst[keep], src[keep])), shape=(S, S))
 
+    def _to_goal_neighbours(self, goal: int) -> np.ndarray:
+        """(N, 8) static time (s, cruise speed, as :meth:`_static_to_go`) from every node branch to a node
+        branch that has a move into ``goal`` (0 there; +inf where none can be reached)."""
+        rm = self.roadmap
+        entries = np.flatnonzero(rm.indices == goal)
+        src = np.searchsorted(rm.indptr, entries, side="right") - 1
+        states = (src[:, None] * NUM_BRANCHES + np.arange(NUM_BRANCHES)).reshape(-1)
+        rows = (entries[:, None] * NUM_BRANCHES + np.arange(NUM_BRANCHES)).reshape(-1)
+        states = states[np.isfinite(self._L_flat[rows, 0]) & self._valid.reshape(-1)[states]]
+        if states.size == 0:
+            return np.full((rm.num_nodes, NUM_BRANCHES), np.inf)
+        d = dijkstra(self._rev_graph, directed=True, indices=states, min_only=True)
+        return np.asarray(d).reshape(-1, NUM_BRANCHES)
+
     def _static_to_go(self, goal: int) -> np.ndarray:
         """Static time-to-go (N * 8,) in s from every node branch to any valid branch of ``goal`` over the
         moves the search can take (nearest ``max_branch_tries`` branches per edge), each timed at the cruise
@@ -1231,6 +1249,11 @@ class Planner:
         # shortest path into the same batch (the batch's other slots go to the next states in order)
         spec_len = W // 2 if goal is not None and W > 1 else 0
         expanded = 0
+        w_h = cfg.heuristic_weight
+        # when the search gets long: can the goal still be entered once the person comes to rest?
+        probed = goal is None or sep.forecast is None
+        t_static = math.inf if sep.forecast is None else self._static_from(sep.forecast)
+        blocked_from: float | None = None
 
         # states popped before their (speculative) parent was accepted wait here for it
         deferred: dict[int, list[tuple[float, float, int]]] = {}
@@ -1262,6 +1285,11 @@ class Planner:
                 t = -entry[1]
                 if t >= AT[node] - _EPS_T:
                     continue  # a checked state reached this node no later
+                if blocked_from is not None and (
+                    (node != goal_i and t + run.h_pred[node, run.branch[sid]] >= run.t_nongoal)
+                    or t + (entry[0] - t) / w_h > run.t_last + _EPS_T
+                ):
+                    continue  # pruned after the approach probe
                 par = int(run.parent[sid])
                 if not run.accepted[par]:  # a speculative chain's state whose parent is not through yet
                     if run.status[par] != 2:
@@ -1318,11 +1346,27 @@ class Planner:
                 push(run.alternatives(np.array(failed, dtype=np.int64)))
             if expand:
                 push(run.children(np.array(expand, dtype=np.int64)))
+            if not probed and expanded >= cfg.probe_after_expansions and goal is not None:
+                probed = True
+                t_probe = max(t_static, t_start)
+                longest = self._approach_probe(sep, goal, t_probe, hold_s, run.t_last)
+                if longest is not None:  # no way into the goal once the person holds still
+                    blocked_from = t_probe
+                    run.t_nongoal = min(run.t_nongoal, t_probe)
+                    run.t_last = min(run.t_last, t_probe + longest)
+                    run.h_pred = self._to_goal_neighbours(goal)
         if goal is not None and t_last < t_start + cfg.max_plan_s and not expanded:
             if t_last < t_start:
                 return None, expanded, "goal blocked by the person for good"
             return None, expanded, f"goal blocked by the person from t={t_last - t_start:+.2f} s on"
         what = "goal" if goal is not None else "the emergency horizon"
+        if blocked_from is not None:
+            return (
+                None,
+                expanded,
+                f"goal unreachable: every way into it is blocked once the person holds still "
+                f"(t={blocked_from - t_start:+.2f} s), no safe path arrives before ({expanded} expansions)",
+            )
         return None, expanded, f"{what} unreachable: no safe path found after {expanded} expansions"
 
     def _latest_goal_arrival(self, sep: _Separation, goal: int, t_start: float, hold_s: float) -> float:
@@ -1362,6 +1406,89 @@ class Planner:
                     best = max(best, float(ts[i]))
                     break
         return best
+
+    def _static_from(self, fc: HumanForecast) -> float:
+        """The time (s) from which the forecast's requirement no longer changes: the last pose is held and
+        the margin has grown to its cap (or stays at its last value without growth)."""
+        m_end = float(fc.margins[-1])
+        cap = max(fc.max_margin_m, float(fc.margins.max()))
+        return fc.horizon_end + (max(cap - m_end, 0.0) / fc.growth_mps if fc.growth_mps > 0 else 0.0)
+
+    def _approach_probe(
+        self, sep: _Separation, goal: int, t_static: float, hold_s: float, t_last: float
+    ) -> float | None:
+        """Whether the goal can still be entered once the forecast has come to rest (``t_static``).
+
+        Checks every move the search could make into the goal (each roadmap neighbour, each valid branch
+        there, the ``max_branch_tries`` nearest goal branches) the slowest way the search makes it (the
+        nearest branch at the slowest of ``slow_speed_fractions``, the others at the cruise speed), from
+        rest, with the goal hold, departing at ``t_static``. From then on the person and the margin no
+        longer change, and a faster move needs at least as much separation at every point of its path, so
+        when even these fail no move into the goal that departs later passes. Moves that could not arrive
+        by ``t_last`` (the search's bound) are left out. Returns None when some move passes, else the
+        longest of the moves (s): a plan must then arrive within that long after ``t_static``.
+        """
+        rm = self.roadmap
+        entries = np.flatnonzero(rm.indices == goal)
+        if entries.size == 0:
+            return None
+        src = np.searchsorted(rm.indptr, entries, side="right") - 1
+        e = np.repeat(entries, NUM_BRANCHES * self._R)
+        u = np.repeat(src, NUM_BRANCHES * self._R)
+        bu = np.tile(np.repeat(np.arange(NUM_BRANCHES), self._R), entries.size)
+        k = np.tile(np.arange(self._R), entries.size * NUM_BRANCHES)
+        row = e * NUM_BRANCHES + bu
+        L = self._L_flat[row, k]
+        keep = np.isfinite(L) & self._valid[u, bu]
+        if not keep.any():
+            return None
+        u, bu, row, k, L = u[keep], bu[keep], row[keep], k[keep], L[keep]
+        b = self._ord_flat[row, k]
+        q_a = self._ik[u, bu]
+        target = self._align(self._ik[goal, b], q_a)
+        m = u.size
+        # the slowest move the search makes there: the nearest branch at the slowest speed, the others at
+        # the cruise speed (it tries no other branch slower); from rest, slower than any entry speed
+        f_min = min((self.config.speed_fraction, *self.config.slow_speed_fractions))
+        f = np.where(k == 0, f_min, self.config.speed_fraction)
+        end = np.ones(m, dtype=bool)
+        h, _, _ = _profile_arrays(np.zeros(m), L, f, self._A, end)
+        h = np.where(L > 1e-12, np.maximum(h, self.config.min_edge_s), h)
+        fits = t_static + h <= t_last
+        if not fits.any():
+            return 0.0
+        u, bu, b, q_a, target, L, h, f = (x[fits] for x in (u, bu, b, q_a, target, L, h, f))
+        m = u.size
+        # the moves from the roomiest configurations first: one that passes ends the probe early
+        assert sep.forecast is not None
+        pose = sep._poses(np.full(m, t_static))
+        room = self.collision.distance_to_human_paired(q_a, pose)
+        order = np.argsort(-room, kind="stable")
+        for c0 in range(0, m, 16):
+            i = order[c0 : c0 + 16]
+            n = i.size
+            ones = np.ones(n, dtype=bool)
+            ok = self._moves_ok(
+                sep,
+                q_a[i],
+                self._pts_all[u[i], bu[i]],
+                self._cen_all[u[i], bu[i]],
+                self._rad_all[u[i], bu[i]],
+                np.full(n, goal),
+                b[i],
+                target[i],
+                np.full(n, t_static),
+                h[i],
+                np.zeros(n),
+                L[i],
+                ones,
+                f[i],
+                ones,
+                hold_s,
+            )
+            if ok.any():
+                return None
+        return float(h.max())
 
     def _moves_ok(
         self,
@@ -1531,6 +1658,8 @@ class _Run:
         self.hold_s = hold_s
         self.h_tab = h_tab
         self.t_last = t_last
+        self.t_nongoal = math.inf  # states at other nodes than the goal must arrive before this (s)
+        self.h_pred: np.ndarray | None = None  # (N, 8) time lower bound to a roadmap neighbour of the goal
         cfg = planner.config
         self.f = cfg.speed_fraction
         self.A = planner._A
@@ -1631,6 +1760,9 @@ class _Run:
             hv = np.zeros(m)
         # an admissible prune: with a weight w > 1 the key t + w h >= t + h, so compare t + h itself
         keep = (ta < self.AT[node] - _EPS_T) & (ta + hv <= self.t_last)
+        if self.t_nongoal < math.inf:
+            h_pred = self.h_pred[node, branch] if self.h_pred is not None else 0.0
+            keep &= (node == self.goal) | (ta + h_pred < self.t_nongoal)
         if not keep.all():
             idx = np.flatnonzero(keep)
             parent, node, branch, L, same, t_dep, u0, row, fc, end, h, u1, peak, ta, hv = (
@@ -1763,6 +1895,8 @@ class _Run:
             hv = float(h_tab[v, bv])
             if ta >= AT[v] - _EPS_T or ta + hv > self.t_last:
                 break
+            if v != goal and ta + (0.0 if self.h_pred is None else self.h_pred[v, bv]) >= self.t_nongoal:
+                break
             q_prev = p._align(p._ik[v, bv], q_prev)
             qs.append(q_prev)
             chain.append((row, v, bv, L, p._same_list[row], t, min(u, f), h, u1, peak))
@@ -1807,9 +1941,14 @@ class _Run:
         # (kind, option, cruise, wait steps) per alternative
         kinds = [(1, k, self.f, 0) for k in range(1, self.p._R)]
         if self.sep.forecast is not None:
-            kinds += [(2, 0, fs, 0) for fs in cfg.slow_speed_fractions if fs < self.f]
+            slow = [fs for fs in cfg.slow_speed_fractions if fs < self.f]
+            kinds += [(2, 0, fs, 0) for fs in slow]
+            if slow:  # stop, then creep (slower than creeping on at the parent's speed)
+                kinds.append((4, 0, min(slow), -1))
             K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
             kinds += [(3, 0, self.f, k) for k in range(1, K + 1)]
+            if slow:  # wait, then creep
+                kinds += [(5, 0, min(slow), k) for k in range(1, K + 1)]
         if not kinds:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         spec = np.array(kinds, dtype=np.float64)  # (A, 4)
@@ -1820,10 +1959,9 @@ class _Run:
         wait = np.repeat(spec[:, 3], n)
         par_r, node_r, row_r = np.tile(par, a), np.tile(node, a), np.tile(row, a)
         b, L, same = self._options(row_r, opt)
-        u0 = np.where(wait > 0, 0.0, np.minimum(np.tile(u, a), fc))
-        return self.moves(
-            par_r, node_r, b, L, same, np.tile(t, a) + wait * cfg.wait_step_s, u0, fc, alt, row_r
-        )
+        u0 = np.where(wait != 0, 0.0, np.minimum(np.tile(u, a), fc))  # from rest after a wait or a stop
+        t_dep = np.tile(t, a) + np.maximum(wait, 0.0) * cfg.wait_step_s
+        return self.moves(par_r, node_r, b, L, same, t_dep, u0, fc, alt, row_r)
 
     # -- checking (vectorised)
     def check(self, batch: np.ndarray) -> np.ndarray:
