@@ -66,8 +66,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from app.planning.roadmap import NUM_BRANCHES, Roadmap
 from app.planning.safety import SSMParams, forecast_clearance
@@ -75,6 +73,8 @@ from app.planning.trajectory import Plan, Trajectory, TrajectoryError, fit_knots
 from app.prediction.skeleton import NUM_JOINTS
 
 if TYPE_CHECKING:
+    from scipy.sparse import csr_matrix
+
     from app.prediction.forecast import HumanForecast
 
 logger = logging.getLogger(__name__)
@@ -159,7 +159,7 @@ class PlannerConfig:
     check_step_rad: float = 0.05
     static_margin_m: float = 0.0
     max_expansions: int = 20000
-    probe_after_expansions: int = 60
+    probe_after_expansions: int = 80
     max_plan_s: float = 8.0
     verify_dt_s: float = 0.01
     fallback_slack_s: float = 0.3
@@ -839,6 +839,8 @@ class Planner:
         cost = self._L_tab * ((1.0 - 1e-12) / self.config.speed_fraction)
         keep = np.isfinite(cost) & self._valid[src_node][:, :, None]
         assert src.shape == dst.shape == cost.shape == (E, NUM_BRANCHES, R)
+        from scipy.sparse import csr_matrix  # scipy is only loaded with a planner
+
         return csr_matrix((cost[keep], (dst[keep], src[keep])), shape=(S, S))
 
     def _to_goal_neighbours(self, goal: int) -> np.ndarray:
@@ -852,6 +854,8 @@ class Planner:
         states = states[np.isfinite(self._L_flat[rows, 0]) & self._valid.reshape(-1)[states]]
         if states.size == 0:
             return np.full((rm.num_nodes, NUM_BRANCHES), np.inf)
+        from scipy.sparse.csgraph import dijkstra
+
         d = dijkstra(self._rev_graph, directed=True, indices=states, min_only=True)
         return np.asarray(d).reshape(-1, NUM_BRANCHES)
 
@@ -863,6 +867,8 @@ class Planner:
         sources = goal * NUM_BRANCHES + np.flatnonzero(self._valid[goal])
         if sources.size == 0:
             return np.full(self.roadmap.num_nodes * NUM_BRANCHES, np.inf)
+        from scipy.sparse.csgraph import dijkstra
+
         return dijkstra(self._rev_graph, directed=True, indices=sources, min_only=True)
 
     def _heuristic(self, q: np.ndarray, goal: int) -> np.ndarray:

@@ -233,6 +233,31 @@ def test_paired_equals_cross_diagonal(model: CollisionModel) -> None:
     np.testing.assert_allclose(many[0], model.distance_to_human_paired(np.repeat(q[:1], K, axis=0), joints))
 
 
+def test_paired_distance_over_subsets_and_given_segments(model: CollisionModel) -> None:
+    rng = np.random.default_rng(6)
+    K = 150
+    q = rng.uniform(model.kin.q_min, model.kin.q_max, size=(K, 6))
+    joints = _random_people(rng, K)
+    a, b, r = model.robot_capsules(q)
+    a_c, d_c = model.robot_segments(q)
+    assert a_c.shape == d_c.shape == (len(ROBOT_LINKS), 3, K)
+    np.testing.assert_allclose(a_c.transpose(2, 0, 1), a, atol=1e-12)
+    np.testing.assert_allclose((a_c + d_c).transpose(2, 0, 1), b, atol=1e-12)
+    full = model.distance_to_human_paired(q, joints)
+    np.testing.assert_allclose(model.distance_to_human_paired(q, joints, segments=(a_c, d_c)), full, atol=0)
+    ha, hb, hr = model.human_capsules(joints)
+    links, caps = np.array([2, 4, 7, 8]), np.array([0, 3, 9, 12, 17])
+    brute = capsule_distance(
+        a[:, links, None], b[:, links, None], r[links, None], ha[:, None, caps], hb[:, None, caps], hr[caps]
+    ).min(axis=(1, 2))
+    sub = model.distance_to_human_paired(q, joints, links=links, capsules=caps)
+    np.testing.assert_allclose(sub, brute, atol=1e-10)
+    assert np.all(sub >= full - 1e-12)  # a subset's minimum is never below the whole minimum
+    assert np.all(np.isinf(model.distance_to_human_paired(q, joints, links=np.array([], dtype=int))))
+    with pytest.raises(ValueError, match="segments"):
+        model.distance_to_human_paired(q, joints, segments=(a_c[:, :, :5], d_c[:, :, :5]))
+
+
 def test_distance_to_human_known_answers(model: CollisionModel, cell) -> None:
     home = np.array([cell.robot.home_q])
     tcp = model.kin.fk_tcp(home)[0, :3, 3]

@@ -338,3 +338,90 @@ def test_the_static_heuristic_is_the_true_time_to_go_and_never_more(seed: int) -
     res = planner.plan(q_start=rm.ik[0, 0], t_start=0.0, goal="g", forecast=None)
     assert res.ok
     assert res.plan.t_end >= planner._heuristic_table(1)[0, 0] - 1e-9
+
+
+def test_a_goal_that_cannot_be_entered_once_the_person_holds_still_fails_fast() -> None:
+    # a corridor s - a - b - g and a grid of 64 nodes behind the start; the person comes to stand beside
+    # the corridor between b and g (the goal itself stays free) before the robot could get there
+    corridor = [(0.0, 0.0), (0.3, 0.0), (0.6, 0.0), (0.9, 0.0)]
+    side = [(-0.1 - 0.1 * i, -0.35 + 0.1 * j) for i in range(8) for j in range(8)]
+    pts = corridor + side
+    edges = [(0, 1), (1, 2), (2, 3), (0, 4 + 3), (0, 4 + 4)]
+    for i in range(8):
+        for j in range(8):
+            k = 4 + 8 * i + j
+            if j + 1 < 8:
+                edges.append((k, k + 1))
+            if i + 1 < 8:
+                edges.append((k, k + 8))
+    rm = roadmap(pts, edges, s=0, g=3)
+    fc = person([0.0, 0.2, 0.25], [(3.0, 3.0), (3.0, 3.0), (0.7, 0.1)])
+    exhaustive = Planner(rm, PointRobot(), config=config(probe_after_expansions=10**6))
+    probed = Planner(rm, PointRobot(), config=config(probe_after_expansions=5))
+    slow = exhaustive.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc)
+    fast = probed.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc, workers=4)
+    for res in (slow, fast):
+        assert not res.ok and res.plan is None and res.trajectory is None
+    assert "blocked once the person holds still" in fast.reason
+    assert fast.expanded < 20 < len(side) <= slow.expanded  # the exhaustive search visits the side area
+    # the same goal is planned to when the person stands further off the corridor
+    away = person([0.0, 0.2, 0.25], [(3.0, 3.0), (3.0, 3.0), (0.7, 0.35)])
+    res = probed.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=away, workers=4)
+    assert res.ok, res.reason
+    assert_valid(res.trajectory, away, hold_s=0.2)
+
+
+def test_a_hand_resting_beside_the_goal_makes_the_robot_creep_in() -> None:
+    # the speed term matters here: S_r + S_s = 0.3 s x robot speed; the person's ball rests 0.25 m beside g
+    ssm = SSMParams(t_reaction_s=0.3, t_stop_s=0.0, intrusion_m=0.0, z_human_m=0.1, z_robot_m=0.0)
+    rm = roadmap([(0.0, 0.0), (0.3, 0.0), (0.6, 0.0)], [(0, 1), (1, 2)], s=0, g=2)
+    fc = person([0.0], [(0.6, 0.25)])
+    cruise_only = Planner(rm, PointRobot(), config=config(ssm=ssm, max_wait_s=0.0))
+    creeping = Planner(rm, PointRobot(), config=config(ssm=ssm, slow_speed_fractions=(0.2, 0.08)))
+    assert not cruise_only.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc).ok
+    res = creeping.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc)
+    assert res.ok, res.reason
+    assert_valid(res.trajectory, fc, hold_s=0.2, ssm=ssm)
+    # the last 0.3 m take far longer than at 0.2 of full speed (1.5 s): the robot creeps in
+    t_b = res.plan.times[np.flatnonzero(np.abs(res.plan.q[:, 0] - 0.3) < 1e-9)[-1]]
+    assert res.plan.t_end - t_b > 2.0
+
+
+def test_profile_samples_bound_the_path_speed_between_samples() -> None:
+    from app.planning.search import _profile_arrays, _profile_samples
+
+    rng = np.random.default_rng(2)
+    A = 2.0
+    for _ in range(200):
+        f = float(rng.choice([0.5, 0.2, 0.08]))
+        u0 = float(rng.uniform(0.0, f))
+        L = float(rng.uniform(0.0, 0.4))
+        end = bool(rng.random() < 0.5)
+        dur = float(_profile_arrays(np.array([u0]), np.array([L]), np.array([f]), A, np.array([end]))[0][0])
+        s = np.linspace(0.0, dur, 401)
+        one = np.ones_like(s)
+        frac, _ = _profile_samples(s, s, u0 * one, L * one, dur * one, f * one, A, np.full(s.shape, end))
+        assert frac[0] == pytest.approx(0.0, abs=1e-9) and frac[-1] == pytest.approx(1.0, abs=1e-6)
+        assert np.all(np.diff(frac) >= -1e-12)
+        speed = np.gradient(frac * L, s) if dur > 0 else np.zeros_like(s)
+        # the bound over [s_k, s_k+1] is at least the (numerical) speed anywhere inside it
+        _, bound = _profile_samples(
+            s[1:], s[:-1], u0 * one[1:], L * one[1:], dur * one[1:], f * one[1:], A, np.full(s.size - 1, end)
+        )
+        inside = np.maximum(speed[1:], speed[:-1])
+        assert np.all(bound >= inside - 2e-3 * max(f, 1e-3))
+        assert np.all(bound <= f + 1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_batched_search_with_lookahead_keeps_the_sequential_plan_cost(seed: int) -> None:
+    rm = random_graph(seed, n=40)
+    fc = person([0.0, 1.0, 2.0], [(1.0, 0.2), (1.2, 1.0), (0.8, 1.6)])
+    planner = Planner(rm, PointRobot(), config=config(slow_speed_fractions=(0.2,), max_wait_s=0.6))
+    costs = []
+    for workers in (1, 4, 16, 64):
+        res = planner.plan(q_start=rm.ik[0, 0], t_start=0.0, goal="g", forecast=fc, workers=workers)
+        assert res.ok, res.reason
+        assert_valid(res.trajectory, fc, hold_s=0.2)
+        costs.append(res.plan.t_end)
+    np.testing.assert_allclose(costs, costs[0], atol=0.05)
