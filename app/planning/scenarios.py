@@ -252,13 +252,37 @@ def _face_and_place(joints: np.ndarray, cell: WorkCell, xy: np.ndarray, yaw: flo
     return out
 
 
+def _through_table(joints: np.ndarray, cell: WorkCell, *, clearance_m: float = 0.02) -> bool:
+    """Whether an arm joint (elbow, wrist, hand) of the poses (T, J, 3) dips into the table top."""
+    table = cell.table
+    T = table.transform()
+    arm = [JOINT_INDEX[f"{s}_{n}"] for s in "lr" for n in ("elbow", "wrist", "hand")]
+    local = (joints[:, arm].reshape(-1, 3) - T[:3, 3]) @ T[:3, :3]
+    half = np.asarray(table.size, dtype=float) / 2.0
+    over = (np.abs(local[:, 0]) <= half[0]) & (np.abs(local[:, 1]) <= half[1])
+    return bool(np.any(over & (local[:, 2] < half[2] + clearance_m)))
+
+
+def _reaches_in(joints: np.ndarray, cell: WorkCell) -> bool:
+    """Whether a hand of the poses (T, J, 3) comes at least as close to the robot's base as the work spot
+    (in the horizontal plane): the person reaches into the shared area."""
+    base = np.asarray(cell.robot.base_xyz, dtype=float)[:2]
+    hands = joints[:, [JOINT_INDEX["l_hand"], JOINT_INDEX["r_hand"]], :2].reshape(-1, 2)
+    spot = float(np.linalg.norm(np.asarray(cell.operator.work_spot, dtype=float)[:2] - base))
+    return bool(np.min(np.linalg.norm(hands - base, axis=1)) <= spot)
+
+
 def recorded_forecasts(
-    cell: WorkCell, cmu_dir: str | Path, *, n: int, seed: int = 0, split: str = "test"
+    cell: WorkCell, cmu_dir: str | Path, *, n: int, seed: int = 0, split: str | None = None
 ) -> list[tuple[HumanForecast, str]]:
     """``n`` forecasts from CMU clip windows placed in the operator area (empty when the clips are absent).
 
     Prefers the clips whose subject mostly stays in place (directing traffic, washing windows, basketball
-    signals); uses the others when those are missing.
+    signals); uses the others when those are missing. ``split`` picks ``"train"`` or ``"test"`` clips, None
+    both (the planner's benchmark does not evaluate the predictor, so it may use either). Windows and
+    placements are drawn (up to 30 times per forecast) until a hand reaches into the shared area (as close
+    to the robot as the work spot) without an arm passing through the table top: a person working at a
+    table keeps their hands on or above it.
     """
     from app.prediction.adapters import from_cmu38
 
@@ -274,13 +298,15 @@ def recorded_forecasts(
         if not path:
             continue
         p = root / path
-        if not p.is_file() and (root / split / Path(path).name).is_file():
+        if split is not None and not p.is_file() and (root / split / Path(path).name).is_file():
             p = root / split / Path(path).name
-        if p.is_file() and (split in p.parts or not any(x in p.parts for x in ("train", "test"))):
+        in_split = split is None or split in p.parts or not any(x in p.parts for x in ("train", "test"))
+        if p.is_file() and in_split:
             action = entry.get("action", "") if isinstance(entry, dict) else ""
             files.append((action, p))
     if not files:
-        files = [("", p) for p in sorted((root / split).glob("*.npz"))]
+        folders = ("train", "test") if split is None else (split,)
+        files = [("", p) for folder in folders for p in sorted((root / folder).glob("*.npz"))]
     if not files:
         return []
     calm = [f for f in files if f[0] in ("directing_traffic", "washwindow", "basketball_signal")]
@@ -291,17 +317,23 @@ def recorded_forecasts(
     n_frames = round(FORECAST_HORIZON_S * FORECAST_FPS) + 1
     cache: dict[Path, np.ndarray] = {}
     for i in range(n):
-        action, path = files[int(rng.integers(len(files)))]
-        if path not in cache:
-            with np.load(path) as data:
-                cache[path] = from_cmu38(np.asarray(data["positions"], dtype=np.float64))
-        seq = cache[path]
-        if seq.shape[0] < n_frames:
+        joints = None
+        for _ in range(30):
+            action, path = files[int(rng.integers(len(files)))]
+            if path not in cache:
+                with np.load(path) as data:
+                    cache[path] = from_cmu38(np.asarray(data["positions"], dtype=np.float64))
+            seq = cache[path]
+            if seq.shape[0] < n_frames:
+                continue
+            start = int(rng.integers(0, seq.shape[0] - n_frames + 1))
+            window = seq[start : start + n_frames]
+            xy = np.asarray(op.center_xy) + rng.uniform(-0.5, 0.5, 2) * np.asarray(op.size_xy) * 0.5
+            joints = _face_and_place(window, cell, xy, op.facing_yaw)
+            if _reaches_in(joints, cell) and not _through_table(joints, cell):
+                break
+        if joints is None:
             continue
-        start = int(rng.integers(0, seq.shape[0] - n_frames + 1))
-        window = seq[start : start + n_frames]
-        xy = np.asarray(op.center_xy) + rng.uniform(-0.5, 0.5, 2) * np.asarray(op.size_xy) * 0.5
-        joints = _face_and_place(window, cell, xy, op.facing_yaw)
         t0 = 10.0 * i
         times = t0 + np.arange(n_frames) / FORECAST_FPS
         assert joints.shape == (n_frames, NUM_JOINTS, 3)
