@@ -676,6 +676,11 @@ class Planner:
         self._indptr = rm.indptr
         self._indices = rm.indices
         self._src_state = (src[:, None] * NUM_BRANCHES + np.arange(NUM_BRANCHES)).reshape(-1)
+        # per row, the nearest branch's configuration minus the parent's, shifted by multiples of 2 pi next
+        # to it (without the limits: a shifted parent gets the same shift, see _Run.speculate)
+        q_u = self._ik[np.repeat(src, NUM_BRANCHES), np.tile(np.arange(NUM_BRANCHES), E)]
+        q_v = self._ik[np.repeat(rm.indices, NUM_BRANCHES), self._ord_flat[:, 0]]
+        self._delta0 = q_v + _TWO_PI * np.rint((q_u - q_v) * (1.0 / _TWO_PI)) - q_u
         self._ord_list = self._ord_flat[:, 0].tolist()
         self._L_list = self._L_flat[:, 0].tolist()
         self._same_list = self._same_flat[:, 0].tolist()
@@ -1903,7 +1908,10 @@ class _Run:
                 break
             if v != goal and ta + (0.0 if self.h_pred is None else self.h_pred[v, bv]) >= self.t_nongoal:
                 break
-            q_prev = p._align(p._ik[v, bv], q_prev)
+            q_next = q_prev + p._delta0[row]  # the nearest 2 pi shift, as _align finds it within the limits
+            if not np.all((q_next >= p.q_min) & (q_next <= p.q_max)):
+                q_next = p._align(p._ik[v, bv], q_prev)
+            q_prev = q_next
             qs.append(q_prev)
             chain.append((row, v, bv, L, p._same_list[row], t, min(u, f), h, u1, peak))
             node, b, t, u = v, bv, ta, u1
