@@ -765,12 +765,25 @@ class CollisionModel:
         return self._robot_segments_cm(q)
 
     # ------------------------------------------------------------------ robot vs static scene
-    def _static_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _segments_bl(
+        self, q: np.ndarray, segments: tuple[np.ndarray, np.ndarray] | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Robot segment starts and directions (B, L, 3), from :meth:`robot_segments`' output if given."""
+        if segments is None:
+            return self._robot_segments(q)
+        a_c, d_c = segments
+        if a_c.shape != (_NL, 3, q.shape[0]) or d_c.shape != a_c.shape:
+            raise ValueError(f"segments must be ({_NL}, 3, B) each for q (B, 6), got {a_c.shape}")
+        return a_c.transpose(2, 0, 1), d_c.transpose(2, 0, 1)
+
+    def _static_segments(
+        self, q: np.ndarray, segments: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Ends of the robot segments in the frames of the boxes they are checked against, and half extents.
 
         Returns ``(a_box, b_box, half)`` each (B, P, 3) for the P (link, box) pairs of ``static_pairs``.
         """
-        pa, pd = self._robot_segments(q)
+        pa, pd = self._segments_bl(q, segments)
         li, bi = self._static_link_idx, self._static_box_idx
         R = self._T_box_world[bi, :3, :3]  # (P, 3, 3)
         t = self._T_box_world[bi, :3, 3]  # (P, 3)
@@ -803,18 +816,21 @@ class CollisionModel:
         )
         return out
 
-    def static_clearance(self, q: np.ndarray) -> np.ndarray:
+    def static_clearance(
+        self, q: np.ndarray, *, segments: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> np.ndarray:
         """Minimum signed distance (B,) in m between the robot and the static scene (base vs table excluded).
 
         Exact. Pairs that cannot hold the minimum are skipped: the box distance of a segment's midpoint, minus
         the segment's half length, bounds the pair from below (the distance field is 1-Lipschitz), and the
-        midpoint's own distance bounds the configuration's minimum from above.
+        midpoint's own distance bounds the configuration's minimum from above. ``segments``: the robot's
+        segments for ``q`` from :meth:`robot_segments` (saves the forward kinematics).
         """
         q = self._check_q(q, "static_clearance")
         B = q.shape[0]
         if B == 0 or len(self._static_link_idx) == 0:
             return np.full(B, np.inf)
-        a_box, b_box, half = self._static_segments(q)
+        a_box, b_box, half = self._static_segments(q, segments)
         r = self.robot_radii[self._static_link_idx]
         mid = 0.5 * (a_box + b_box)
         half_len = 0.5 * np.sqrt(np.einsum("bpi,bpi->bp", b_box - a_box, b_box - a_box))
@@ -827,9 +843,11 @@ class CollisionModel:
         exact[kb, kp] = segment_box_distance(a_box[kb, kp], b_box[kb, kp], half[kb, kp]) - r[kp]
         return exact.min(axis=1)
 
-    def in_static_collision(self, q: np.ndarray, *, margin_m: float = 0.0) -> np.ndarray:
+    def in_static_collision(
+        self, q: np.ndarray, *, margin_m: float = 0.0, segments: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> np.ndarray:
         """Whether each configuration (B, 6) comes closer than ``margin_m`` to the static scene, (B,) bool."""
-        return self.static_clearance(q) < margin_m
+        return self.static_clearance(q, segments=segments) < margin_m
 
     def static_clearance_fcl(self, q: np.ndarray) -> np.ndarray:
         """Reference implementation of :meth:`static_clearance` with python-fcl (slow; for tests).
@@ -851,10 +869,13 @@ class CollisionModel:
         return out
 
     # ------------------------------------------------------------------ self-collision
-    def self_distances(self, q: np.ndarray) -> np.ndarray:
-        """Signed distances (B, P) of the link pairs :data:`SELF_COLLISION_PAIRS`, m."""
+    def self_distances(
+        self, q: np.ndarray, *, segments: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> np.ndarray:
+        """Signed distances (B, P) of the link pairs :data:`SELF_COLLISION_PAIRS`, m (``segments`` as in
+        :meth:`static_clearance`)."""
         q = self._check_q(q, "self_distances")
-        pa, pd = self._robot_segments(q)
+        pa, pd = self._segments_bl(q, segments)
         i, j = self._self_i, self._self_j
         return capsule_distance(
             pa[:, i],
@@ -865,13 +886,17 @@ class CollisionModel:
             self.robot_radii[j],
         )
 
-    def self_clearance(self, q: np.ndarray) -> np.ndarray:
+    def self_clearance(
+        self, q: np.ndarray, *, segments: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> np.ndarray:
         """Minimum signed distance (B,) between non-adjacent robot links, m."""
-        return self.self_distances(q).min(axis=1)
+        return self.self_distances(q, segments=segments).min(axis=1)
 
-    def self_collision(self, q: np.ndarray, *, margin_m: float = 0.0) -> np.ndarray:
+    def self_collision(
+        self, q: np.ndarray, *, margin_m: float = 0.0, segments: tuple[np.ndarray, np.ndarray] | None = None
+    ) -> np.ndarray:
         """Whether non-adjacent robot links come closer than ``margin_m``, (B,) bool."""
-        return self.self_clearance(q) < margin_m
+        return self.self_clearance(q, segments=segments) < margin_m
 
     # ------------------------------------------------------------------ checks
     @staticmethod

@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import heapq
 import inspect
+import itertools
 import logging
 import math
 import time
@@ -602,10 +603,15 @@ class Planner:
         self._static_boxes = self._static_box_bounds()
         self._rev_graph = self._reverse_move_graph()
         self._h_cache: dict[int, np.ndarray] = {}
+        self._station_array = np.array(sorted(set(roadmap.station_nodes.values())), dtype=np.int64)
         # the exact verification can reuse its forward kinematics when the model takes segments
         opts = _paired_options(collision)
         self._subsets_ok = {"links", "capsules"} <= opts
         self._segments_ok = "segments" in opts and hasattr(collision, "robot_segments")
+        self._static_segments_ok = self._segments_ok and all(
+            "segments" in inspect.signature(getattr(collision, name)).parameters
+            for name in ("in_static_collision", "self_collision")
+        )
         self._robot_r = np.asarray(collision.robot_capsules(np.zeros((1, 6)))[2], dtype=np.float64)
         self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
         # which joints each person capsule runs between (joint indices fed in as coordinates) and its radius
@@ -722,15 +728,22 @@ class Planner:
     def _within_limits(self, q: np.ndarray) -> np.ndarray:
         return np.all((q >= self.q_min - 1e-9) & (q <= self.q_max + 1e-9), axis=-1)
 
-    def _static_bad(self, q: np.ndarray) -> np.ndarray:
-        """Configurations (n, 6) in collision with the static scene or themselves, or beyond the limits."""
+    def _static_bad(self, q: np.ndarray, segments: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """Configurations (n, 6) in collision with the static scene or themselves, or beyond the limits.
+
+        ``segments``: the robot's segments for ``q`` (:meth:`CollisionModel.robot_segments`), if known."""
         bad = ~self._within_limits(q)
         sb = self._static_boxes
+        kw = {} if segments is None else {"segments": segments}
         if sb is None:
             need = np.arange(q.shape[0])
         else:
             blo, bhi, pairs = sb
-            a, b, r = self.collision.robot_capsules(q)
+            if segments is None:
+                a, b, r = self.collision.robot_capsules(q)
+            else:
+                a, r = segments[0].transpose(2, 0, 1), self._robot_r
+                b = a + segments[1].transpose(2, 0, 1)
             lo = np.minimum(a, b) - r[:, None]  # (n, L, 3)
             hi = np.maximum(a, b) + r[:, None]
             g = np.maximum(
@@ -740,8 +753,11 @@ class Planner:
             near = (gap <= self.config.static_margin_m + 1e-9) & pairs[None]
             need = np.flatnonzero(near.any(axis=(1, 2)))
         if need.size:
-            bad[need] |= self.collision.in_static_collision(q[need], margin_m=self.config.static_margin_m)
-        bad |= self.collision.self_collision(q)
+            sub = {} if segments is None else {"segments": (segments[0][..., need], segments[1][..., need])}
+            bad[need] |= self.collision.in_static_collision(
+                q[need], margin_m=self.config.static_margin_m, **sub
+            )
+        bad |= self.collision.self_collision(q, **kw)
         return bad
 
     def _static_free(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
@@ -1106,14 +1122,17 @@ class Planner:
         ts = traj.sample(dt, t_from=t_from, t_to=max(t_to, t_from))
         q = traj.q(ts)
         bad = ~self._within_limits(q)
+        # forward kinematics once for the static scene and the person (when the model takes segments)
+        segs = self.collision.robot_segments(q) if self._static_segments_ok else None
         if static:
             moving = np.flatnonzero((ts >= traj.t_start) & (ts <= traj.t_end))
             if moving.size:
-                bad[moving] |= self._static_bad(q[moving])
+                sub = None if segs is None else (segs[0][..., moving], segs[1][..., moving])
+                bad[moving] |= self._static_bad(q[moving], sub)
         if forecast is not None:
             joints, margins = forecast.poses_at(ts)
             if self._segments_ok:
-                bad |= self._separation_bad(traj, ts, q, joints, margins, floor_m)
+                bad |= self._separation_bad(traj, ts, q, joints, margins, floor_m, segs)
             else:
                 v = self.robot_speed(traj, ts)
                 d = self.collision.distance_to_human_paired(q, joints)
@@ -1133,6 +1152,7 @@ class Planner:
         joints: np.ndarray,
         margins: np.ndarray,
         floor_m: float | None,
+        segs: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """(K,) bool: samples of ``traj`` at ``ts`` (configurations ``q``) closer to the person (poses
         ``joints`` (K, J, 3), margins (K,)) than :func:`forecast_clearance` for the robot's speed there.
@@ -1142,7 +1162,7 @@ class Planner:
         comes within the requirement of the box around the person's pose."""
         eps = 1e-4
         model = self.collision
-        a0, d0 = model.robot_segments(q)  # (L, 3, K)
+        a0, d0 = model.robot_segments(q) if segs is None else segs  # (L, 3, K)
         a1, d1 = model.robot_segments(traj.q(ts + eps))
         step = np.maximum(
             np.sqrt(np.einsum("lik,lik->lk", a1 - a0, a1 - a0)),
@@ -1475,8 +1495,11 @@ class Planner:
         pose = sep._poses(np.full(m, t_static))
         room = self.collision.distance_to_human_paired(q_a, pose)
         order = np.argsort(-room, kind="stable")
-        for c0 in range(0, m, 16):
-            i = order[c0 : c0 + 16]
+        bounds = [0, 4, 16, *range(32, m, 32), m]
+        for c0, c1 in itertools.pairwise(bounds):
+            if c0 >= m:
+                break
+            i = order[c0:c1]
             n = i.size
             ones = np.ones(n, dtype=bool)
             ok = self._moves_ok(
@@ -1807,6 +1830,15 @@ class _Run:
         """Moves from the start to its nearest roadmap nodes (each checked against the scene when popped)."""
         p = self.p
         q = self.q[0]
+        # a robot at rest at a task pose is common: try the stations before the whole roadmap
+        st = p._station_array
+        Ls = np.where(p._valid[st], p._metric(p._align(p._ik[st], q[None, None, :]) - q), np.inf)
+        hit = np.flatnonzero(Ls.min(axis=1) <= 1e-9)
+        if hit.size and int(st[hit[0]]) != self.goal:
+            n = int(st[hit[0]])
+            self.node[0], self.branch[0] = n, int(np.argmin(Ls[hit[0]]))
+            self.AT[n] = self.t[0]
+            return self.children(np.zeros(1, dtype=np.int64))
         aligned = p._align(p._ik, q[None, None, :])
         L = np.where(p._valid, p._metric(aligned - q), np.inf)
         best = L.min(axis=1)
