@@ -324,8 +324,13 @@ class _Separation:
         self.floor_m = floor_m
         self.samples = 0
         self.exact_samples = 0
+        self.t_static = math.inf  # from then on the person holds still and the margin is constant (s)
         if forecast is None:
             return
+        m_end = float(forecast.margins[-1])
+        cap = max(forecast.max_margin_m, float(forecast.margins.max()))
+        grow = max(cap - m_end, 0.0) / forecast.growth_mps if forecast.growth_mps > 0 else 0.0
+        self.t_static = forecast.horizon_end + grow - min(offsets)
         joints = forecast.joints  # (H, J, 3)
         r_max = float(np.max(model.human_capsules(joints[:1])[2]))
         lo = joints.min(axis=1) - r_max  # (H, 3): every capsule of the pose lies inside
@@ -1279,6 +1284,8 @@ class Planner:
         # lookahead: the best popped state of a batch takes a chain of moves ahead along the static
         # shortest path into the same batch (the batch's other slots go to the next states in order)
         spec_len = W // 2 if goal is not None and W > 1 else 0
+        spec_rate = 1.0  # recent share of lookahead moves that passed (with the state they start from)
+        chain_ids = _NO_IDS
         expanded = 0
         w_h = cfg.heuristic_weight
         # when the search gets long: can the goal still be entered once the person comes to rest?
@@ -1345,12 +1352,18 @@ class Planner:
                     finals.append(entry)
                     continue
                 if len(popped) == 1 and spec_len:
-                    chain = run.speculate(sid, min(spec_len, W - 1))
+                    length = max(1, round(min(spec_len, W - 1) * spec_rate))
+                    chain = run.speculate(sid, length)
+                    chain_ids = chain[0]
                     push(chain)
                     batch.extend(chain[0].tolist())
             if not batch:
                 continue
             run.check(np.array(batch, dtype=np.int64))
+            if chain_ids.size:  # shorter lookahead where the way ahead keeps being blocked
+                passed = float(np.mean(run.status[chain_ids] == 1)) * float(run.status[popped[0]] == 1)
+                spec_rate = 0.5 * spec_rate + 0.5 * passed
+                chain_ids = _NO_IDS
             # the popped states now (the chains wait in the heap for their turn)
             expand: list[int] = []
             failed: list[int] = []
@@ -2004,9 +2017,22 @@ class _Run:
         fc = np.repeat(spec[:, 2], n)
         wait = np.repeat(spec[:, 3], n)
         par_r, node_r, row_r = np.tile(par, a), np.tile(node, a), np.tile(row, a)
+        t_r = np.tile(t, a)
+        # once the person holds still, waiting longer changes nothing: of the waits that depart then, only
+        # the first is kept (and waiting then creeping is stopping then creeping)
+        t_s = self.sep.t_static
+        keep = (wait <= 1) | (t_r + (wait - 1) * cfg.wait_step_s < t_s)
+        keep &= (alt != 5) | (t_r < t_s)
+        if not keep.all():
+            alt, opt, fc, wait, par_r, node_r, row_r, t_r = (
+                x[keep] for x in (alt, opt, fc, wait, par_r, node_r, row_r, t_r)
+            )
+            u_r = np.tile(u, a)[keep]
+        else:
+            u_r = np.tile(u, a)
         b, L, same = self._options(row_r, opt)
-        u0 = np.where(wait != 0, 0.0, np.minimum(np.tile(u, a), fc))  # from rest after a wait or a stop
-        t_dep = np.tile(t, a) + np.maximum(wait, 0.0) * cfg.wait_step_s
+        u0 = np.where(wait != 0, 0.0, np.minimum(u_r, fc))  # from rest after a wait or a stop
+        t_dep = t_r + np.maximum(wait, 0.0) * cfg.wait_step_s
         return self.moves(par_r, node_r, b, L, same, t_dep, u0, fc, alt, row_r)
 
     # -- checking (vectorised)
@@ -2155,6 +2181,7 @@ class _Run:
         return Plan(times=np.array(times), q=np.array(qs), nodes=np.array(nodes))
 
 
+_NO_IDS = np.zeros(0, dtype=np.int64)
 _NO_ROW = -(2**62)  # option-table row of the start state (it has no alternatives)
 
 
