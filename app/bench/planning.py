@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 DEADLINE_S = 1.0
-WORKERS = 16
+WORKERS = 32
 HORIZON_S = 1.0 / 30.0 + 0.1  # F + D: one camera frame + the backup-plan deadline
 SCALING = {"1k": 1000, "4k": 4000, "16k": 16000}
 CMU_DIR = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "cmu_mocap"
