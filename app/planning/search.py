@@ -2006,8 +2006,7 @@ class _Run:
                 kinds.append((4, 0, min(slow), -1))
             K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
             kinds += [(3, 0, self.f, k) for k in range(1, K + 1)]
-            if slow:  # wait, then creep
-                kinds += [(5, 0, min(slow), k) for k in range(1, K + 1)]
+
         if not kinds:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         spec = np.array(kinds, dtype=np.float64)  # (A, 4)
@@ -2019,10 +2018,9 @@ class _Run:
         par_r, node_r, row_r = np.tile(par, a), np.tile(node, a), np.tile(row, a)
         t_r = np.tile(t, a)
         # once the person holds still, waiting longer changes nothing: of the waits that depart then, only
-        # the first is kept (and waiting then creeping is stopping then creeping)
+        # the first is kept
         t_s = self.sep.t_static
         keep = (wait <= 1) | (t_r + (wait - 1) * cfg.wait_step_s < t_s)
-        keep &= (alt != 5) | (t_r < t_s)
         if not keep.all():
             alt, opt, fc, wait, par_r, node_r, row_r, t_r = (
                 x[keep] for x in (alt, opt, fc, wait, par_r, node_r, row_r, t_r)
