@@ -1230,10 +1230,36 @@ class Planner:
         if traj is None:
             return None
         viol = self._verify(traj, forecast, traj.t_start, traj.t_end + hold_s, floor_m=floor_m)
+        if viol is not None and (qd0 is None or not np.any(np.asarray(qd0) != 0.0)):
+            # the spline cuts a corner: stopping at every waypoint keeps the robot on the straight moves
+            # the search checked (slower, so it is verified again)
+            logger.debug("fitted trajectory violates at t=%.3f; trying straight moves", viol)
+            straight = self._fit_stops(waypoints)
+            if straight is not None:
+                viol = self._verify(
+                    straight, forecast, straight.t_start, straight.t_end + hold_s, floor_m=floor_m
+                )
+                if viol is None:
+                    traj = straight
         if viol is not None:
             logger.debug("fitted trajectory violates at t=%.3f (%.3f..%.3f)", viol, traj.t_start, traj.t_end)
             return None
         return traj.to_plan(_map_nodes(waypoints, traj)), traj
+
+    def _fit_stops(self, plan: Plan) -> Trajectory | None:
+        """A trajectory at rest at every waypoint: each segment a straight joint move with zero end
+        velocities (cubic Hermite), at the waypoints' times or later where the limits need longer
+        (peak velocity 1.5 dq / h, peak acceleration 6 dq / h^2 per joint)."""
+        times, q = plan.times, plan.q
+        if times.shape[0] < 2:
+            return None
+        dq = np.abs(np.diff(q, axis=0))
+        need = np.maximum(
+            np.max(1.5 * dq / self.qd_max, axis=1), np.sqrt(np.max(6.0 * dq / self.qdd_max, axis=1))
+        )
+        h = np.maximum(np.maximum(np.diff(times), need), 1e-3)
+        t = np.concatenate([[times[0]], times[0] + np.cumsum(h)])
+        return Trajectory(t, q.copy(), np.zeros_like(q))
 
     # ------------------------------------------------------------------------------------------ search
     def _search(

@@ -425,3 +425,20 @@ def test_batched_search_with_lookahead_keeps_the_sequential_plan_cost(seed: int)
         assert_valid(res.trajectory, fc, hold_s=0.2)
         costs.append(res.plan.t_end)
     np.testing.assert_allclose(costs, costs[0], atol=0.05)
+
+
+def test_a_spline_that_would_cut_a_corner_into_an_obstacle_stops_at_the_waypoints() -> None:
+    # s -> m -> g bends left; the spline through m swings out to the right, toward a box that the straight
+    # move s -> m clears by 1.4 cm (the ball robot's radius is 5 cm)
+    rm = roadmap([(0.0, 0.0), (0.5, 0.1), (0.6, 0.6)], [(0, 1), (1, 2)], s=0, g=2)
+    box = ((0.25, -0.3, -0.2), (0.4, -0.015, 0.2))
+    model = PointRobot(boxes=[box])
+    planner = Planner(rm, model, config=config(qdd_max=(2.0,) * 6))
+    res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None)
+    assert res.ok, res.reason
+    t = np.arange(res.trajectory.t_start, res.trajectory.t_end + 1e-9, 0.01)
+    assert not np.any(model.in_static_collision(res.trajectory.q(t)))
+    # the plain spline through the corner would have hit the box
+    smooth = planner._fit(res.plan, None)
+    assert smooth is not None
+    assert np.any(model.in_static_collision(smooth.q(np.arange(smooth.t_start, smooth.t_end, 0.01))))
