@@ -167,11 +167,13 @@ def test_segment_box_distance_is_exact(p: np.ndarray, q: np.ndarray, half: np.nd
     # sampling resolution (the field is 1-Lipschitz)
     assert ours >= sdf.min() - np.linalg.norm(q - p) / 4000 - 1e-12
     # python-fcl agrees on the sign, and on the value within its GJK tolerance (its capsule-box distances are
-    # off by up to about 0.2 %, always on the high side; the brute force above is the exact reference)
+    # always on the high side, usually by about 0.2 % but by several % for some segments, e.g. 5.6 % at
+    # 7 cm; the brute force above is the exact reference)
     cap = fcl_capsule(p, q, r)
     box = fcl.CollisionObject(fcl.Box(*(2 * half)), fcl.Transform())
     if ours - r > 1e-3:
-        assert ours - r == pytest.approx(_fcl_distance(cap, box), rel=5e-3, abs=1e-3)
+        d_fcl = _fcl_distance(cap, box)
+        assert ours - r - 1e-6 <= d_fcl <= 1.1 * (ours - r) + 1e-3
         assert not _fcl_collide(cap, box)
     elif ours - r < -1e-3:
         assert _fcl_collide(cap, box)
