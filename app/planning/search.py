@@ -225,38 +225,6 @@ class PlanResult:
     trajectory: Trajectory | None = None
 
 
-def _profile(
-    u0: np.ndarray, L: np.ndarray, f: float, A: float, end_rest: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """1-D path-speed profile of moves: duration, exit speed and peak speed (arrays shaped like ``L``).
-
-    Path position is the max-norm joint distance in "seconds at full joint speed" (``L``); speeds are
-    fractions of full speed, ``A`` is the path acceleration (1/s). A move starts at ``u0``, accelerates at
-    ``A`` toward the cruise speed ``f`` and, where ``end_rest``, brakes at ``A`` to stop at its end (a move
-    that cannot stop in time brakes uniformly; the spline fit retimes it and the verification has the last
-    word).
-    """
-    L = np.asarray(L, dtype=np.float64)
-    u0 = np.minimum(np.broadcast_to(u0, L.shape), f)
-    u0sq = u0 * u0
-    u1 = np.minimum(np.sqrt(u0sq + 2.0 * A * L), f)
-    dur = (u1 - u0) / A + np.maximum(L - (u1 * u1 - u0sq) / (2.0 * A), 0.0) / f
-    u_end = u1.copy()
-    peak = u1.copy()
-    er = np.broadcast_to(end_rest, L.shape)
-    if er.any():
-        idx = np.nonzero(er)
-        ue, Le = u0[idx], L[idx]
-        up = np.minimum(f, np.sqrt((2.0 * A * Le + ue * ue) / 2.0))
-        can = ue * ue <= 2.0 * A * Le
-        cruise = np.maximum(Le - (up * up - ue * ue) / (2.0 * A) - up * up / (2.0 * A), 0.0)
-        t_rest = (up - ue) / A + cruise / np.maximum(up, 1e-12) + up / A
-        dur[idx] = np.where(can, t_rest, 2.0 * Le / np.maximum(ue, 1e-12))
-        u_end[idx] = 0.0
-        peak[idx] = np.where(can, up, ue)
-    return dur, u_end, peak
-
-
 def _profile_samples(
     s: np.ndarray,
     s_prev: np.ndarray,
@@ -268,7 +236,7 @@ def _profile_samples(
     end_rest: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Path fraction (0..1) covered at profile time ``s`` and the largest path speed over ``[s_prev, s]``
-    (fraction of full speed) of moves timed by :func:`_profile` (one entry per sample, ``u0 <= f``).
+    (fraction of full speed) of moves timed by :func:`_profile_arrays` (one entry per sample, ``u0 <= f``).
 
     The profile accelerates at ``A`` from ``u0`` to the cruise speed ``f``; a move that ends at rest brakes
     at ``A`` to stop at ``dur`` (or, when it cannot, uniformly from ``u0``). Its path speed is unimodal, so
@@ -1731,7 +1699,7 @@ class _Run:
 
     _FLOAT = ("t", "u", "u0", "dep", "fc", "L", "h", "peak", "wait_ok")
     _INT = ("node", "branch", "parent", "row", "spec_child")
-    _BOOL = ("end", "same", "checked", "accepted", "qset")
+    _BOOL = ("end", "same", "accepted", "qset")
 
     def __init__(
         self,
@@ -1774,7 +1742,7 @@ class _Run:
         self.n = 1
         self.t[0] = self.dep[0] = t_start
         self.fc[0] = self.f
-        self.same[0] = self.checked[0] = self.accepted[0] = self.qset[0] = True
+        self.same[0] = self.accepted[0] = self.qset[0] = True
         self.status[0] = 1
         self.next_rows = None if goal is None else planner._next_cache.get(goal)
         self.wait_ok[:] = np.nan  # per checked state: until when standing still there is safe (NaN: unknown)
@@ -2116,7 +2084,6 @@ class _Run:
                 )
         good = batch[ok]
         self.q[good] = target[ok]
-        self.checked[good] = True
         self.status[batch] = np.where(ok, 1, 2)
         return ok
 
@@ -2235,7 +2202,14 @@ _NO_ROW = -(2**62)  # option-table row of the start state (it has no alternative
 def _profile_arrays(
     u0: np.ndarray, L: np.ndarray, f: np.ndarray, A: float, end_rest: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`_profile` with a cruise speed per move (all arrays of one shape; ``u0 <= f`` already)."""
+    """1-D path-speed profile of moves: duration, exit speed and peak speed (arrays of one shape).
+
+    Path position is the max-norm joint distance in "seconds at full joint speed" (``L``); speeds are
+    fractions of full speed (``u0 <= f``, the cruise speed ``f`` per move), ``A`` is the path acceleration
+    (1/s). A move starts at ``u0``, accelerates at ``A`` toward ``f`` and, where ``end_rest``, brakes at ``A``
+    to stop at its end (a move that cannot stop in time brakes uniformly; the spline fit retimes it and the
+    verification has the last word).
+    """
     u0sq = u0 * u0
     two_al = 2.0 * A * L
     u1 = np.minimum(np.sqrt(u0sq + two_al), f)
@@ -2255,7 +2229,7 @@ def _profile_arrays(
 
 
 def _profile_py(u0: float, L: float, f: float, A: float, end_rest: bool) -> tuple[float, float, float]:
-    """:func:`_profile` for one move, in plain Python (the same formulas)."""
+    """:func:`_profile_arrays` for one move, in plain Python (the same formulas)."""
     u0 = min(u0, f)
     u0sq = u0 * u0
     if not end_rest:
