@@ -128,6 +128,7 @@ class PlannerConfig:
             room for the spline fit at corners).
         min_edge_s: Shortest duration of a move (s).
         sample_dt_s: Largest time step between checked instants of a move (s); its end is always checked.
+            The search's check is a filter: every returned trajectory is verified every ``verify_dt_s``.
         corridor_margin_m: Extra clearance (m) that absorbs the spline's deviation from the straight moves.
         speed_factor: Robot speed for ``S_r + S_s`` = chord speed of the arm's points x this factor (>= 1:
             the spline's peak speed on a segment exceeds its average, and arcs are longer than chords).
@@ -164,7 +165,7 @@ class PlannerConfig:
     speed_fraction: float = 0.5
     accel_fraction: float = 0.8
     min_edge_s: float = 0.02
-    sample_dt_s: float = 0.05
+    sample_dt_s: float = 0.08
     corridor_margin_m: float = 0.02
     speed_factor: float = 1.3
     wait_step_s: float = 0.1
@@ -1300,6 +1301,7 @@ class Planner:
         # lookahead: the best popped state of a batch takes a chain of moves ahead along the static
         # shortest path into the same batch (the batch's other slots go to the next states in order)
         spec_len = W // 2 if goal is not None and W > 1 else 0
+        n_batches = 0
         spec_rate = 1.0  # recent share of lookahead moves that passed (with the state they start from)
         chain_ids = _NO_IDS
         expanded = 0
@@ -1332,7 +1334,9 @@ class Planner:
             batch: list[int] = []
             popped: list[int] = []
             finals: list[tuple[float, float, int]] = []
-            while heap and len(batch) < W:
+            n_batches += 1
+            W_b = min(W, 8 + 4 * n_batches)  # the batch grows: the first steps have few states worth checking
+            while heap and len(batch) < W_b:
                 entry = heapq.heappop(heap)
                 sid = entry[2]
                 node = int(run.node[sid])
