@@ -1586,7 +1586,7 @@ class Planner:
             sep, q_a, pts_a, cen_a, rad_a, cv, b, target, t_dep, h, u0, L, end_rest, f, hold, hold_s
         )
         if sel.size:
-            ok_s = sep.check(q, t, v, cen, rad)
+            ok_s = sep.check(q, t, v, cen, rad, owner)
             result[sel] = np.bincount(owner, weights=~ok_s, minlength=sel.size) == 0
         return result
 
