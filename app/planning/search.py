@@ -1308,7 +1308,7 @@ class Planner:
         w_h = cfg.heuristic_weight
         # when the search gets long: can the goal still be entered once the person comes to rest?
         probed = goal is None or sep.forecast is None
-        t_static = math.inf if sep.forecast is None else self._static_from(sep.forecast)
+        t_static = sep.t_static
         blocked_from: float | None = None
 
         # states popped before their (speculative) parent was accepted wait here for it
@@ -1470,13 +1470,6 @@ class Planner:
                     best = max(best, float(ts[i]))
                     break
         return best
-
-    def _static_from(self, fc: HumanForecast) -> float:
-        """The time (s) from which the forecast's requirement no longer changes: the last pose is held and
-        the margin has grown to its cap (or stays at its last value without growth)."""
-        m_end = float(fc.margins[-1])
-        cap = max(fc.max_margin_m, float(fc.margins.max()))
-        return fc.horizon_end + (max(cap - m_end, 0.0) / fc.growth_mps if fc.growth_mps > 0 else 0.0)
 
     def _approach_probe(
         self, sep: _Separation, goal: int, t_static: float, hold_s: float, t_last: float
