@@ -1449,6 +1449,16 @@ class Planner:
         ts = t_start + (t_sat - t_start) * np.arange(n + 1) / n
         branches = np.flatnonzero(self._valid[goal])
         nb = branches.size
+        # usually some branch is free once the person holds still: then nothing more to find out
+        last = sep.check(
+            self._ik[goal, branches],
+            np.full(nb, ts[-1]),
+            np.zeros(nb),
+            self._cen_all[goal, branches],
+            self._rad_all[goal, branches],
+        )
+        if np.any(last):
+            return math.inf
         rep = np.repeat(branches, n + 1)
         ok = sep.check(
             self._ik[goal, rep],
