@@ -23,7 +23,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, is_dataclass
 from datetime import datetime
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from sqlalchemy import Engine, delete, func, insert, select, update
@@ -64,6 +64,9 @@ INTERRUPTED_REASON = "interrupted: the process that ran the trial ended before t
 #: Settings fields never stored in a trial's settings snapshot.
 SECRET_SETTINGS: frozenset[str] = frozenset({"api_token"})
 DEFAULT_CHUNK_FRAMES = 300  # 10 s at 30 Hz per recorded_frames row
+
+
+_RowT = TypeVar("_RowT")
 
 
 class StudyError(Exception):
@@ -657,25 +660,23 @@ class StudyRepository:
     # --- internals ------------------------------------------------------------------------------------
 
     @staticmethod
-    def _participant(s: Session, participant_id: int) -> Participant:
-        p = s.get(Participant, participant_id)
-        if p is None:
-            raise NotFoundError(f"participant {participant_id} does not exist")
-        return p
-
-    @staticmethod
-    def _study_session(s: Session, session_id: int) -> StudySession:
-        row = s.get(StudySession, session_id)
+    def _get(s: Session, model: type[_RowT], row_id: int, what: str) -> _RowT:
+        row = s.get(model, row_id)
         if row is None:
-            raise NotFoundError(f"study session {session_id} does not exist")
+            raise NotFoundError(f"{what} {row_id} does not exist")
         return row
 
-    @staticmethod
-    def _trial(s: Session, trial_id: int) -> Trial:
-        t = s.get(Trial, trial_id)
-        if t is None:
-            raise NotFoundError(f"trial {trial_id} does not exist")
-        return t
+    @classmethod
+    def _participant(cls, s: Session, participant_id: int) -> Participant:
+        return cls._get(s, Participant, participant_id, "participant")
+
+    @classmethod
+    def _study_session(cls, s: Session, session_id: int) -> StudySession:
+        return cls._get(s, StudySession, session_id, "study session")
+
+    @classmethod
+    def _trial(cls, s: Session, trial_id: int) -> Trial:
+        return cls._get(s, Trial, trial_id, "trial")
 
     def _trial_read_by_id(self, s: Session, trial_id: int) -> TrialRead:
         q = (
