@@ -87,22 +87,30 @@ class CellGeometry:
     def near_person(
         self, q: np.ndarray, joints: np.ndarray, joints_before: np.ndarray, dt_s: float, *, band_m: float
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Each part's separation (L,) to the person at ``joints`` and the speed (L,) of the person's
-        capsules within ``band_m`` of the nearest one to it (capsule speed: its faster end, from
-        ``joints_before`` ``dt_s`` earlier)."""
+        """Each part's separation (L,) to the person at ``joints`` and the person's *directed* speed (L,)
+        toward it: of the person's capsules within ``band_m`` of the nearest one to the part, the fastest
+        rate at which its distance to the part shrank since ``joints_before``, ``dt_s`` earlier.
+
+        ISO/TS 15066 5.5.4.2.3 asks for the operator's speed in the direction of the robot. Taking the
+        fastest shrink over every capsule near the part (not only the nearest pair) keeps the value from
+        jumping when the nearest pair changes; a limb that moves sideways or away does not count.
+        """
         q = np.asarray(q, dtype=np.float64).reshape(1, 6)
         poses = np.stack([np.asarray(joints, dtype=np.float64), np.asarray(joints_before, dtype=np.float64)])
         ra, rb, rr = self.collision.robot_capsules(q)
         ha, hb, hr = self.collision.human_capsules(poses)  # (2, M, 3) x 2
         d = self._capsule_distance(
-            ra[0][:, None, :], rb[0][:, None, :], rr[:, None], ha[0][None], hb[0][None], hr[None, :]
-        )  # (L, M)
-        sep = d.min(axis=1)
-        v_caps = np.maximum(
-            np.linalg.norm(ha[0] - ha[1], axis=-1), np.linalg.norm(hb[0] - hb[1], axis=-1)
-        ) / max(float(dt_s), 1e-6)  # (M,)
-        near = d <= sep[:, None] + band_m
-        v_h = np.where(near, v_caps[None, :], 0.0).max(axis=1)
+            ra[0][None, :, None, :],
+            rb[0][None, :, None, :],
+            rr[None, :, None],
+            ha[:, None, :, :],
+            hb[:, None, :, :],
+            hr[None, None, :],
+        )  # (2, L, M)
+        sep = d[0].min(axis=1)
+        approach = np.maximum(d[1] - d[0], 0.0) / max(float(dt_s), 1e-6)  # (L, M)
+        near = d[0] <= sep[:, None] + band_m
+        v_h = np.where(near, approach, 0.0).max(axis=1)
         return sep, v_h
 
     def separation(self, q: np.ndarray, joints: np.ndarray) -> float:

@@ -150,8 +150,8 @@ class RobotGeometry(Protocol):
         self, q: np.ndarray, joints: np.ndarray, joints_before: np.ndarray, dt_s: float, *, band_m: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """For the robot at ``q`` (6,) and the person at ``joints`` (J, 3), who was at ``joints_before``
-        ``dt_s`` earlier: each part's separation (L,) (m) and the speed (L,) (m/s) of the person's parts
-        within ``band_m`` of being the nearest to it (the fastest of them)."""
+        ``dt_s`` earlier: each part's separation (L,) (m) and the person's directed speed toward it (L,)
+        (m/s): the fastest approach of the person's parts within ``band_m`` of being the nearest to it."""
         ...
 
 
@@ -1061,9 +1061,8 @@ class Supervisor:
         # the person's approach speed: how fast their motion closed the distance over the last window
         old = self._older_frame(frame.t - cfg.human_speed_window_s)
         if old is not None:
-            # the person's speed near each part: of the body parts that are (nearly) the nearest to it (a
-            # directed speed jumps when the nearest pair of points changes; the speed of the body does not,
-            # and bounds it)
+            # the person's directed speed toward each part: the fastest approach of the body parts that are
+            # (nearly) the nearest to it (over all of them, so it does not jump when the nearest pair changes)
             sep_parts, v_h0 = self.geometry.near_person(
                 q_now, frame.joints, old.joints, frame.t - old.t, band_m=cfg.near_band_m
             )
@@ -1451,9 +1450,12 @@ class Supervisor:
             m = vmax > 1e-4
             s_target = self.ssm.max_scale(sep_lb[m], v_human_mps=v_h[m], v_parts_mps=vmax[m], rate=rate)
             if self.speed_scale_law is not None:
+                # the standard's law with the person's measured speed (the envelope above already covers
+                # their worst-case speed-up since it was measured, with the stopping time of this speed)
+                v_meas = np.maximum(self._v_h0, 0.0)
                 for i in np.flatnonzero(m):
                     if math.isfinite(sep_lb[i]):
-                        law = max(float(self.speed_scale_law(sep_lb[i], vmax[i], v_h[i])), 0.0)
+                        law = max(float(self.speed_scale_law(sep_lb[i], vmax[i], v_meas[i])), 0.0)
                         s_target = min(s_target, law)
         if s_target >= s:
             s_new = min(s_target, s + cfg.scale_up_rate * dt)
