@@ -302,9 +302,8 @@ class SafetyMonitor:
         v_r = self.geometry.part_speeds(q, np.asarray(qd, dtype=np.float64))[0]
         # T_s: the robot's stopping time from its current speed (its fastest part's)
         params = dataclasses.replace(self.ssm, t_stop_s=float(v_r.max()) / self.stop_decel_mps2)
-        req = np.array(
-            [float(self._sp(float(v), params, v_human_mps=float(h))) for v, h in zip(v_r, v_h, strict=True)]
-        )
+        # S_p per part: S_h = v_h (T_r + T_s) with the part's own approach speed, plus S_r + S_s + C + Z
+        req = params.human_distance_m(1.0) * v_h + np.asarray(self._sp(v_r, params, v_human_mps=0.0))
         moving = v_r > self.moving_mps
         bad_parts = moving & (sep < req)
         bad = bool(bad_parts.any())

@@ -881,7 +881,8 @@ class Supervisor:
         make_trajectory: ``(plan, qd0) -> trajectory``.
         separation: ISO/TS 15066 S_p and the braking envelope.
         speed_scale: ``(separation_m, v_nominal_mps, v_human_mps) -> [0, 1]``: the ISO/TS 15066 speed-scaling
-            law (e.g. :func:`app.planning.safety.speed_scale`); the envelope limits the speed further.
+            law (e.g. :func:`app.planning.safety.speed_scale`), called with arrays (L,) of the moving parts;
+            the envelope limits the speed further.
         config: Parameters.
         q0: (6,) initial configuration; the robot holds there.
         t0: Initial time (s).
@@ -940,6 +941,7 @@ class Supervisor:
         self._sep_person_t = -math.inf  # time of the frame the separation was measured on
         self._v_h0 = np.zeros(L)  # the person's approach speed per part, measured over a window...
         self._v_h_t = -math.inf  # ...whose middle is this
+        self._x_h0 = np.zeros(L)  # worst-case approach from the middle of that window to the frame
         self._history: deque[HumanFrame] = deque(maxlen=16)
         self._travel_m = np.zeros(L)  # travel of each part since the separation was measured (bound, m)
         self._v_cmd = np.zeros(L)  # speed bound of each part over the last tick (m/s)
@@ -1080,6 +1082,7 @@ class Supervisor:
             self._sep_person_t = frame.t
             self._v_h0 = v_h0
             self._v_h_t = t_mid
+            self._x_h0 = np.asarray(self.ssm.human_approach(v_h0, frame.t - t_mid)[0], dtype=np.float64)
             self._travel_m = np.maximum(self._travel_m - travel0, 0.0)  # travel since q_now was read
             if self._estop or self._fault:
                 return self._done("hold", None, sep, c0)
@@ -1452,11 +1455,10 @@ class Supervisor:
             if self.speed_scale_law is not None:
                 # the standard's law with the person's measured speed (the envelope above already covers
                 # their worst-case speed-up since it was measured, with the stopping time of this speed)
-                v_meas = np.maximum(self._v_h0, 0.0)
-                for i in np.flatnonzero(m):
-                    if math.isfinite(sep_lb[i]):
-                        law = max(float(self.speed_scale_law(sep_lb[i], vmax[i], v_meas[i])), 0.0)
-                        s_target = min(s_target, law)
+                v_meas = np.maximum(self._v_h0[m], 0.0)
+                law = np.asarray(self.speed_scale_law(sep_lb[m], vmax[m], v_meas), dtype=np.float64)
+                if law.size:
+                    s_target = min(s_target, max(float(law.min()), 0.0))
         if s_target >= s:
             s_new = min(s_target, s + cfg.scale_up_rate * dt)
         elif float(self._v_inst.max()) <= 1e-6:
@@ -1655,8 +1657,7 @@ class Supervisor:
         if not math.isfinite(self._v_h_t):
             return self._sep_m.copy(), np.full(self.n_parts, self.ssm.human_speed_max_mps)
         x1, v1 = self.ssm.human_approach(self._v_h0, t - self._v_h_t)
-        x0, _ = self.ssm.human_approach(self._v_h0, self._sep_person_t - self._v_h_t)
-        return self._sep_m - (x1 - x0) - self._travel_m, np.asarray(v1)
+        return self._sep_m - (x1 - self._x_h0) - self._travel_m, np.asarray(v1)
 
     def recent_decide_s(self) -> tuple[float, ...]:
         with self._lock:

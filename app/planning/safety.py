@@ -162,8 +162,12 @@ def max_safe_speed(
 
 
 def speed_scale(
-    separation_m: float, v_nominal_mps: float, params: SSMParams, *, v_human_mps: float | None = None
-) -> float:
+    separation_m: float | np.ndarray,
+    v_nominal_mps: float | np.ndarray,
+    params: SSMParams,
+    *,
+    v_human_mps: float | np.ndarray | None = None,
+) -> float | np.ndarray:
     """Fraction in [0, 1] of the nominal speed that keeps ``S_p`` within ``separation_m``.
 
     Args:
@@ -171,10 +175,19 @@ def speed_scale(
         v_nominal_mps: The speed (m/s) the robot would move at with scale 1 (e.g. its current TCP speed).
         params: The SSM parameters.
         v_human_mps: The person's measured speed (m/s), if any.
+
+    Scalars give a float; arrays (e.g. one entry per robot part) broadcast and give an array.
     """
-    if not np.isfinite(separation_m):
-        return 1.0 if separation_m > 0 else 0.0
-    v_max = float(max_safe_speed(separation_m, params, v_human_mps=v_human_mps))
-    if v_nominal_mps <= 1e-9:
-        return 1.0 if v_max > 0.0 else 0.0
-    return float(min(1.0, v_max / v_nominal_mps))
+    d = np.asarray(separation_m, dtype=np.float64)
+    v_nom = np.asarray(v_nominal_mps, dtype=np.float64)
+    v_h = params.v_human_mps
+    if v_human_mps is not None:
+        v_h = np.maximum(np.asarray(v_human_mps, dtype=np.float64), 0.0)
+    with np.errstate(invalid="ignore"):
+        slack = d - v_h * (params.t_reaction_s + params.t_stop_s) - params.constant_m
+    v_max = np.maximum(slack, 0.0) / params.robot_time_s
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.minimum(1.0, v_max / np.maximum(v_nom, 1e-300))
+    out = np.where(v_nom <= 1e-9, np.where(v_max > 0.0, 1.0, 0.0), ratio)
+    out = np.where(np.isfinite(d), out, np.where(d > 0, 1.0, 0.0))
+    return float(out) if out.ndim == 0 else out
