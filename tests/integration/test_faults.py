@@ -137,6 +137,7 @@ def test_missed_deadline_takes_the_emergency_path(stack: PlanningStack) -> None:
     # 150 ms per plan: starts from rest (deadline 3 D) succeed, backups under D = 100 ms do not
     res = _run(
         stack,
+        settings=Settings(deadline_s=0.1),
         method="proactive",
         fixed_compute_s=0.15,
         predictor=_phantom_predictor(box),
