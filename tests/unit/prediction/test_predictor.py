@@ -116,6 +116,34 @@ def test_graphmixer_window_matches_predict_batch(tiny_weights: Path) -> None:
         p.predict_batch(np.full((1, 10, NUM_JOINTS, 3), np.nan))
 
 
+def test_single_person_forecasts_run_through_onnx_runtime_with_the_same_numbers(
+    tiny_weights: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    pytest.importorskip("onnxruntime")
+    hist = np.stack([_pose(2.0 + DT * k) for k in range(10)])[None]
+    hist = hist + np.random.default_rng(3).normal(0.0, 0.02, size=hist.shape)
+    fast = MotionPredictor(weights=tiny_weights)
+    out = fast.predict_batch(hist)
+    assert fast._onnx_session() is not None
+    eager = MotionPredictor(weights=tiny_weights, jit=False).predict_batch(hist)
+    np.testing.assert_allclose(out, eager, atol=1e-5)
+    # without onnxruntime the traced torch network answers, with the same numbers
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_onnxruntime(name: str, *args, **kwargs):
+        if name == "onnxruntime":
+            raise ImportError("no onnxruntime here")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_onnxruntime)
+    monkeypatch.setattr("app.prediction.predictor._ONNX_CACHE", __import__("weakref").WeakKeyDictionary())
+    slow = MotionPredictor(weights=tiny_weights)
+    np.testing.assert_allclose(slow.predict_batch(hist), eager, atol=1e-5)
+    assert slow._onnx_session() is None
+
+
 def test_jittered_timestamps_are_resampled(tiny_weights: Path) -> None:
     p = MotionPredictor(kind="constant_velocity")
     rng = np.random.default_rng(1)
