@@ -60,6 +60,13 @@ Paper, section II-A, and where this goes further:
   them, against a box around the person); the exact distance runs only over the robot and person capsules
   that come near each other, and a sample certainly too close (an upper bound of the distance, from points on
   the capsule axes) fails its move without exact distances for the move's other samples.
+- **Shortcuts.** Roadmap paths follow straight TCP segments between samples, so in joint space they
+  zig-zag and a spline through them slows down at every reversal. Before the fit, runs of waypoints are
+  replaced greedily by one straight joint move where that move is statically free and keeps the forecast
+  clearance over time (the search's own move check, timed by the same path-speed profile); the shortened
+  path is re-timed, and the search's waypoints stay where no shortcut passes (:meth:`Planner._shortcut`).
+  Waits and everything before the last of them are kept as the search timed them. The shortened plan is
+  fitted and verified like any plan below; when it fails, the search's own path is fitted instead.
 - **Trajectory check.** The waypoints become a C1 spline (:class:`app.planning.trajectory.Trajectory`),
   possibly retimed to the acceleration limits; it is verified against the forecast at ``verify_dt_s``
   with :meth:`Planner.first_violation` (and against the static scene). If the spline fails, a trajectory at
@@ -159,6 +166,13 @@ class PlannerConfig:
             broad phase that skips exact distance checks far from the person; 1.3 m covers the UR5e with
             a 0.15 m tool).
         q_min, q_max, qd_max, qdd_max: Joint limits (6,) (rad, rad/s, rad/s^2); None: the UR5e's.
+        shortcut: Shorten the found path before the trajectory is fitted (:meth:`Planner._shortcut`):
+            runs of waypoints become one straight joint move where that move is statically free and keeps
+            the forecast clearance; the result is verified like any plan, the unshortened path is the
+            fallback.
+        shortcut_rounds: Bound on the vectorised checks of shortcut candidates (each checks every shortcut
+            from one waypoint); one more call then checks the move straight to the goal and the rest of the
+            search's waypoints, re-timed.
     """
 
     ssm: SSMParams = field(default_factory=SSMParams)
@@ -188,6 +202,8 @@ class PlannerConfig:
     q_max: tuple[float, ...] | None = None
     qd_max: tuple[float, ...] | None = None
     qdd_max: tuple[float, ...] | None = None
+    shortcut: bool = True
+    shortcut_rounds: int = 3
 
     def __post_init__(self) -> None:
         if not 0.0 < self.speed_fraction <= 1.0:
@@ -197,6 +213,8 @@ class PlannerConfig:
         for name in ("sample_dt_s", "verify_dt_s", "check_step_rad", "wait_step_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"PlannerConfig.{name} must be > 0, got {getattr(self, name)}")
+        if self.shortcut_rounds < 1:
+            raise ValueError(f"PlannerConfig.shortcut_rounds must be >= 1, got {self.shortcut_rounds}")
         if self.max_branch_tries < 1 or self.start_neighbors < 1:
             raise ValueError("PlannerConfig.max_branch_tries and start_neighbors must be >= 1")
         if self.heuristic_weight < 1.0:
@@ -986,7 +1004,13 @@ class Planner:
             expanded += n_exp
             if waypoints is None:
                 break  # the time-robust check cannot succeed where the plain one failed
-            done = self._finish(waypoints, qd0, forecast, hold_s=cfg.goal_hold_s)
+            done = None
+            if cfg.shortcut and (deadline is None or self._timer() < deadline):
+                short = self._shortcut(waypoints, sep, hold_s=cfg.goal_hold_s)
+                if short is not None:  # verified like any plan; the search's own path is the fallback
+                    done = self._finish(short, qd0, forecast, hold_s=cfg.goal_hold_s)
+            if done is None:
+                done = self._finish(waypoints, qd0, forecast, hold_s=cfg.goal_hold_s)
             if done is not None:
                 return PlanResult(True, done[0], "ok", expanded, self._timer() - t0, done[1])
             reason = "trajectory failed verification against the forecast"
@@ -1246,6 +1270,163 @@ class Planner:
         h = np.maximum(np.maximum(np.diff(times), need), 1e-3)
         t = np.concatenate([[times[0]], times[0] + np.cumsum(h)])
         return Trajectory(t, q.copy(), np.zeros_like(q))
+
+    # ------------------------------------------------------------------------------------------ shortcut
+    def _shortcut(self, waypoints: Plan, sep: _Separation, *, hold_s: float) -> Plan | None:
+        """The search's path with runs of waypoints replaced by single straight joint moves, re-timed.
+
+        Roadmap paths follow straight TCP segments between samples, so in joint space they zig-zag and the
+        spline through them has to slow down at every reversal. From each kept waypoint (the start first)
+        the farthest later waypoint is taken that one straight joint move reaches (a) free of the static
+        scene and of self-collision (:meth:`_static_free`) and (b) keeping the forecast clearance over time,
+        checked as the search checks its moves (:meth:`_moves_ok`: the path-speed profile from the path
+        speed reached there, braking to rest into the goal, with the goal hold). The move straight from the
+        start to the goal is checked first (on a free way the only check); after that, all candidates of a
+        waypoint are checked in one vectorised call, together with the search's own move to the next
+        waypoint (re-timed, at the cruise speed or one of ``slow_speed_fractions``), which is kept where no
+        shortcut passes. If even that fails at its new time, the whole shortcut is given up. After
+        ``shortcut_rounds`` such calls one more call checks the move straight to the goal and, as the
+        alternative, the rest of the search's moves re-timed one after the other (the last one also slower),
+        so the cost stays bounded: at most ``shortcut_rounds + 1`` vectorised forecast checks and
+        ``shortcut_rounds + 1`` static ones.
+
+        Waits stay as they are: only the part after the last wait is shortened (its moves depart from rest
+        at the wait's end, as the search timed them); the part before keeps the search's times.
+
+        Returns:
+            The shortened plan (times from the profile), or None when nothing was shortened or a move failed.
+            It is only a candidate: the caller fits and verifies it (:meth:`_finish`) like any plan and
+            falls back to ``waypoints``.
+        """
+        cfg = self.config
+        times, q, nodes = waypoints.times, waypoints.q, waypoints.nodes
+        still = np.flatnonzero(np.all(np.abs(np.diff(q, axis=0)) <= 1e-12, axis=1))  # waits
+        s0 = int(still[-1]) + 1 if still.size else 0
+        qs = q[s0:]
+        n = qs.shape[0]
+        if n < 3:
+            return None
+        pts, cen, rad = self._points_and_spheres(qs)
+        f, A = cfg.speed_fraction, self._A
+        speeds = np.array([f, *sorted((x for x in cfg.slow_speed_fractions if x < f), reverse=True)])
+
+        def attempt(
+            ia: np.ndarray, js: np.ndarray, fc: np.ndarray, t_dep: np.ndarray, u: np.ndarray
+        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            """Moves qs[ia] -> qs[js] departing at t_dep with path speed u at cruise speeds fc: (ok, h, exit
+            speed). The static scene is checked for shortcuts only (a move to the next waypoint is the
+            search's own)."""
+            L = self._metric(qs[js] - qs[ia])
+            end = js == n - 1
+            u0 = np.minimum(u, fc)
+            h, u1, _ = _profile_arrays(u0, L, fc, A, end)
+            h = np.where(L > 1e-12, np.maximum(h, cfg.min_edge_s), h)
+            ok = np.ones(js.size, dtype=bool)
+            cut = np.flatnonzero(js > ia + 1)
+            if cut.size:
+                ok[cut] = self._static_free(qs[ia[cut]], qs[js[cut]])
+            live = np.flatnonzero(ok)
+            if live.size and sep.forecast is not None:
+                al, jl = ia[live], js[live]
+                ok[live] = self._moves_ok(
+                    sep,
+                    qs[al],
+                    pts[al],
+                    cen[al],
+                    rad[al],
+                    np.zeros(live.size, dtype=np.int64),
+                    np.zeros(live.size, dtype=np.int64),
+                    qs[jl],
+                    t_dep[live],
+                    h[live],
+                    u0[live],
+                    L[live],
+                    end[live],
+                    fc[live],
+                    end[live],
+                    hold_s,
+                    target_geometry=(pts[jl], cen[jl], rad[jl]),
+                )
+            return ok, h, u1
+
+        keep, t_new = [0], [float(times[s0])]
+        i, t, u = 0, float(times[s0]), 0.0
+        rounds = 0
+        while i < n - 1 and rounds < cfg.shortcut_rounds:
+            j, top = -1, n
+            if rounds == 0 and i + 2 <= n - 1:  # straight to the goal: on a free way the only check
+                ok, h, u1 = attempt(
+                    np.array([i]), np.array([n - 1]), speeds[:1], np.array([t]), np.array([u])
+                )
+                rounds += 1
+                if ok[0]:
+                    j, hj, uj = n - 1, float(h[0]), float(u1[0])
+                top = n - 1
+            if j < 0:
+                if rounds >= cfg.shortcut_rounds:
+                    break
+                # every shortcut from here (the farthest that passes wins) and, in the same check, the
+                # search's own move to the next waypoint at each speed (the fastest that passes is the
+                # fallback)
+                cuts = np.arange(i + 2, top)
+                js = np.concatenate([cuts, np.full(speeds.size, i + 1)])
+                m = js.size
+                fc = np.concatenate([np.full(cuts.size, f), speeds])
+                ok, h, u1 = attempt(np.full(m, i), js, fc, np.full(m, t), np.full(m, u))
+                rounds += 1
+                good = np.flatnonzero(ok)
+                if good.size == 0:
+                    return None
+                passed_cuts = good[good < cuts.size]
+                k = int(passed_cuts[-1]) if passed_cuts.size else int(good[0])
+                j, hj, uj = int(js[k]), float(h[k]), float(u1[k])
+            i, t, u = j, t + hj, uj
+            keep.append(j)
+            t_new.append(t)
+        if keep[-1] == len(keep) - 1:
+            return None  # nothing shortened (nor would the rest be)
+        if i < n - 1:
+            # the rounds are used up: straight to the goal, or else the rest of the search's moves re-timed
+            # at the cruise speed one after the other (the last, into the goal, also slower), in one call
+            rest = np.arange(i, n - 1)
+            dep, u_in = np.empty(rest.size), np.empty(rest.size)
+            t_k, u_k = t, u
+            for k, a in enumerate(rest.tolist()):
+                L = float(self._metric(qs[a + 1] - qs[a]))
+                h_k, u_next, _ = _profile_py(u_k, L, f, A, a + 1 == n - 1)
+                dep[k], u_in[k] = t_k, u_k
+                t_k, u_k = t_k + (max(h_k, cfg.min_edge_s) if L > 1e-12 else h_k), u_next
+            d = int(rest.size > 1)  # the move straight to the goal first, when it is a shortcut
+            slow = speeds[1:]
+            m = rest.size
+            ia = np.concatenate([np.full(d, i), rest, np.full(slow.size, n - 2)])
+            js = np.concatenate([np.full(d, n - 1), rest + 1, np.full(slow.size, n - 1)])
+            ok, h, _ = attempt(
+                ia,
+                js,
+                np.concatenate([np.full(d + m, f), slow]),
+                np.concatenate([np.full(d, t), dep, np.full(slow.size, dep[-1])]),
+                np.concatenate([np.full(d, u), u_in, np.full(slow.size, u_in[-1])]),
+            )
+            chain = ok[d : d + m].copy()
+            h_chain = h[d : d + m].copy()
+            last = np.flatnonzero(ok[d + m :])
+            if not chain[-1] and last.size:  # the goal reached more slowly
+                chain[-1], h_chain[-1] = True, h[d + m + int(last[0])]
+            if d and ok[0]:
+                keep.append(n - 1)
+                t_new.append(t + float(h[0]))
+            elif chain.all():
+                keep.extend((rest + 1).tolist())
+                t_new.extend((dep + h_chain).tolist())
+            else:
+                return None
+        idx = np.concatenate([np.arange(s0), s0 + np.asarray(keep)])
+        return Plan(
+            times=np.concatenate([times[:s0], t_new]),
+            q=q[idx],
+            nodes=nodes[idx],
+        )
 
     # ------------------------------------------------------------------------------------------ search
     def _search(
@@ -1578,6 +1759,8 @@ class Planner:
         f: np.ndarray,
         hold: np.ndarray,
         hold_s: float,
+        *,
+        target_geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """Check moves (and the hold at their end where ``hold``) against the forecast; boolean (M,).
         The arguments are those of :meth:`_move_samples`."""
@@ -1586,7 +1769,23 @@ class Planner:
         if sep.forecast is None or M == 0:
             return result
         sel, owner, q, t, v, cen, rad = self._move_samples(
-            sep, q_a, pts_a, cen_a, rad_a, cv, b, target, t_dep, h, u0, L, end_rest, f, hold, hold_s
+            sep,
+            q_a,
+            pts_a,
+            cen_a,
+            rad_a,
+            cv,
+            b,
+            target,
+            t_dep,
+            h,
+            u0,
+            L,
+            end_rest,
+            f,
+            hold,
+            hold_s,
+            target_geometry=target_geometry,
         )
         if sel.size:
             ok_s = sep.check(q, t, v, cen, rad, owner)
@@ -1611,6 +1810,8 @@ class Planner:
         f: np.ndarray,
         hold: np.ndarray,
         hold_s: float,
+        *,
+        target_geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> tuple[np.ndarray, ...]:
         """The samples of the moves (and the holds at their end where ``hold``) that stage 0 cannot pass.
 
@@ -1620,7 +1821,9 @@ class Planner:
 
         Per move: the start configuration ``q_a`` with its capsule points/spheres, the target roadmap node
         ``cv`` at branch ``b`` (configuration ``target``), departure, duration, entry speed (``<= f``),
-        length, whether it ends at rest and its cruise speed ``f``.
+        length, whether it ends at rest and its cruise speed ``f``. ``target_geometry``: the target's capsule
+        points (M, 2L, 3), sphere centres (M, L, 3) and radii (M, L) when it is not a roadmap configuration
+        (``cv``, ``b`` are then not used).
 
         The robot speed of a sample (for ``S_r + S_s``) is the largest speed the path-speed profile reaches
         between the previous sample and this one, turned into m/s with the move's largest chord (the
@@ -1633,8 +1836,11 @@ class Planner:
         dq = target - q_a
         cum = np.concatenate([np.zeros((M, 1)), np.cumsum(np.abs(dq) * self._lever, axis=1)], axis=1)
         travel = cum[:, self._moved_by]  # (M, L): how far joints 1..J(l) can carry capsule l
-        cen_b, rad_b = self._cen_all[cv, b], self._rad_all[cv, b]
-        chord = np.max(np.linalg.norm(self._pts_all[cv, b] - pts_a, axis=-1), axis=-1)
+        if target_geometry is None:
+            pts_b, cen_b, rad_b = self._pts_all[cv, b], self._cen_all[cv, b], self._rad_all[cv, b]
+        else:
+            pts_b, cen_b, rad_b = target_geometry
+        chord = np.max(np.linalg.norm(pts_b - pts_a, axis=-1), axis=-1)
         dur, _, peak = _profile_arrays(u0, L, f, A, end_rest)
         moving = L > 1e-12
         clock = np.where(h > 0, dur / np.maximum(h, 1e-12), 1.0)  # profile seconds per real second

@@ -8,6 +8,8 @@ capsule distance, and the requirement from :func:`app.planning.safety.forecast_c
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -20,6 +22,7 @@ from app.planning.scenarios import reference_queries, synthetic_forecast
 from app.planning.search import Planner
 from app.planning.trajectory import Trajectory
 from app.prediction.forecast import HumanForecast
+from app.prediction.skeleton import NUM_JOINTS
 
 
 @pytest.fixture(scope="module")
@@ -137,3 +140,42 @@ def test_emergency_plans_are_valid_against_the_held_person(setup: tuple) -> None
             t = np.arange(res.trajectory.t_start, res.trajectory.t_end + 1e-9, 0.01)
             d = model.distance_to_human_paired(res.trajectory.q(t), np.repeat(joints[None], t.size, axis=0))
             assert np.all(d >= d0 - 1e-3)
+
+
+def station_q(rm, name: str) -> np.ndarray:
+    """The first valid stored IK branch of a station (angles as IK returns them, in [-pi, pi])."""
+    n = rm.station_nodes[name]
+    return rm.ik[n][rm.valid[n]][0]
+
+
+def test_shortcut_plans_are_faster_than_the_search_paths_and_valid(setup: tuple) -> None:
+    cell, model, rm, planner = setup
+    raw = Planner(rm, model, config=dataclasses.replace(planner.config, shortcut=False))
+    ssm, hold = planner.config.ssm, planner.config.goal_hold_s
+    aside = synthetic_forecast(cell, seed=11, t0=0.0, reach=False)
+    for start, goal in (("pickup_approach", "A_approach"), ("pickup_approach", "D_approach")):
+        for forecast in (None, aside):
+            res = planner.plan(q_start=station_q(rm, start), t_start=0.0, goal=goal, forecast=forecast)
+            ref = raw.plan(q_start=station_q(rm, start), t_start=0.0, goal=goal, forecast=forecast)
+            assert res.ok and ref.ok, (res.reason, ref.reason)
+            assert res.plan.q.shape[0] < ref.plan.q.shape[0]
+            assert res.trajectory.duration < 0.7 * ref.trajectory.duration, (start, goal)
+            assert not violations(res.trajectory, forecast, model, ssm, hold_s=hold), (start, goal)
+            np.testing.assert_allclose(res.trajectory.q(0.0), station_q(rm, start), atol=1e-9)
+
+
+def test_a_person_on_the_direct_move_is_not_cut_through(setup: tuple) -> None:
+    _, model, rm, planner = setup
+    q_start = station_q(rm, "pickup_approach")
+    direct = planner.plan(q_start=q_start, t_start=0.0, goal="D_approach", forecast=None)
+    assert direct.ok and direct.plan.q.shape[0] == 2  # nothing in the way: one straight move
+    tr = direct.trajectory
+    p_mid = model.kin.fk_tcp(tr.q(0.5 * (tr.t_start + tr.t_end))[None])[0, :3, 3]
+    # a person (every joint at one point) standing where the straight move's tool passes halfway
+    fc = HumanForecast(
+        t0=0.0, times=np.array([0.0]), joints=np.tile(p_mid, (1, NUM_JOINTS, 1)), margins=np.zeros(1)
+    )
+    res = planner.plan(q_start=q_start, t_start=0.0, goal="D_approach", forecast=fc, workers=8)
+    assert res.ok, res.reason
+    assert res.plan.q.shape[0] > 2
+    assert not violations(res.trajectory, fc, model, planner.config.ssm, hold_s=planner.config.goal_hold_s)

@@ -17,7 +17,7 @@ import pytest
 from app.planning.roadmap import Roadmap
 from app.planning.safety import SSMParams, forecast_clearance
 from app.planning.search import Planner, PlannerConfig
-from app.planning.trajectory import Trajectory
+from app.planning.trajectory import Plan, Trajectory
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import BONES, NUM_JOINTS
 
@@ -161,7 +161,7 @@ def test_without_a_person_the_search_is_plain_a_star(seed: int) -> None:
     before = {
         k: getattr(rm, k).copy() for k in ("nodes", "ik", "valid", "indptr", "indices", "edge_branches")
     }
-    planner = Planner(rm, PointRobot(), config=config())
+    planner = Planner(rm, PointRobot(), config=config(shortcut=False))  # the search's own path
     _, cost = dijkstra(rm, 0, 1, speed=0.5)
     for workers in (1, 4):
         res = planner.plan(q_start=rm.ik[0, 0], t_start=0.0, goal="g", forecast=None, workers=workers)
@@ -212,7 +212,7 @@ def test_a_person_standing_on_the_short_way_makes_the_robot_detour() -> None:
         g=2,
     )
     fc = person([0.0], [(0.5, -0.1)])
-    planner = Planner(rm, PointRobot(), config=config())
+    planner = Planner(rm, PointRobot(), config=config(shortcut=False))  # the search's own path
     static = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None)
     assert [n for n in static.plan.nodes.tolist() if n >= 0] == [0, 1, 2]
     for workers in (1, 3):
@@ -326,7 +326,7 @@ def _time_to_go(rm: Roadmap, goal: int, speed: float) -> np.ndarray:
 @pytest.mark.parametrize("seed", [0, 3])
 def test_the_static_heuristic_is_the_true_time_to_go_and_never_more(seed: int) -> None:
     rm = random_graph(seed, n=40)
-    planner = Planner(rm, PointRobot(), config=config())
+    planner = Planner(rm, PointRobot(), config=config(shortcut=False))  # h bounds the search's paths
     for goal in (1, 7):
         truth = _time_to_go(rm, goal, 0.5)
         h = planner._heuristic_table(goal)[:, 0]
@@ -433,7 +433,7 @@ def test_a_spline_that_would_cut_a_corner_into_an_obstacle_stops_at_the_waypoint
     rm = roadmap([(0.0, 0.0), (0.5, 0.1), (0.6, 0.6)], [(0, 1), (1, 2)], s=0, g=2)
     box = ((0.25, -0.3, -0.2), (0.4, -0.015, 0.2))
     model = PointRobot(boxes=[box])
-    planner = Planner(rm, model, config=config(qdd_max=(2.0,) * 6))
+    planner = Planner(rm, model, config=config(qdd_max=(2.0,) * 6, shortcut=False))
     res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None)
     assert res.ok, res.reason
     t = np.arange(res.trajectory.t_start, res.trajectory.t_end + 1e-9, 0.01)
@@ -442,3 +442,113 @@ def test_a_spline_that_would_cut_a_corner_into_an_obstacle_stops_at_the_waypoint
     smooth = planner._fit(res.plan, None)
     assert smooth is not None
     assert np.any(model.in_static_collision(smooth.q(np.arange(smooth.t_start, smooth.t_end, 0.01))))
+
+
+# --------------------------------------------------------------------------------------------- shortcuts
+def u_shape() -> Roadmap:
+    """s (0, 0) -> d1 (0, 0.6) -> d2 (1, 0.6) -> g (1, 0): the only way round is a U; s - g is no edge."""
+    return roadmap([(0.0, 0.0), (0.0, 0.6), (1.0, 0.6), (1.0, 0.0)], [(0, 1), (1, 2), (2, 3)], s=0, g=3)
+
+
+def test_a_zig_zag_path_becomes_one_straight_move_that_is_faster_and_valid() -> None:
+    # the only way is a zig-zag in y (0.3 per edge) while x advances 0.2 per edge: 4 x 0.6 s, direct 1.6 s
+    pts = [(0.0, 0.0), (0.2, 0.3), (0.4, 0.0), (0.6, 0.3), (0.8, 0.0)]
+    rm = roadmap(pts, [(i, i + 1) for i in range(4)], s=0, g=4)
+    fc = person([0.0, 1.0], [(0.4, -1.0), (0.4, -0.9)])  # beside the corridor, never in the way
+    for forecast in (None, fc):
+        raw = Planner(rm, PointRobot(), config=config(shortcut=False)).plan(
+            q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=forecast
+        )
+        res = Planner(rm, PointRobot(), config=config()).plan(
+            q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=forecast
+        )
+        assert raw.ok and res.ok, (raw.reason, res.reason)
+        assert raw.plan.q.shape[0] == 5  # the search's path visits every node
+        assert res.plan.q.shape[0] == 2 and res.plan.nodes.tolist() == [0, 4]
+        assert res.trajectory.duration < raw.trajectory.duration - 0.6
+        assert res.trajectory.duration == pytest.approx(0.8 / 0.5, abs=0.05)
+        assert_valid(res.trajectory, forecast, hold_s=0.2)
+
+
+@pytest.mark.parametrize("rounds", [2, 3])  # 2: the last move is the search's own, checked after the rounds
+def test_a_person_on_the_direct_move_keeps_the_detour_where_they_are_in_the_way(rounds: int) -> None:
+    rm = u_shape()
+    planner = Planner(rm, PointRobot(), config=config(shortcut_rounds=rounds))
+    raw = Planner(rm, PointRobot(), config=config(shortcut=False))
+    # the person stands on the straight line s - g: that shortcut is never taken, but s - d2 passes them
+    # 0.16 m away (0.1 m needed) and cuts the corner at d1
+    blocking = person([0.0], [(0.5, 0.0)])
+    res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=blocking)
+    unshortened = raw.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=blocking)
+    assert res.ok and unshortened.ok, res.reason
+    assert res.plan.nodes.tolist() == [0, 2, 3]
+    assert res.trajectory.duration < unshortened.trajectory.duration
+    assert_valid(res.trajectory, blocking, hold_s=0.2)
+    # the shortcut is checked over time: a person who arrives on that line only after the robot has passed
+    # does not block it, one who is there while the robot would be does
+    late = person([0.0, 4.9, 5.0], [(0.5, -2.0), (0.5, -2.0), (0.5, 0.0)])
+    res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=late)
+    assert res.ok and res.plan.nodes.tolist() == [0, 3]
+    assert_valid(res.trajectory, late, hold_s=0.2)
+    early = person([0.0, 0.9, 1.0, 1.5, 1.6], [(0.5, -2.0), (0.5, -2.0), (0.5, 0.0), (0.5, 0.0), (0.5, -2.0)])
+    res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=early)
+    assert res.ok and res.plan.nodes.tolist() != [0, 3]
+    assert_valid(res.trajectory, early, hold_s=0.2)
+
+
+def test_a_box_on_the_direct_move_keeps_the_detour() -> None:
+    rm = u_shape()
+    model = PointRobot(boxes=[((0.45, -0.2, -0.2), (0.55, 0.15, 0.2))])  # across the line s - g only
+    res = Planner(rm, model, config=config()).plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None)
+    assert res.ok
+    assert res.plan.nodes.tolist() == [0, 2, 3]  # s - d2 passes the box's corner (0.45, 0.15) 0.05 m clear
+    t = np.arange(res.trajectory.t_start, res.trajectory.t_end + 1e-9, 0.01)
+    assert not np.any(model.in_static_collision(res.trajectory.q(t)))
+
+
+def test_a_shortcut_that_fails_verification_falls_back_to_the_search_path() -> None:
+    # a shortcut straight through a box (as a faulty shortcut step would propose it) never comes out:
+    # the fitted shortcut is verified like any plan and the search's own path is returned instead
+    rm = u_shape()
+    model = PointRobot(boxes=[((0.45, -0.2, -0.2), (0.55, 0.2, 0.2))])
+    planner = Planner(rm, model, config=config())
+    reference = Planner(rm, model, config=config(shortcut=False)).plan(
+        q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None
+    )
+    proposed: list[Plan] = []
+
+    def through_the_box(waypoints: Plan, sep: object, *, hold_s: float) -> Plan:
+        bad = Plan(times=[0.0, 2.0], q=[q_of(0, 0), q_of(1.0, 0.0)], nodes=[0, 3])
+        proposed.append(bad)
+        return bad
+
+    planner._shortcut = through_the_box  # type: ignore[method-assign]
+    res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None)
+    assert proposed and res.ok
+    assert res.plan.nodes.tolist() == [0, 1, 2, 3]
+    np.testing.assert_allclose(res.trajectory.knot_q, reference.trajectory.knot_q)
+    t = np.arange(res.trajectory.t_start, res.trajectory.t_end + 1e-9, 0.01)
+    assert not np.any(model.in_static_collision(res.trajectory.q(t)))
+
+
+def test_waits_and_the_moves_before_them_are_kept() -> None:
+    # the corridor of the waiting test: the part before the wait keeps the search's times exactly
+    rm = roadmap([(0.2 * i, 0.0) for i in range(6)], [(i, i + 1) for i in range(5)], s=0, g=5)
+    fc = person(
+        [0.0, 0.7, 0.75, 1.6, 1.65, 4.0],
+        [(0.6, 3.0), (0.6, 3.0), (0.6, 0.15), (0.6, 0.15), (0.6, 3.0), (0.6, 3.0)],
+    )
+    short = Planner(rm, PointRobot(), config=config(max_wait_s=1.5))
+    raw = Planner(rm, PointRobot(), config=config(max_wait_s=1.5, shortcut=False))
+    res = short.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc)
+    ref = raw.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc)
+    assert res.ok and ref.ok
+    q = res.plan.q
+    waits = [i for i in range(len(q) - 1) if np.allclose(q[i], q[i + 1])]
+    assert waits
+    # up to the end of the wait both trajectories are the same
+    t_dep = res.plan.times[waits[-1] + 1]
+    ts = np.linspace(0.0, t_dep, 50)
+    np.testing.assert_allclose(res.trajectory.q(ts), ref.trajectory.q(ts), atol=1e-9)
+    assert res.trajectory.t_end <= ref.trajectory.t_end + 1e-9
+    assert_valid(res.trajectory, fc, hold_s=0.2)
