@@ -453,11 +453,22 @@ class SeparationModel:
         return float(out) if out.ndim == 0 else out
 
     def max_scale(
-        self, separation_m: np.ndarray, *, v_human_mps: np.ndarray, v_parts_mps: np.ndarray, rate: float
+        self,
+        separation_m: np.ndarray,
+        *,
+        v_human_mps: np.ndarray,
+        v_parts_mps: np.ndarray,
+        rate: float,
+        lo: float = 0.0,
+        hi: float = 1.0,
     ) -> float:
         """Largest path-speed scale in [0, 1] that is safe for every part: part i moves at
         ``s * v_parts_mps[i]`` and a brake lowers the scale at ``rate`` (1/s), so every part stops after
-        ``s / rate``. Arrays (L,) (the parts that move)."""
+        ``s / rate``. Arrays (L,) (the parts that move).
+
+        Only scales in ``[lo, hi]`` are examined (the grid's and both ends; the servo passes the range it
+        can reach within one tick): the answer is the largest of them up to which every one is safe, ``hi``
+        at most, and 0 when ``lo`` is not safe."""
         d1 = np.asarray(separation_m, dtype=np.float64)
         vh1 = np.asarray(v_human_mps, dtype=np.float64)
         vp1 = np.asarray(v_parts_mps, dtype=np.float64)
@@ -469,9 +480,13 @@ class SeparationModel:
         x_b, v_b = self.human_approach(vh1, t_b)
         worst = self.sp(vp1, vtop, v_b) + x_b + vp1 * t_b
         if bool(np.all(d1 >= worst)):
-            return 1.0
+            return float(hi)
+        lo, hi = max(float(lo), 0.0), min(float(hi), 1.0)
+        inside = (_SCALES - lo > 0.0) & (_SCALES - hi < 0.0)
+        scales = _SCALES[inside]
+        scales = np.concatenate([[lo], scales, [hi]]) if hi > lo else np.array([lo])
         d, vh0, vp = d1[:, None, None], vh1[:, None, None], vp1[:, None, None]
-        sc = _SCALES[None, :, None]
+        sc = scales[None, :, None]
         t = _ENV_U[None, None, :] * sc / max(rate, 1e-6)
         x_h, v_h = self.human_approach(vh0, t)
         a = rate * vp
@@ -481,7 +496,7 @@ class SeparationModel:
         need = self.sp(s_t * vp, s_t * vtop, v_h)
         ok = np.all(d - x_h - travel - need >= 0.0, axis=2).all(axis=0)  # (NS,) every part
         n_ok = int(np.cumprod(ok).sum())
-        return float(_SCALES[n_ok - 1]) if n_ok > 0 else 0.0
+        return float(scales[n_ok - 1]) if n_ok > 0 else 0.0
 
 
 _SCALES = np.linspace(0.0, 1.0, 41)
@@ -1451,7 +1466,17 @@ class Supervisor:
             sep_lb, v_h = self._separation_bound(t + dt)
             sep_lb = sep_lb - s * vmax * dt
             m = vmax > 1e-4
-            s_target = self.ssm.max_scale(sep_lb[m], v_human_mps=v_h[m], v_parts_mps=vmax[m], rate=rate)
+            # the scales this tick can reach: up at the ramp rate, down at the brake rate (any at rest)
+            at_rest = float(self._v_inst.max()) <= 1e-6
+            lo = 0.0 if at_rest or not math.isfinite(rate) else s - rate * dt
+            s_target = self.ssm.max_scale(
+                sep_lb[m],
+                v_human_mps=v_h[m],
+                v_parts_mps=vmax[m],
+                rate=rate,
+                lo=lo,
+                hi=s + cfg.scale_up_rate * dt,
+            )
             if self.speed_scale_law is not None:
                 # the standard's law with the person's measured speed (the envelope above already covers
                 # their worst-case speed-up since it was measured, with the stopping time of this speed)

@@ -607,3 +607,31 @@ def test_config_validation_and_jobs_bound() -> None:
     assert SupervisorConfig(deadline_s=0.1, frame_period_s=1 / 30).max_jobs == 3
     assert SupervisorConfig(deadline_s=0.2, frame_period_s=1 / 30).max_jobs == 6
     assert math.isclose(SupervisorConfig().emergency_horizon, 0.1 + 1 / 30)
+
+
+def test_the_scale_window_agrees_with_the_whole_grid() -> None:
+    """The servo asks only for the scales one tick can reach; the answer agrees with the whole grid's."""
+    model = SeparationModel(s0_m=0.11, t_reaction_s=0.1, stop_decel_mps2=2.0, human_accel_mps2=8.0)
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        n = int(rng.integers(1, 6))
+        kw = dict(
+            v_human_mps=rng.uniform(0.0, 1.0, n),
+            v_parts_mps=rng.uniform(0.05, 1.0, n),
+            rate=rng.uniform(2, 20),
+        )
+        d = rng.uniform(0.1, 1.0, n)
+        full = model.max_scale(d, **kw)
+        lo = float(rng.uniform(0.0, 0.9))
+        hi = min(lo + float(rng.uniform(0.0, 0.2)), 1.0)
+        got = model.max_scale(d, **kw, lo=lo, hi=hi)
+        assert got <= hi + 1e-12
+        if got > 0.0:
+            assert got >= lo - 1e-12
+            assert model.max_scale(d, **kw, lo=got, hi=got) == got  # itself safe
+        if full >= hi:
+            assert got == pytest.approx(hi) or got >= full - 0.025  # the grid's step
+        elif full >= lo:
+            assert full - 0.025 - 1e-12 <= got <= full + 0.025 + 1e-12
+        else:
+            assert got == 0.0 or got <= full + 0.025
