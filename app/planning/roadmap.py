@@ -59,7 +59,11 @@ class Roadmap:
 
     Attributes:
         nodes: TCP positions (N, 3) in the world frame (m); the tool points down (yaw ``yaw``).
-        ik: IK branches (N, 8, 6) in rad (entries of invalid branches are 0).
+        ik: IK branches (N, 8, 6) in rad (entries of invalid branches are 0), every angle as IK returns it,
+            in [-pi, pi]. A family of branches can therefore be split at +-pi (in the default cell the base
+            angle runs from 1.69 at the pickup to 3.10 at C and -2.81 at D); edges are checked, and the
+            search moves, between 2 pi-equivalents next to each other within the joint limits
+            (:func:`app.planning.kinematics.align_branches`), so plans turn the short way across the split.
         valid: Which branches are usable (N, 8): within limits, statically free, no self-collision.
         indptr: CSR row pointers (N + 1,): the neighbours of node ``u`` are
             ``indices[indptr[u]:indptr[u + 1]]``. Edges are stored in both directions.

@@ -9,6 +9,7 @@ capsule distance, and the requirement from :func:`app.planning.safety.forecast_c
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -146,6 +147,32 @@ def station_q(rm, name: str) -> np.ndarray:
     """The first valid stored IK branch of a station (angles as IK returns them, in [-pi, pi])."""
     n = rm.station_nodes[name]
     return rm.ik[n][rm.valid[n]][0]
+
+
+@pytest.mark.parametrize(
+    ("start", "goal"), [("pickup_approach", "D_approach"), ("D_approach", "pickup_approach")]
+)
+def test_the_base_turns_the_short_way_across_the_wrap_of_the_stored_angles(
+    setup: tuple, start: str, goal: str
+) -> None:
+    _, model, rm, planner = setup
+    q_start = station_q(rm, start)
+    g = rm.station_nodes[goal]
+    stored = rm.ik[g][rm.valid[g]]
+    # the arm's family of branches is split at +-pi: stored base angles 1.69 (pickup) vs -2.81 (D), 4.5 apart
+    same_family = stored[np.argmin(np.abs(stored[:, 1:] - q_start[1:]).max(axis=1))]
+    assert abs(same_family[0] - q_start[0]) > math.pi
+    res = planner.plan(q_start=q_start, t_start=0.0, goal=goal, forecast=None)
+    assert res.ok, res.reason
+    q = res.trajectory.q(res.trajectory.sample(0.01))
+    # arrives at a 2 pi-equivalent of a stored goal branch, turning the base the short way (1.8 rad)
+    d = q[-1] - stored
+    assert np.min(np.abs(d - 2 * math.pi * np.rint(d / (2 * math.pi))).max(axis=1)) < 1e-6
+    short = abs((q[-1, 0] - q[0, 0] + math.pi) % (2 * math.pi) - math.pi)
+    assert short < 2.0
+    assert abs(q[-1, 0] - q[0, 0]) == pytest.approx(short, abs=1e-6)
+    assert np.abs(np.diff(q[:, 0])).sum() <= short + 0.05  # no back and forth on the way either
+    assert not violations(res.trajectory, None, model, planner.config.ssm, hold_s=0.0)
 
 
 def test_shortcut_plans_are_faster_than_the_search_paths_and_valid(setup: tuple) -> None:
