@@ -1378,8 +1378,8 @@ class Supervisor:
                 self._servo_governed(t, dt)
             active = self._active
             tau = min(self._tau, active.traj.t_end) if active.kind != "hold" else active.traj.t_end
-            q = np.asarray(active.traj.q(tau), dtype=np.float64).reshape(6)
-            qd = np.asarray(active.traj.qd(tau), dtype=np.float64).reshape(6) * self._s
+            q, qd = _state(active.traj, tau)
+            qd = qd * self._s
             if active.kind == "hold" or self._tau >= active.traj.t_end:
                 qd = np.zeros(6)
             self._travel_m += self._v_cmd * dt
@@ -1687,6 +1687,16 @@ class Supervisor:
     def recent_decide_s(self) -> tuple[float, ...]:
         with self._lock:
             return tuple(self._recent_decide_s)
+
+
+def _state(traj: TrajectoryLike, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(q(t), qd(t))`` (6,) each, through the trajectory's one-look-up ``state`` where it has one."""
+    state = getattr(traj, "state", None)
+    if state is not None:
+        q, qd = state(t)
+    else:
+        q, qd = traj.q(t), traj.qd(t)
+    return np.asarray(q, dtype=np.float64).reshape(6), np.asarray(qd, dtype=np.float64).reshape(6)
 
 
 def _ramp_distance(s: float, up_rate: float, horizon_s: float) -> float:

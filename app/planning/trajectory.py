@@ -20,6 +20,7 @@ Times are seconds on the runtime clock, joint angles radians.
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -211,7 +212,7 @@ class Trajectory:
     Build it with :meth:`from_plan` (or :meth:`from_knots` for already fitted knots).
     """
 
-    __slots__ = ("_h", "_kin", "_q", "_qd", "_times")
+    __slots__ = ("_h", "_kin", "_q", "_qd", "_times", "_times_list")
 
     def __init__(self, times: np.ndarray, q: np.ndarray, qd: np.ndarray, *, kin: UR5e | None = None) -> None:
         times = np.asarray(times, dtype=np.float64)
@@ -229,6 +230,7 @@ class Trajectory:
             a.setflags(write=False)
         self._times, self._q, self._qd = times, q, qd
         self._h = np.diff(times) if K > 1 else np.ones(0)
+        self._times_list = times.tolist()  # for the scalar look-up of :meth:`state`
         self._kin = kin
 
     @classmethod
@@ -349,6 +351,30 @@ class Trajectory:
             out = (12 * s - 6) / h**2 * (p0 - p1) + (6 * s - 4) / h * v0 + (6 * s - 2) / h * v1
             out = np.where((after | before)[:, None], 0.0, out)
         return out[0] if scalar else out
+
+    def state(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Configuration (6,) and joint velocity (6,) at one time ``t`` (s): ``(q(t), qd(t))`` in one
+        look-up (the servo loop's call)."""
+        times = self._times_list
+        K = len(times)
+        t = float(t)
+        if K == 1:
+            return self._q[0].copy(), np.zeros(6)
+        i = min(max(bisect.bisect_right(times, t) - 1, 0), K - 2)
+        h = times[i + 1] - times[i]
+        s = min(max((t - times[i]) / h, 0.0), 1.0)
+        p0, p1, v0, v1 = self._q[i], self._q[i + 1], self._qd[i], self._qd[i + 1]
+        s2 = s * s
+        s3 = s2 * s
+        q = (2 * s3 - 3 * s2 + 1) * p0 + (s3 - 2 * s2 + s) * h * v0
+        q = q + (3 * s2 - 2 * s3) * p1 + (s3 - s2) * h * v1
+        if t >= times[-1]:
+            qd = np.zeros(6)
+        elif t <= times[0]:
+            qd = self._qd[0].copy()
+        else:
+            qd = (6 * s2 - 6 * s) / h * (p0 - p1) + (3 * s2 - 4 * s + 1) * v0 + (3 * s2 - 2 * s) * v1
+        return q, qd
 
     def q(self, t: float | np.ndarray) -> np.ndarray:
         """Configuration (6,) at a time, or (N, 6) at times (N,)."""

@@ -115,3 +115,17 @@ def test_fit_knots_merges_duplicate_times() -> None:
     )
     assert times.shape == (2,) and np.all(np.diff(times) > 0)
     np.testing.assert_allclose(q[0], 0.0)
+
+
+def test_state_equals_q_and_qd_at_one_time() -> None:
+    rng = np.random.default_rng(4)
+    times = np.array([0.0, 0.4, 0.9, 1.7])
+    traj = Trajectory(times, rng.uniform(-1, 1, (4, 6)), rng.uniform(-0.5, 0.5, (4, 6)))
+    for t in [-0.2, 0.0, 0.4, 0.41, 1.0, 1.7, 2.5, *rng.uniform(-0.5, 2.0, 50)]:
+        q, qd = traj.state(t)
+        np.testing.assert_allclose(q, traj.q(t), atol=1e-12)
+        np.testing.assert_allclose(qd, traj.qd(t), atol=1e-12)
+    still = Trajectory(np.array([0.0]), np.ones((1, 6)), np.zeros((1, 6)))
+    q, qd = still.state(3.0)
+    np.testing.assert_array_equal(q, np.ones(6))
+    assert not qd.any()
