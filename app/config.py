@@ -223,6 +223,16 @@ class Settings(BaseSettings):
     robot_host: str = "192.168.1.10"
     human_source: Literal["sim", "replay", "stream"] = "sim"
     replay_clip: Path | None = None
+    hmp_weights: Path | None = Field(
+        None,
+        description="Graph-Mixer weights (hrc hmp train); default: tuned to the simulated operator for the "
+        "sim source, the shipped CMU-trained ones otherwise",
+    )
+    hmp_quantiles: Path | None = Field(
+        None,
+        description="forecast error quantiles (hrc hmp calibrate) for the margins; default: the ones that go "
+        "with the weights",
+    )
     camera_pose: Annotated[list[float], Field(min_length=6, max_length=6)] | None = Field(
         None, description="x, y, z (m), roll, pitch, yaw (rad) of the tracking camera in the world frame"
     )

@@ -18,6 +18,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -248,6 +249,13 @@ class SafetyMonitor:
     speed toward it (:func:`app.planning.safety.protective_separation`, with the stopping time ``T_s`` of
     the robot's current speed: ``v_top / stop_decel_mps2``). It shares nothing with the
     supervisor: its own distance and speed computations, the robot's reported state, the poses it is given.
+
+    The person's approach speed is measured over the same window as the supervisor's (the engine passes
+    the frame 0.1 s older): a one-frame difference of tracked positions jitters by about +-0.3 m/s with a
+    tracker's 3-8 mm noise, which is noise, not motion. Over the same pair of frames, the supervisor's
+    speed (the fastest approach of the person's capsules near a part) is never below the monitor's (the
+    rate of the part's nearest distance), so a violation means the person sped up faster than the
+    supervisor's worst case, or the supervisor failed.
 
     Args:
         collision: The collision model (``distance_to_human``, ``robot_capsules``).
@@ -627,6 +635,7 @@ class TrialEngine:
         self.last_decision: FrameDecision | None = None
         self.last_state: RobotState = robot_state
         self._prev_frame: HumanFrame | None = None
+        self._recent: deque[HumanFrame] = deque(maxlen=16)  # for the monitor's speed window
         self._releases: list[tuple[float, str]] = []
         self._stale = False
         self._frames_t: list[float] = []
@@ -691,6 +700,7 @@ class TrialEngine:
             self._monitor(t, frame)
         self._prev_frame = self.last_frame
         self.last_frame = frame
+        self._recent.append(frame)
         if self.options.record_frames:
             self._frames_t.append(self.elapsed(t))
             self._frames_q.append(np.asarray(self.last_state.q, dtype=np.float32))
@@ -724,8 +734,14 @@ class TrialEngine:
             self._emit_abs(t, "violation", payload)
 
     def _older_frame(self, frame: HumanFrame) -> HumanFrame | None:
-        prev = self.last_frame if self.last_frame is not frame else self._prev_frame
-        return prev if prev is not None and prev.t < frame.t else None
+        """The frame the person's approach speed is measured from: the newest one at least the speed window
+        (the supervisor's, 0.1 s) before ``frame``, else the oldest one before it."""
+        window = self.config.human_speed_window_s
+        older = [f for f in self._recent if f.t < frame.t]
+        for f in reversed(older):
+            if f.t <= frame.t - window + 1e-9:
+                return f
+        return older[0] if older else None
 
     def servo_tick(self, t: float) -> None:
         """One robot cycle at ``t``: read the robot, advance the supervisor, command it, do the task."""

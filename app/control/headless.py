@@ -53,15 +53,43 @@ BEYOND_HORIZON_MAX_MARGIN_M = 0.15
 FORECAST_MARGIN_QUANTILE = "p50"
 
 
-def make_predictor(method: Method, *, tracking_margin_m: float = 0.02) -> Any | None:
-    """The predictor of a method: the shipped Graph-Mixer for ``proactive`` (constant velocity with a
-    warning if its weights are missing), none for ``reactive`` (the current pose is held)."""
+#: The Graph-Mixer tuned to the simulated operator (``hrc hmp record-sim`` + ``hrc hmp train --extra-clips``)
+#: and its error quantiles on held-out simulated operators (``hrc hmp calibrate``): the predictor of the
+#: ``sim`` source, the way a lab tunes it to recordings of its own operators. Real sources get the shipped,
+#: CMU-trained network (the paper's setting: no fine-tuning) unless ``HRC_HMP_WEIGHTS`` says otherwise.
+SIM_OPERATOR_WEIGHTS = Path(__file__).resolve().parents[1] / "assets" / "hmp_graphmixer.sim_operator.pt"
+SIM_OPERATOR_QUANTILES = SIM_OPERATOR_WEIGHTS.with_suffix(".quantiles.json")
+
+
+def forecast_model(settings: Settings, source: str) -> tuple[Path | None, Path | None]:
+    """``(weights, quantiles)`` of the predictor for a human source (None: the predictor's defaults):
+    the settings' when set, the simulated operator's for the ``sim`` source, else the shipped ones."""
+    quantiles = None if settings.hmp_quantiles is None else Path(settings.hmp_quantiles)
+    if settings.hmp_weights is not None:
+        return Path(settings.hmp_weights), quantiles
+    if source == "sim" and SIM_OPERATOR_WEIGHTS.is_file():
+        return SIM_OPERATOR_WEIGHTS, quantiles or SIM_OPERATOR_QUANTILES
+    return None, quantiles
+
+
+def make_predictor(
+    method: Method,
+    *,
+    tracking_margin_m: float = 0.02,
+    weights: str | Path | None = None,
+    quantiles: str | Path | None = None,
+) -> Any | None:
+    """The predictor of a method: a Graph-Mixer for ``proactive`` (``weights``, default the shipped one;
+    constant velocity with a warning if they are missing), none for ``reactive`` (the current pose is held).
+    ``quantiles``: the error-quantile file of its margins (default: the one next to the weights)."""
     if method == "reactive":
         return None
     from app.prediction.predictor import MotionPredictor
 
     return MotionPredictor(
         kind="graphmixer",
+        weights=weights,
+        quantiles=quantiles,
         margin_quantile=FORECAST_MARGIN_QUANTILE,
         tracking_margin_m=tracking_margin_m,
         growth_mps=BEYOND_HORIZON_GROWTH_MPS,
@@ -149,7 +177,10 @@ def run_headless_trial(
             clip=clip if clip is not None else settings.replay_clip,
         )
     if method == "proactive" and predictor is None:
-        predictor = make_predictor(method, tracking_margin_m=options.tracking_margin_m)
+        weights, quantiles = forecast_model(settings, source)
+        predictor = make_predictor(
+            method, tracking_margin_m=options.tracking_margin_m, weights=weights, quantiles=quantiles
+        )
     clock = SimClock(0.0)
     q0 = np.asarray(cell.robot.home_q, dtype=np.float64)
     robot = SimRobot(clock, q0=q0) if robot_factory is None else robot_factory(clock, q0)

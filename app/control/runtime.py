@@ -46,7 +46,7 @@ from app.control.engine import (
     TrialResult,
     make_validated_source,
 )
-from app.control.headless import make_predictor, run_headless_trial
+from app.control.headless import forecast_model, make_predictor, run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
 from app.control.robot import RobotBackend, RobotConnectionError
 from app.control.supervisor import BackupComputer, BackupRequest, PlanOutcome, SupervisorConfig
@@ -339,8 +339,12 @@ class Runtime:
                 self._robot = make_robot(self.settings, self.clock, q0=np.asarray(self.cell.robot.home_q))
             self._open_source(seed=0)
             if self._predictor is None:
+                weights, quantiles = forecast_model(self.settings, self.settings.human_source)
                 self._predictor = make_predictor(
-                    "proactive", tracking_margin_m=self.options.tracking_margin_m
+                    "proactive",
+                    tracking_margin_m=self.options.tracking_margin_m,
+                    weights=weights,
+                    quantiles=quantiles,
                 )
             _warm_up(self._predictor, self.cell)
             self._stop.clear()

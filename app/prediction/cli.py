@@ -171,3 +171,106 @@ def eval_cmd(
         typer.echo(f"{kind:<18}" + "".join(f"{row[str(ms)]:>8.1f}" for ms in HORIZONS_MS))
     if predictor.model is None:
         typer.echo("(no usable Graph-Mixer weights: baselines only)")
+
+
+@hmp_app.command("calibrate")
+def calibrate_cmd(
+    out: Annotated[Path, typer.Option(help="Quantile file to write (JSON).")],
+    clips: Annotated[
+        Path | None,
+        typer.Option(
+            help="Recorded motion of this cell (npz clips, e.g. tracker recordings); default: none."
+        ),
+    ] = None,
+    sim_participants: Annotated[
+        int, typer.Option(min=0, help="Simulated operators to record instead (when no --clips).")
+    ] = 6,
+    duration: Annotated[
+        float, typer.Option(min=10.0, help="Seconds recorded per simulated operator.")
+    ] = 120.0,
+    seed: Annotated[int, typer.Option(help="Seed of the first simulated operator.")] = 1000,
+    stride: Annotated[int, typer.Option(min=1, help="Frames between calibration windows.")] = 3,
+    weights: Annotated[
+        Path | None, typer.Option(help="Graph-Mixer weights to calibrate; default: the shipped ones.")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON summary.")] = False,
+) -> None:
+    """Forecast error quantiles on this cell's own motion (for HRC_HMP_QUANTILES): the margins the planner
+    keeps around the forecast person, measured where the predictor runs instead of on the CMU clips."""
+    import torch
+
+    from app.config import Settings
+    from app.prediction.calibrate import calibrate_quantiles, simulated_operator_sequences, write_quantiles
+    from app.prediction.data import ClipError, load_clip_dir
+    from app.prediction.predictor import MotionPredictor
+
+    torch.set_num_threads(1)
+    predictor = MotionPredictor(kind="graphmixer", weights=weights)
+    if predictor.model is None:
+        raise _fail(f"no usable Graph-Mixer weights at {weights or 'the shipped path'}")
+    if clips is not None:
+        try:
+            sequences = [c.positions for c in load_clip_dir(clips)]
+        except ClipError as exc:
+            raise _fail(str(exc)) from exc
+        source = f"clips {clips}"
+    else:
+        if sim_participants < 1:
+            raise _fail("give --clips DIR or --sim-participants N >= 1")
+        cell = Settings().load_workcell()
+        sequences = simulated_operator_sequences(
+            cell, participants=sim_participants, duration_s=duration, seed=seed, fps=predictor.fps
+        )
+        source = (
+            f"simulated operators of cell {cell.name!r}: participant seeds"
+            f" {seed}..{seed + sim_participants - 1}, {duration:g} s each"
+        )
+    try:
+        result = calibrate_quantiles(sequences, predictor, stride=stride)
+    except ValueError as exc:
+        raise _fail(str(exc)) from exc
+    path = write_quantiles(out, result, fps=predictor.fps, horizon=predictor.horizon, source=source)
+    summary = {
+        "out": str(path),
+        "source": source,
+        "windows": result["windows"],
+        "p50_at_1s_m": {k: round(v["p50"][-1], 4) for k, v in result["kinds"].items()},
+        "p95_at_1s_m": {k: round(v["p95"][-1], 4) for k, v in result["kinds"].items()},
+        "mpjpe_mm": {k: v["mpjpe_mm"] for k, v in result["kinds"].items()},
+    }
+    if as_json:
+        typer.echo(json.dumps(summary))
+        return
+    typer.echo(f"wrote {path} ({result['windows']} windows of {source})")
+    for k in result["kinds"]:
+        typer.echo(
+            f"  {k:<18} p50 at 1 s {summary['p50_at_1s_m'][k]:.3f} m, p95 {summary['p95_at_1s_m'][k]:.3f} m"
+        )
+
+
+@hmp_app.command("record-sim")
+def record_sim_cmd(
+    out: Annotated[Path, typer.Option(help="Folder to write the clips into (npz, canonical joints, 30 Hz).")],
+    participants: Annotated[int, typer.Option(min=1, help="Simulated operators, one clip each.")] = 20,
+    duration: Annotated[float, typer.Option(min=2.0, help="Seconds per clip.")] = 120.0,
+    seed: Annotated[int, typer.Option(help="Seed of the first simulated operator.")] = 2000,
+) -> None:
+    """Record simulated operators at work as clips (for ``hrc hmp train --extra-clips``), the way a lab
+    records its own operators with the tracker to tune the predictor to its cell."""
+    import numpy as np
+
+    from app.config import Settings
+    from app.prediction.calibrate import simulated_operator_sequences
+    from app.prediction.skeleton import JOINTS
+
+    cell = Settings().load_workcell()
+    out.mkdir(parents=True, exist_ok=True)
+    sequences = simulated_operator_sequences(cell, participants=participants, duration_s=duration, seed=seed)
+    for i, seq in enumerate(sequences):
+        np.savez_compressed(
+            out / f"sim_operator_{seed + i}.npz",
+            positions=seq.astype(np.float32),
+            fps=np.float64(30.0),
+            joint_names=np.array(JOINTS),
+        )
+    typer.echo(f"wrote {len(sequences)} clips of {duration:g} s to {out}")
