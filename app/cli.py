@@ -156,18 +156,30 @@ def export_(
     session: Annotated[
         str, typer.Option("--session", help="Study session: 'all' (default), 'latest', or a session id.")
     ] = "all",
+    clips: Annotated[
+        bool,
+        typer.Option(
+            "--clips/--no-clips",
+            help="Also write each trial's recorded skeleton as npz clips under OUT/clips (for hrc hmp train "
+            "--extra-clips and hrc hmp calibrate --clips).",
+        ),
+    ] = False,
     url: _DbUrl = None,
 ) -> None:
     """Export participants, trials, metrics (one row per trial) and events as CSV (UTF-8, ISO 8601 times)."""
-    from app.study.export import export_all
+    from app.study.export import export_all, export_clips
 
     repo = _open_study(url)
     try:
-        paths = export_all(repo, out, session_id=_session_id(repo, session))
+        session_id = _session_id(repo, session)
+        paths = export_all(repo, out, session_id=session_id)
+        clip_paths = export_clips(repo, out / "clips", session_id=session_id) if clips else []
     finally:
         repo.close()
     for table, path in paths.items():
         typer.echo(f"{table}: {path}")
+    if clips:
+        typer.echo(f"clips: {len(clip_paths)} in {out / 'clips'}")
 
 
 @app.command()

@@ -253,3 +253,58 @@ def export_all(repo: StudyRepository, out_dir: Path, *, session_id: int | None =
         log.info("exported %d %s rows to %s", n, table, path)
         paths[table] = path
     return paths
+
+
+def export_clips(
+    repo: StudyRepository, out_dir: Path, *, session_id: int | None = None, min_frames: int = 40
+) -> list[Path]:
+    """Write the person's recorded motion of each trial as clips (``.npz``: canonical joints, world frame,
+    30 Hz; the format ``hrc hmp train --extra-clips`` and ``hrc hmp calibrate --clips`` read).
+
+    A trial's skeleton is cut where the tracker lost the person (NaN frames); pieces shorter than
+    ``min_frames`` are left out. Files are named ``trial<id>_<participant code>_<piece>.npz``.
+    """
+    import numpy as np
+
+    from app.prediction.skeleton import JOINTS
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    offset = 0
+    while True:
+        trials = repo.list_trials(session_id=session_id, offset=offset, limit=200)
+        if not trials:
+            break
+        offset += len(trials)
+        for trial in trials:
+            frames = repo.load_frames(trial.id)
+            if frames is None or frames.skeleton is None:
+                continue
+            sk = np.asarray(frames.skeleton, dtype=np.float64)
+            t = np.asarray(frames.t, dtype=np.float64)
+            ok = np.all(np.isfinite(sk), axis=(1, 2))
+            # pieces: runs of good frames without a gap of more than 0.1 s
+            gap = np.concatenate([[True], np.diff(t) > 0.1])  # a piece starts after a stall...
+            cut = ~ok | gap
+            starts = np.flatnonzero(ok & (gap | np.concatenate([[True], ~ok[:-1]])))  # ...or a lost person
+            code = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in str(trial.participant_code))
+            for piece, a in enumerate(starts):
+                b = a + 1
+                while b < len(t) and ok[b] and not cut[b]:
+                    b += 1
+                grid = np.arange(t[a], t[b - 1] + 1e-9, 1.0 / 30.0)  # resampled onto the 30 Hz grid
+                if grid.size < min_frames:
+                    continue
+                flat = sk[a:b].reshape(b - a, -1)
+                res = np.stack([np.interp(grid, t[a:b], flat[:, k]) for k in range(flat.shape[1])], axis=1)
+                path = out_dir / f"trial{trial.id}_{code}_{piece}.npz"
+                np.savez_compressed(
+                    path,
+                    positions=res.reshape(grid.size, -1, 3).astype(np.float32),
+                    fps=np.float64(30.0),
+                    joint_names=np.array(JOINTS),
+                )
+                paths.append(path)
+    log.info("exported %d clips to %s", len(paths), out_dir)
+    return paths

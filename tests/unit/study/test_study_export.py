@@ -102,3 +102,27 @@ def test_session_filter_and_text_helpers(repo: StudyRepository) -> None:
     assert participants_csv(repo).splitlines()[0] == ",".join(PARTICIPANT_COLUMNS)
     with pytest.raises(KeyError, match="unknown table"):
         table_csv(repo, "secrets")
+
+
+def test_recorded_motion_exports_as_clips_the_predictor_reads(repo: StudyRepository, tmp_path: Path) -> None:
+    import numpy as np
+
+    from app.prediction.data import load_clip_dir
+    from app.prediction.skeleton import NUM_JOINTS
+    from app.study.export import export_clips
+    from app.study.repository import RecordedFrames
+
+    trials = repo.list_trials()
+    n = 200
+    t = np.arange(n) / 30.0
+    t[120:] += 0.5  # the tracker stalled for half a second: a new piece
+    sk = np.cumsum(np.full((n, NUM_JOINTS, 3), 0.001), axis=0)
+    sk[60:62] = np.nan  # the person was lost for two frames: another cut
+    repo.save_frames(trials[0].id, RecordedFrames(t=t, q=np.zeros((n, 6)), skeleton=sk))
+    repo.save_frames(trials[1].id, RecordedFrames(t=t, q=np.zeros((n, 6)), skeleton=None))
+    paths = export_clips(repo, tmp_path / "clips")
+    assert [p.name for p in paths] == [f"trial{trials[0].id}_A01_{k}.npz" for k in (0, 1, 2)]
+    clips = load_clip_dir(tmp_path / "clips")
+    assert sorted(c.frames for c in clips) == [58, 60, 80]
+    first = next(c for c in clips if c.name.endswith("_0"))
+    np.testing.assert_allclose(first.positions, sk[:60], atol=1e-6)
