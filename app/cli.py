@@ -234,13 +234,18 @@ def serve(
     """Start the operator server: REST API (/docs), live WebSockets, the runtime and the 3D view."""
     import logging
 
+    from app.api.auth import TokenError
     from app.api.server import run_server
     from app.config import Settings
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     given = {"host": host, "port": port, "viser_port": viser_port}
     settings = Settings(**{k: v for k, v in given.items() if v is not None})  # validated
-    run_server(settings, log_level=log_level, echo=lambda text: typer.echo(text, err=True))
+    try:
+        run_server(settings, log_level=log_level, echo=lambda text: typer.echo(text, err=True))
+    except TokenError as exc:  # the message says which file and what to do; no traceback needed
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
 
 
 @app.command()

@@ -148,3 +148,15 @@ def test_generated_token_protects_the_app(make_client: Callable[..., TestClient]
     token = (tmp_path / "gen" / "api_token").read_text().strip()
     assert c.get("/api/participants").status_code == 401
     assert c.get("/api/participants", headers={"Authorization": f"Bearer {token}"}).status_code == 200
+
+
+def test_serve_reports_a_bad_token_without_a_traceback(tmp_path, monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    from app.cli import app
+
+    monkeypatch.setenv("HRC_API_TOKEN", "short")
+    monkeypatch.setenv("HRC_DATA_DIR", str(tmp_path))
+    res = CliRunner().invoke(app, ["serve"])
+    assert res.exit_code == 2
+    assert "shorter than" in res.output and "Traceback" not in res.output
