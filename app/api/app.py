@@ -134,7 +134,7 @@ def _start_scene(settings: Settings, runtime: Any) -> Any:
             "the 3D view (viser) could not start on port %d; continuing without it", settings.viser_port
         )
         return None
-    logger.info("3D view (viser) on port %d", settings.viser_port)
+    logger.info("3D view (viser) on port %d", scene.port)
     return scene
 
 
@@ -192,7 +192,13 @@ def create_app(
             if scene:
                 view = _start_scene(settings, rt)
             app.state.hrc = ApiContext(
-                settings=settings, token=token.value, runtime=rt, repo=repository, hub=hub, recorder=recorder
+                settings=settings,
+                token=token.value,
+                runtime=rt,
+                repo=repository,
+                hub=hub,
+                recorder=recorder,
+                viser_port=None if view is None else int(view.port),
             )
             app.state.stop_runtime = stop_runtime
             logger.info("operator API ready (token from %s)", token.source)

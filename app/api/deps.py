@@ -34,6 +34,8 @@ class ApiContext:
         hub: The live-snapshot fan-out to WebSocket clients.
         recorder: Writes trial events and results into the repository off the control thread.
         trial_lock: Serialises trial starts so that two concurrent requests cannot both start one.
+        viser_port: The port the 3D view is bound to (None: it is not running; clients fall back to the
+            configured one).
     """
 
     settings: Settings
@@ -43,6 +45,7 @@ class ApiContext:
     hub: LiveHub
     recorder: TrialRecorder
     trial_lock: threading.Lock = field(default_factory=threading.Lock)
+    viser_port: int | None = None
 
 
 def get_context(request: Request) -> ApiContext:

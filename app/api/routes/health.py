@@ -84,7 +84,7 @@ def info(ctx: ContextDep) -> InfoRead:
     limits = ctx.hub.limits
     return InfoRead(
         version=app_version(),
-        viser_port=s.viser_port,
+        viser_port=ctx.viser_port if ctx.viser_port is not None else s.viser_port,
         robot=s.robot,
         human_source=s.human_source,
         read_only_open=s.read_only_open,

@@ -83,12 +83,18 @@ def test_scene_is_started_with_the_settings_and_stopped(
         def stop(self) -> None:
             self.stopped = True
 
+        @property
+        def port(self) -> int:
+            return 18085  # where it really bound (viser moves on when the requested port is taken)
+
     monkeypatch.setitem(sys.modules, "app.ui.scene", types.SimpleNamespace(CellScene=FakeScene))
     app = create_app(settings.model_copy(update={"viser_port": 18080}), runtime=runtime, scene=True)
-    with TestClient(app):
+    with TestClient(app) as c:
         (scene,) = made
         assert scene.started and scene.args[0] is runtime
         assert scene.args[2:4] == (18080, settings.host)
+        info = c.get("/api/info", headers={"Authorization": f"Bearer {settings.api_token}"}).json()
+        assert info["viser_port"] == 18085  # clients are told the bound port
     assert scene.stopped
 
 
