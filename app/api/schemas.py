@@ -62,6 +62,7 @@ class InfoRead(BaseModel):
     live_rate_hz: float
     ingest_max_bytes: int
     ingest_rate_hz: float
+    deadline_s: float = Field(description="D, the backup-plan deadline (the planning chart's red line)")
 
 
 class TrialStart(BaseModel):

@@ -93,4 +93,5 @@ def info(ctx: ContextDep) -> InfoRead:
         live_rate_hz=limits.live_rate_hz,
         ingest_max_bytes=limits.ingest_max_bytes,
         ingest_rate_hz=limits.ingest_rate_hz,
+        deadline_s=s.deadline_s,
     )

@@ -383,6 +383,9 @@
     const data = state.planHistory;
     let deadline = Number(s.deadline_ms);
     if (!Number.isFinite(deadline) && Number.isFinite(Number(s.deadline_s))) deadline = 1000 * Number(s.deadline_s);
+    if (!Number.isFinite(deadline) && state.info && Number.isFinite(Number(state.info.deadline_s))) {
+      deadline = 1000 * Number(state.info.deadline_s); // D from GET /api/info
+    }
     const padL = 34, padB = 16, padT = 8, padR = 6;
     const pw = w - padL - padR, ph = h - padT - padB;
     const maxV = Math.max(1, ...data, Number.isFinite(deadline) ? deadline * 1.15 : 0) * 1.1;

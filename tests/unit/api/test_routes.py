@@ -68,6 +68,7 @@ def test_health_and_info(client: TestClient, auth: dict[str, str], settings: Set
     assert info["viser_port"] == settings.viser_port
     assert info["methods"] == ["proactive", "reactive"]
     assert info["ingest_rate_hz"] == 120.0
+    assert info["deadline_s"] == settings.deadline_s
 
 
 def test_docs_and_openapi(client: TestClient) -> None:
