@@ -475,13 +475,13 @@ class SeparationModel:
         if d1.size == 0:
             return 1.0
         vtop = float(vp1.max())
-        # quick accept (most ticks): every term at its largest over a full-speed brake
-        t_b = 1.0 / max(rate, 1e-6)
-        x_b, v_b = self.human_approach(vh1, t_b)
-        worst = self.sp(vp1, vtop, v_b) + x_b + vp1 * t_b
-        if bool(np.all(d1 >= worst)):
-            return float(hi)
         lo, hi = max(float(lo), 0.0), min(float(hi), 1.0)
+        # quick accept (most ticks): every term at its largest over a brake from the highest scale asked for
+        t_b = hi / max(rate, 1e-6)
+        x_b, v_b = self.human_approach(vh1, t_b)
+        worst = self.sp(hi * vp1, hi * vtop, v_b) + x_b + hi * vp1 * t_b
+        if bool(np.all(d1 >= worst)):
+            return hi
         inside = (_SCALES - lo > 0.0) & (_SCALES - hi < 0.0)
         scales = _SCALES[inside]
         scales = np.concatenate([[lo], scales, [hi]]) if hi > lo else np.array([lo])
