@@ -315,3 +315,25 @@ def test_an_interrupted_study_leaves_no_running_trials(db: tuple[str, StudyRepos
     assert len(trials) == 4 and not [t for t in trials if t.status == "running"]
     interrupted = [t for t in trials if t.status == "aborted"]
     assert interrupted and all("interrupted" in (t.abort_reason or "") for t in interrupted)
+
+
+def test_the_longer_proactive_trials_are_started_first(db: tuple[str, StudyRepository]) -> None:
+    _, repo = db
+    settings = Settings(api_token="secret-token")
+    started: list[str] = []
+
+    def recording_trial(job: TrialJob) -> TrialOutcome:
+        started.append(job.method)
+        return fake_trial(job)
+
+    run_study(
+        participants=3,
+        duration_s=5.0,
+        seed=7,
+        repo=repo,
+        settings=settings,
+        max_workers=0,
+        progress=False,
+        trial_fn=recording_trial,
+    )
+    assert started == ["proactive"] * 3 + ["reactive"] * 3
