@@ -30,9 +30,8 @@ RUN mkdir -p app && touch app/__init__.py \
     && rm -rf app build *.egg-info
 
 COPY alembic.ini ./
-COPY migrations ./migrations
 COPY app ./app
-# Editable: the migrations are found next to the package (app/study/db.py looks in ../../migrations).
+# The migrations ship inside the package (app/migrations); the image installs it editable like the set-up.
 RUN pip install --no-deps -e . \
     && python -c "import app.api.app, app.study.db; assert app.study.db.MIGRATIONS_DIR.joinpath('env.py').is_file()"
 

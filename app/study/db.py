@@ -17,8 +17,10 @@ from sqlalchemy.orm import Session, sessionmaker
 
 log = logging.getLogger(__name__)
 
-#: Alembic's script directory (``migrations/`` at the repository root, next to ``alembic.ini``).
-MIGRATIONS_DIR = Path(__file__).resolve().parents[2] / "migrations"
+#: Alembic's script directory, shipped inside the package (so a wheel install can migrate too).
+MIGRATIONS_DIR = Path(__file__).resolve().parents[1] / "migrations"
+#: ``alembic.ini`` of a repository checkout (for the ``alembic`` command line); optional.
+ALEMBIC_INI = Path(__file__).resolve().parents[2] / "alembic.ini"
 
 SQLITE_BUSY_TIMEOUT_MS = 10_000
 
@@ -83,8 +85,7 @@ def alembic_config(url: str | None = None) -> Any:
     """An Alembic ``Config`` for the migrations in :data:`MIGRATIONS_DIR`, targeting ``url``."""
     from alembic.config import Config
 
-    ini = MIGRATIONS_DIR.parent / "alembic.ini"
-    cfg = Config(str(ini)) if ini.is_file() else Config()
+    cfg = Config(str(ALEMBIC_INI)) if ALEMBIC_INI.is_file() else Config()
     cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
     cfg.set_main_option("sqlalchemy.url", (url or default_database_url()).replace("%", "%%"))
     # env.py must not reconfigure the application's logging when called from code.
@@ -103,7 +104,8 @@ def upgrade_to_head(url: str | None = None) -> None:
 
     if not (MIGRATIONS_DIR / "env.py").is_file():
         raise DatabaseError(
-            f"Alembic migrations not found at {MIGRATIONS_DIR}; run the app from the repository checkout"
+            f"Alembic migrations not found at {MIGRATIONS_DIR}; the installation is incomplete: "
+            "reinstall the package"
         )
     url = url or default_database_url()
     if _is_sqlite(url):

@@ -59,3 +59,17 @@ def test_upgrade_of_an_unreachable_database_says_which() -> None:
     with pytest.raises(DatabaseError, match=r"127\.0\.0\.1:1") as info:
         upgrade_to_head(url)
     assert "secret" not in str(info.value)
+
+
+def test_migrations_ship_inside_the_package() -> None:
+    """A wheel install carries them: they live under the package and the package data lists them."""
+    import tomllib
+
+    import app
+    from app.study.db import MIGRATIONS_DIR
+
+    package = Path(app.__file__).resolve().parent
+    assert MIGRATIONS_DIR.is_relative_to(package) and (MIGRATIONS_DIR / "env.py").is_file()
+    assert list((MIGRATIONS_DIR / "versions").glob("*.py"))
+    pyproject = tomllib.loads((package.parent / "pyproject.toml").read_text())
+    assert "migrations/**/*" in pyproject["tool"]["setuptools"]["package-data"]["app"]
