@@ -634,7 +634,6 @@ class TrialEngine:
         self.last_forecast: HumanForecast | None = None
         self.last_decision: FrameDecision | None = None
         self.last_state: RobotState = robot_state
-        self._prev_frame: HumanFrame | None = None
         self._recent: deque[HumanFrame] = deque(maxlen=16)  # for the monitor's speed window
         self._releases: list[tuple[float, str]] = []
         self._stale = False
@@ -698,7 +697,6 @@ class TrialEngine:
         self.last_forecast = forecast
         if self.monitor is not None and self.options.monitor == "frame":
             self._monitor(t, frame)
-        self._prev_frame = self.last_frame
         self.last_frame = frame
         self._recent.append(frame)
         if self.options.record_frames:

@@ -42,7 +42,7 @@ Observer = Callable[[float, TrialEngine], None]
 #: would block every goal within a metre of the person a second ahead, i.e. every station of the cell.
 #: Measured on the simulated trials (seeds 1 and 2, 150 s): growing at 0.25 m/s up to 0.25 m blocked the
 #: drop station next to a resting hand "for good" for tens of seconds (2-3 tasks against the reactive
-#: baseline's 6); 0.1 m/s up to 0.15 m (just above the p50 error at 1 s, 0.137 m) gave 6-7 tasks.
+#: baseline's 6); 0.1 m/s up to 0.15 m (just above the CMU network's p50 error at 1 s, 0.137 m) gave 6-7.
 BEYOND_HORIZON_GROWTH_MPS = 0.1
 BEYOND_HORIZON_MAX_MARGIN_M = 0.15
 #: Which error quantile of the forecast (measured on the predictor's validation clips) becomes its margin.

@@ -265,3 +265,16 @@ def test_geometry_parts_and_the_safety_monitor(stack: PlanningStack) -> None:
     assert mon.violation_episodes == 1 and mon.worst is not None
     slow_far = mon.check(0.2, q, 0.01 * qd, person - np.array([1.5, 0.0, 0.0]), None, 0.0)
     assert not slow_far.violation
+
+
+def test_the_predictor_follows_the_human_source_unless_the_settings_say_otherwise(tmp_path) -> None:
+    from app.control.headless import SIM_OPERATOR_QUANTILES, SIM_OPERATOR_WEIGHTS, forecast_model
+
+    assert SIM_OPERATOR_WEIGHTS.is_file() and SIM_OPERATOR_QUANTILES.is_file()
+    plain = Settings(_env_file=None)
+    assert forecast_model(plain, "sim") == (SIM_OPERATOR_WEIGHTS, SIM_OPERATOR_QUANTILES)
+    assert forecast_model(plain, "stream") == (None, None)  # real people: the shipped CMU network
+    own = Settings(_env_file=None, hmp_weights=tmp_path / "w.pt", hmp_quantiles=tmp_path / "q.json")
+    assert forecast_model(own, "sim") == (tmp_path / "w.pt", tmp_path / "q.json")
+    q_only = Settings(_env_file=None, hmp_quantiles=tmp_path / "q.json")
+    assert forecast_model(q_only, "stream") == (None, tmp_path / "q.json")
