@@ -67,23 +67,27 @@ class CellGeometry:
         self.fd_step_s = float(fd_step_s)
         self._capsule_distance = capsule_distance
 
-    def part_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
-        """(P, L) surface distance (m) of each robot part at ``q`` (6,) to the person in poses (P, J, 3)."""
+    def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """(P, L, M) surface distance (m) of each robot part at ``q`` (6,) to each capsule of the person in
+        poses (P, J, 3)."""
         q = np.asarray(q, dtype=np.float64).reshape(1, 6)
         joints = np.asarray(joints, dtype=np.float64)
         if joints.ndim != 3 or joints.shape[1:] != (NUM_JOINTS, 3):
             raise ValueError(f"joints must have shape (P, {NUM_JOINTS}, 3), got {joints.shape}")
         ra, rb, rr = self.collision.robot_capsules(q)  # (1, L, 3) x 2, (L,)
         ha, hb, hr = self.collision.human_capsules(joints)  # (P, M, 3) x 2, (M,)
-        d = self._capsule_distance(
+        return self._capsule_distance(
             ra[0][None, :, None, :],
             rb[0][None, :, None, :],
             rr[None, :, None],
             ha[:, None, :, :],
             hb[:, None, :, :],
             hr[None, None, :],
-        )  # (P, L, M)
-        return d.min(axis=2)
+        )
+
+    def part_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """(P, L) surface distance (m) of each robot part at ``q`` (6,) to the person in poses (P, J, 3)."""
+        return self.pair_distances(q, joints).min(axis=2)
 
     def near_person(
         self, q: np.ndarray, joints: np.ndarray, joints_before: np.ndarray, dt_s: float, *, band_m: float
@@ -96,18 +100,8 @@ class CellGeometry:
         fastest shrink over every capsule near the part (not only the nearest pair) keeps the value from
         jumping when the nearest pair changes; a limb that moves sideways or away does not count.
         """
-        q = np.asarray(q, dtype=np.float64).reshape(1, 6)
         poses = np.stack([np.asarray(joints, dtype=np.float64), np.asarray(joints_before, dtype=np.float64)])
-        ra, rb, rr = self.collision.robot_capsules(q)
-        ha, hb, hr = self.collision.human_capsules(poses)  # (2, M, 3) x 2
-        d = self._capsule_distance(
-            ra[0][None, :, None, :],
-            rb[0][None, :, None, :],
-            rr[None, :, None],
-            ha[:, None, :, :],
-            hb[:, None, :, :],
-            hr[None, None, :],
-        )  # (2, L, M)
+        d = self.pair_distances(q, poses)  # (2, L, M)
         sep = d[0].min(axis=1)
         approach = np.maximum(d[1] - d[0], 0.0) / max(float(dt_s), 1e-6)  # (L, M)
         near = d[0] <= sep[:, None] + band_m
