@@ -64,25 +64,24 @@ def calibrate_quantiles(
     kinds = ["constant_velocity", "zero_velocity"]
     if predictor.model is not None:
         kinds.insert(0, "graphmixer")
-    per_kind: dict[str, list[np.ndarray]] = {k: [] for k in kinds}
-    targets = []
-    for i in range(0, data.shape[0], _BATCH):
-        chunk = data[i : i + _BATCH]
-        targets.append(chunk[:, t_in:])
-        for k in kinds:
-            per_kind[k].append(predictor.predict_batch(chunk[:, :t_in], kind=k)[:, :H])
-    target = np.concatenate(targets)
-    out: dict[str, Any] = {}
-    for k in kinds:
-        pred = np.concatenate(per_kind[k])
-        res = evaluate_windows(
-            np.concatenate([data[:, :t_in], target], axis=1),
-            {k: lambda obs, _h, p=pred: p},
-            t_in=t_in,
-            fps=predictor.fps,
-            with_quantiles=True,
-        )[k]
-        out[k] = {**res["quantiles_m"], "mpjpe_mm": res["mpjpe_mm"]}
+    # predictions in bounded batches, then one evaluation of every kind on the windows themselves
+    preds = {
+        k: np.concatenate(
+            [
+                predictor.predict_batch(data[i : i + _BATCH, :t_in], kind=k)[:, :H]
+                for i in range(0, data.shape[0], _BATCH)
+            ]
+        )
+        for k in kinds
+    }
+    results = evaluate_windows(
+        data,
+        {k: (lambda _obs, _h, p=p: p) for k, p in preds.items()},
+        t_in=t_in,
+        fps=predictor.fps,
+        with_quantiles=True,
+    )
+    out = {k: {**r["quantiles_m"], "mpjpe_mm": r["mpjpe_mm"]} for k, r in results.items()}
     return {"kinds": out, "windows": int(data.shape[0])}
 
 
