@@ -34,6 +34,7 @@ from app.control.supervisor import (
     FrameDecision,
     PlanJobs,
     SeparationModel,
+    SpeedScaleLaw,
     Supervisor,
     SupervisorConfig,
 )
@@ -591,7 +592,6 @@ class TrialEngine:
             timer=timer,
         )
         self.jobs = jobs_factory(computer, self.config)
-        from app.planning.safety import speed_scale
 
         ssm = stack.ssm
         self.separation = separation or SeparationModel.from_ssm(
@@ -606,7 +606,7 @@ class TrialEngine:
             jobs=self.jobs,
             make_trajectory=stack.make_trajectory,
             separation=self.separation,
-            speed_scale=lambda d, v, vh: speed_scale(d, v, ssm, v_human_mps=vh),
+            speed_scale=SpeedScaleLaw.from_ssm(ssm),
             config=self.config,
             q0=robot_state.q,
             t0=t0,

@@ -1,4 +1,4 @@
-"""Joint-space servo tracking within position, velocity and acceleration limits (pure numpy, no I/O).
+"""Joint-space servo tracking within position, velocity and acceleration limits (no I/O).
 
 Shared by :class:`~app.control.robot.SimRobot` (the tracker *is* the simulated arm) and the RTDE worker
 (the tracker shapes the set-points sent with ``servoJ``), so the real and the simulated arm obey the same
@@ -11,6 +11,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from app.control._kernels import track_substeps
 
 __all__ = ["JointLimits", "JointTracker", "ServoCommand"]
 
@@ -132,6 +134,7 @@ class JointTracker:
         self._ref_hi = limits.q_max - 1e-4
         self.qd = np.zeros(6)
         self.command: ServoCommand | None = None
+        self._no_command = np.zeros(6)
 
     def set_command(self, command: ServoCommand | None) -> None:
         """Track ``command`` from now on (``None``: hold the current position)."""
@@ -163,6 +166,41 @@ class JointTracker:
             stopping: Decelerate to rest within ``qdd_max`` (all joints stop together, so the arm stays
                 on its joint-space path), ignoring the command.
         """
+        if dt_s < 0:
+            raise ValueError(f"dt_s must be >= 0, got {dt_s}")
+        n = max(1, math.ceil(dt_s / self.max_substep_s - 1e-9)) if dt_s > 0 else 0
+        if n == 0:
+            return
+        h = dt_s / n
+        s = min(max(float(speed_scale), 0.0), 1.0)
+        c = self.command
+        lim = self.limits
+        track_substeps(
+            self.q,
+            self.qd,
+            float(t),
+            h,
+            n,
+            s,
+            bool(stopping),
+            c.t if c is not None else 0.0,
+            c.q if c is not None else self._no_command,
+            c.qd if c is not None else self._no_command,
+            c is not None,
+            self.hold_after_s,
+            self.kp,
+            self._ref_lo,
+            self._ref_hi,
+            lim.q_min,
+            lim.q_max,
+            self._qdd_max,
+            self._inv_qd_max,
+        )
+
+    def step_reference(
+        self, t: float, dt_s: float, *, speed_scale: float = 1.0, stopping: bool = False
+    ) -> None:
+        """:meth:`step` in NumPy, one substep at a time (the reference of the compiled loop)."""
         if dt_s < 0:
             raise ValueError(f"dt_s must be >= 0, got {dt_s}")
         n = max(1, math.ceil(dt_s / self.max_substep_s - 1e-9)) if dt_s > 0 else 0

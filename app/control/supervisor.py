@@ -55,6 +55,8 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
+from app.control._kernels import governed_scale as _kernel_governed_scale
+from app.control._kernels import max_scale as _kernel_max_scale
 from app.control.metrics import Method
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
@@ -372,14 +374,17 @@ class SeparationModel:
     stop_decel_mps2: float = 2.0
     human_speed_max_mps: float = 2.0
     human_accel_mps2: float = 8.0
+    _kernel_params: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        for name in ("s0_m", "t_reaction_s", "stop_decel_mps2", "human_speed_max_mps", "human_accel_mps2"):
+        names = ("s0_m", "t_reaction_s", "stop_decel_mps2", "human_speed_max_mps", "human_accel_mps2")
+        for name in names:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"SeparationModel.{name} must be finite and >= 0, got {v}")
         if self.stop_decel_mps2 <= 0:
             raise ValueError("SeparationModel.stop_decel_mps2 must be > 0")
+        object.__setattr__(self, "_kernel_params", np.array([float(getattr(self, n)) for n in names]))
 
     @classmethod
     def from_ssm(
@@ -468,7 +473,33 @@ class SeparationModel:
 
         Only scales in ``[lo, hi]`` are examined (the grid's and both ends; the servo passes the range it
         can reach within one tick): the answer is the largest of them up to which every one is safe, ``hi``
-        at most, and 0 when ``lo`` is not safe."""
+        at most, and 0 when ``lo`` is not safe. Compiled (:func:`app.control._kernels.max_scale`); the same
+        numbers as :meth:`max_scale_reference`."""
+        return float(
+            _kernel_max_scale(
+                np.ascontiguousarray(separation_m, dtype=np.float64).reshape(-1),
+                np.ascontiguousarray(v_human_mps, dtype=np.float64).reshape(-1),
+                np.ascontiguousarray(v_parts_mps, dtype=np.float64).reshape(-1),
+                float(rate),
+                float(lo),
+                float(hi),
+                _SCALES,
+                _ENV_U,
+                self._kernel_params,
+            )
+        )
+
+    def max_scale_reference(
+        self,
+        separation_m: np.ndarray,
+        *,
+        v_human_mps: np.ndarray,
+        v_parts_mps: np.ndarray,
+        rate: float,
+        lo: float = 0.0,
+        hi: float = 1.0,
+    ) -> float:
+        """:meth:`max_scale` in NumPy over the whole envelope at once (the reference of the tests)."""
         d1 = np.asarray(separation_m, dtype=np.float64)
         vh1 = np.asarray(v_human_mps, dtype=np.float64)
         vp1 = np.asarray(v_parts_mps, dtype=np.float64)
@@ -499,6 +530,57 @@ class SeparationModel:
         return float(scales[n_ok - 1]) if n_ok > 0 else 0.0
 
 
+@dataclass(frozen=True, slots=True)
+class SpeedScaleLaw:
+    """The ISO/TS 15066 speed-scaling law (:func:`app.planning.safety.speed_scale`) as the speed governor
+    applies it per servo tick: the smallest scale over the moving parts.
+
+    Attributes:
+        human_time_s: ``T_r + T_s`` (s): ``S_h = v_h * human_time_s``.
+        constant_m: ``C + Z_d + Z_r`` (m).
+        robot_time_s: ``T_r + T_s / 2`` (s): ``S_r + S_s = v_r * robot_time_s``.
+    """
+
+    human_time_s: float
+    constant_m: float
+    robot_time_s: float
+    kernel_params: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not (self.human_time_s >= 0 and self.constant_m >= 0 and self.robot_time_s > 0):
+            raise ValueError(
+                "SpeedScaleLaw needs human_time_s >= 0, constant_m >= 0 and robot_time_s > 0, got "
+                f"{self.human_time_s}, {self.constant_m}, {self.robot_time_s}"
+            )
+        params = np.array([self.human_time_s, self.constant_m, self.robot_time_s], dtype=np.float64)
+        object.__setattr__(self, "kernel_params", params)
+
+    @classmethod
+    def from_ssm(cls, params: Any) -> SpeedScaleLaw:
+        """From :class:`app.planning.safety.SSMParams`."""
+        return cls(
+            human_time_s=float(params.t_reaction_s + params.t_stop_s),
+            constant_m=float(params.constant_m),
+            robot_time_s=float(params.robot_time_s),
+        )
+
+    def __call__(self, separation_m: np.ndarray, v_nominal_mps: np.ndarray, v_human_mps: np.ndarray) -> float:
+        """The smallest scale over parts (L,) in NumPy (1 for no part): the compiled governor's reference."""
+        d = np.asarray(separation_m, dtype=np.float64)
+        if d.size == 0:
+            return 1.0
+        v_nom = np.asarray(v_nominal_mps, dtype=np.float64)
+        v_h = np.maximum(np.asarray(v_human_mps, dtype=np.float64), 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            slack = d - v_h * self.human_time_s - self.constant_m
+            v_max = np.maximum(slack, 0.0) / self.robot_time_s
+            ratio = np.minimum(1.0, v_max / np.maximum(v_nom, 1e-300))
+        out = np.where(v_nom <= 1e-9, np.where(v_max > 0.0, 1.0, 0.0), ratio)
+        out = np.where(np.isfinite(d), out, np.where(d > 0, 1.0, 0.0))
+        return float(out.min())
+
+
+_NO_LAW = np.zeros(0)
 _SCALES = np.linspace(0.0, 1.0, 41)
 _ENV_NV = 97
 _ENV_U = np.linspace(0.0, 1.0, 25)[:-1]  # instants of the braking (its end: the robot is at rest)
@@ -895,9 +977,8 @@ class Supervisor:
         jobs: Runs backup plans (:class:`InlinePlanJobs` headless, a worker pool live).
         make_trajectory: ``(plan, qd0) -> trajectory``.
         separation: ISO/TS 15066 S_p and the braking envelope.
-        speed_scale: ``(separation_m, v_nominal_mps, v_human_mps) -> [0, 1]``: the ISO/TS 15066 speed-scaling
-            law (e.g. :func:`app.planning.safety.speed_scale`), called with arrays (L,) of the moving parts;
-            the envelope limits the speed further.
+        speed_scale: The ISO/TS 15066 speed-scaling law at the person's measured speed, applied to the
+            moving parts (None: the braking envelope alone limits the speed).
         config: Parameters.
         q0: (6,) initial configuration; the robot holds there.
         t0: Initial time (s).
@@ -913,7 +994,7 @@ class Supervisor:
         jobs: PlanJobs,
         make_trajectory: MakeTrajectory,
         separation: SeparationModel,
-        speed_scale: Callable[[float, float, float], float] | None = None,
+        speed_scale: SpeedScaleLaw | None = None,
         config: SupervisorConfig,
         q0: np.ndarray,
         t0: float = 0.0,
@@ -1462,28 +1543,10 @@ class Supervisor:
         elif vtop <= 1e-9:
             s_target = 1.0
         else:
-            # separation lower bound of each part at the next tick
-            sep_lb, v_h = self._separation_bound(t + dt)
-            sep_lb = sep_lb - s * vmax * dt
-            m = vmax > 1e-4
             # the scales this tick can reach: up at the ramp rate, down at the brake rate (any at rest)
             at_rest = float(self._v_inst.max()) <= 1e-6
             lo = 0.0 if at_rest or not math.isfinite(rate) else s - rate * dt
-            s_target = self.ssm.max_scale(
-                sep_lb[m],
-                v_human_mps=v_h[m],
-                v_parts_mps=vmax[m],
-                rate=rate,
-                lo=lo,
-                hi=s + cfg.scale_up_rate * dt,
-            )
-            if self.speed_scale_law is not None:
-                # the standard's law with the person's measured speed (the envelope above already covers
-                # their worst-case speed-up since it was measured, with the stopping time of this speed)
-                v_meas = np.maximum(self._v_h0[m], 0.0)
-                law = np.asarray(self.speed_scale_law(sep_lb[m], vmax[m], v_meas), dtype=np.float64)
-                if law.size:
-                    s_target = min(s_target, max(float(law.min()), 0.0))
+            s_target = self._governed_scale(t, dt, s, vmax, rate, lo, s + cfg.scale_up_rate * dt)
         if s_target >= s:
             s_new = min(s_target, s + cfg.scale_up_rate * dt)
         elif float(self._v_inst.max()) <= 1e-6:
@@ -1674,6 +1737,52 @@ class Supervisor:
             return np.full(self.n_parts, self.ssm.human_speed_max_mps)
         _, v = self.ssm.human_approach(self._v_h0, t - self._v_h_t)
         return np.asarray(v)
+
+    def _governed_scale(
+        self, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
+    ) -> float:
+        """The governor's target scale for the tick from ``t`` to ``t + dt`` (compiled:
+        :func:`app.control._kernels.governed_scale`; :meth:`_governed_scale_reference` in NumPy). Caller
+        holds the lock."""
+        law = self.speed_scale_law
+        dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
+        return float(
+            _kernel_governed_scale(
+                self._sep_m,
+                self._x_h0,
+                self._v_h0,
+                self._travel_m,
+                vmax,
+                dt_h,
+                s,
+                dt,
+                rate,
+                lo,
+                hi,
+                _SCALES,
+                _ENV_U,
+                self.ssm._kernel_params,
+                _NO_LAW if law is None else law.kernel_params,
+            )
+        )
+
+    def _governed_scale_reference(
+        self, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
+    ) -> float:
+        """:meth:`_governed_scale` in NumPy. Caller holds the lock."""
+        # separation lower bound of each part at the next tick
+        sep_lb, v_h = self._separation_bound(t + dt)
+        sep_lb = sep_lb - s * vmax * dt
+        m = vmax > 1e-4
+        s_target = self.ssm.max_scale_reference(
+            sep_lb[m], v_human_mps=v_h[m], v_parts_mps=vmax[m], rate=rate, lo=lo, hi=hi
+        )
+        if self.speed_scale_law is not None and np.any(m):
+            # the standard's law with the person's measured speed (the envelope above already covers
+            # their worst-case speed-up since it was measured, with the stopping time of this speed)
+            law = self.speed_scale_law(sep_lb[m], vmax[m], np.maximum(self._v_h0[m], 0.0))
+            s_target = min(s_target, max(law, 0.0))
+        return s_target
 
     def _separation_bound(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Per robot part: a lower bound of the separation at time ``t`` (m) and an upper bound of the

@@ -233,3 +233,34 @@ def test_sim_robot_steps_on_the_wall_clock_without_a_thread() -> None:
         clock.sleep_until(clock.now() + 0.005)
     assert st.t > first.t
     assert np.all(st.q >= HOME) and np.any(st.q > HOME)
+
+
+@pytest.mark.parametrize("stopping", [False, True])
+def test_the_compiled_tracker_equals_the_numpy_reference(stopping: bool) -> None:
+    """The compiled integration loop follows the NumPy reference step for step: tracking commands that
+    lead, lag, expire and hit the joint limits, at several speed scales, and braking to rest."""
+    rng = np.random.default_rng(3 if stopping else 4)
+    limits = JointLimits.ur5e()
+    a = JointTracker(HOME, limits, hold_after_s=0.1, max_substep_s=0.004)
+    b = JointTracker(HOME, limits, hold_after_s=0.1, max_substep_s=0.004)
+    t = 0.0
+    for k in range(400):
+        if k % 25 == 0:
+            q = np.asarray(HOME) + rng.uniform(-1.0, 1.0, 6)
+            if k % 100 == 0:
+                q[1] = limits.q_max[1] + 0.5  # beyond the limit: clipped inside it
+            lead = rng.uniform(-0.05, 0.05)
+            cmd = None if k % 75 == 0 else ServoCommand(t + lead, q, rng.uniform(-2, 2, 6))
+            a.set_command(cmd)
+            b.set_command(cmd)
+        dt = float(rng.choice([0.008, 0.002, 0.0131, 0.0]))
+        scale = float(rng.choice([1.0, 0.5, 0.05, 0.0]))
+        brake = stopping and k >= 200
+        a.step(t, dt, speed_scale=scale, stopping=brake)
+        b.step_reference(t, dt, speed_scale=scale, stopping=brake)
+        t += dt
+        np.testing.assert_allclose(a.q, b.q, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(a.qd, b.qd, rtol=0, atol=1e-12)
+    assert np.all(a.q >= limits.q_min) and np.all(a.q <= limits.q_max)
+    if stopping:
+        assert a.at_rest

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from app.control import _kernels
 from app.control.supervisor import (
     BackupComputer,
     HoldTrajectory,
@@ -22,6 +23,7 @@ from app.control.supervisor import (
     ScaledView,
     SeparationModel,
     SpeedProfile,
+    SpeedScaleLaw,
     Supervisor,
     SupervisorConfig,
     _ramp_distance,
@@ -40,13 +42,8 @@ SSM = SeparationModel(
 )
 
 
-def scale_law(d: float, v: float, v_h: float) -> float:
-    """ISO speed scaling at this instant: the largest fraction of v whose S_p fits into d."""
-    if v <= 1e-9:
-        return 1.0
-    fr = np.linspace(0.0, 1.0, 201)
-    ok = SSM.sp(fr * v, fr * v, v_h) <= d
-    return float(fr[ok].max()) if ok.any() else 0.0
+#: the ISO/TS 15066 speed-scaling law with T_r = 0.1 s, T_s = 0.1 s, C + Z_d + Z_r = 0.1 m
+LAW = SpeedScaleLaw(human_time_s=0.2, constant_m=0.1, robot_time_s=0.15)
 
 
 def person_at(p: np.ndarray) -> np.ndarray:
@@ -218,7 +215,7 @@ class Harness:
             jobs=self.jobs,
             make_trajectory=make_traj,
             separation=SSM,
-            speed_scale=scale_law,
+            speed_scale=LAW,
             config=self.config,
             q0=np.zeros(6) if q0 is None else q0,
             t0=0.0,
@@ -635,3 +632,84 @@ def test_the_scale_window_agrees_with_the_whole_grid() -> None:
             assert full - 0.025 - 1e-12 <= got <= full + 0.025 + 1e-12
         else:
             assert got == 0.0 or got <= full + 0.025
+
+
+def test_the_compiled_envelope_equals_the_numpy_reference() -> None:
+    """Every branch of the compiled braking envelope (quick accept, a scale inside the window, ``lo`` unsafe,
+    an empty window) gives the NumPy reference's answer, for several parts and person speeds."""
+    rng = np.random.default_rng(11)
+    models = [
+        SeparationModel(s0_m=0.11, t_reaction_s=0.1, stop_decel_mps2=2.0, human_accel_mps2=8.0),
+        SeparationModel(s0_m=0.05, t_reaction_s=0.2, stop_decel_mps2=1.0, human_accel_mps2=0.0),
+    ]
+    outcomes = set()
+    for i in range(2000):
+        model = models[i % 2]
+        n = int(rng.integers(1, 8))
+        lo = float(rng.uniform(-0.1, 1.0))
+        hi = float(rng.uniform(lo - 0.05, lo + 0.4))
+        kw = dict(
+            v_human_mps=rng.uniform(0.0, 2.5, n),
+            v_parts_mps=rng.uniform(0.0, 1.5, n),
+            rate=float(rng.choice([rng.uniform(0.5, 30.0), math.inf])),
+            lo=lo,
+            hi=hi,
+        )
+        d = rng.uniform(-0.1, 1.5, n)
+        with np.errstate(invalid="ignore"):  # an infinite brake rate: inf * 0 in the reference's grid
+            want = model.max_scale_reference(d, **kw)
+        got = model.max_scale(d, **kw)
+        assert got == pytest.approx(want, abs=1e-12), (d, kw)
+        outcomes.add("hi" if got == min(hi, 1.0) else "zero" if got == 0.0 else "inside")
+    assert outcomes == {"hi", "zero", "inside"}
+    assert models[0].max_scale(np.zeros(0), v_human_mps=np.zeros(0), v_parts_mps=np.zeros(0), rate=1.0) == 1.0
+
+
+def test_the_compiled_governor_equals_the_numpy_reference() -> None:
+    """The servo tick's compiled target scale (separation bound, braking envelope over the moving parts,
+    speed-scaling law) equals the NumPy reference, with and without a measurement of the person."""
+    h = Harness(lambda t: person_at(FAR))
+    sup = h.sup
+    rng = np.random.default_rng(8)
+    L = 7
+    sup.n_parts = L
+    seen = set()
+    for i in range(1500):
+        measured = i % 5 != 0
+        sup._sep_m = rng.uniform(-0.05, 1.2, L)
+        sup._v_h0 = rng.uniform(-0.5, 2.5, L)
+        sup._v_h_t = float(rng.uniform(-0.1, 0.0)) if measured else -math.inf
+        sup._x_h0 = np.asarray(SSM.human_approach(sup._v_h0, -sup._v_h_t if measured else 0.0)[0])
+        sup._travel_m = rng.uniform(0.0, 0.05, L)
+        vmax = rng.uniform(0.0, 1.5, L) * (rng.uniform(size=L) > 0.2)
+        s = float(rng.uniform(0.0, 1.0))
+        rate = float(rng.uniform(1.0, 20.0))
+        lo, hi = max(s - rate * 0.008, 0.0), s + 0.04
+        sup.speed_scale_law = None if i % 7 == 0 else LAW
+        with np.errstate(invalid="ignore"):
+            want = sup._governed_scale_reference(0.0, 0.008, s, vmax, rate, lo, hi)
+        got = sup._governed_scale(0.0, 0.008, s, vmax, rate, lo, hi)
+        assert got == pytest.approx(want, abs=1e-12), i
+        seen.add("hi" if got == pytest.approx(min(hi, 1.0)) else "zero" if got == 0.0 else "between")
+    assert seen == {"hi", "zero", "between"}
+
+
+def test_the_speed_scale_law_agrees_with_the_safety_module() -> None:
+    """The governor's law is :func:`app.planning.safety.speed_scale` (the smallest over parts)."""
+    from app.planning.safety import SSMParams, speed_scale
+
+    params = SSMParams()
+    law = SpeedScaleLaw.from_ssm(params)
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        n = int(rng.integers(1, 8))
+        d = rng.uniform(-0.1, 1.5, n)
+        d[rng.uniform(size=n) < 0.05] = math.inf
+        v = rng.uniform(0.0, 1.5, n) * (rng.uniform(size=n) > 0.1)
+        vh = rng.uniform(-0.5, 2.0, n)
+        want = float(np.min(speed_scale(d, v, params, v_human_mps=vh)))
+        assert law(d, v, vh) == pytest.approx(want, abs=1e-12)
+        assert _kernels.law_scale(d, v, vh, law.kernel_params) == pytest.approx(want, abs=1e-12)
+    assert law(np.zeros(0), np.zeros(0), np.zeros(0)) == 1.0
+    with pytest.raises(ValueError, match="robot_time_s"):
+        SpeedScaleLaw(human_time_s=0.3, constant_m=0.1, robot_time_s=0.0)
