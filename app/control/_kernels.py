@@ -1,10 +1,12 @@
-"""Compiled inner loops of the 125 Hz servo cycle (numba).
+"""Compiled inner loops of the simulated cell (numba): the 125 Hz servo cycle and the simulated operator.
 
 Each kernel is the loop form of a NumPy reference that stays in the calling module and that the tests
 compare it against: :func:`max_scale` is :meth:`app.control.supervisor.SeparationModel.max_scale_reference`,
-:func:`track_substeps` is :meth:`app.control.joint_tracking.JointTracker.step_reference`. They run per servo
-tick on arrays of six joints or seven robot parts, where NumPy's per-call cost (about a microsecond per
-operation, dozens per tick) is most of the time; the loops cost a few hundred nanoseconds.
+:func:`governed_scale` is :meth:`app.control.supervisor.Supervisor._governed_scale_reference`,
+:func:`track_substeps` is :meth:`app.control.joint_tracking.JointTracker.step_reference` and
+:func:`body_pose` is :meth:`app.control.operator_sim._Body.pose_reference`. They run per servo tick or
+camera frame on arrays of six joints, seven robot parts or nineteen body joints, where NumPy's per-call
+cost (about a microsecond per operation, dozens to hundreds per call) is most of the time.
 
 The arithmetic is written in the references' order of operations and compiled without ``fastmath``, so the
 results agree to rounding. ``cache=True`` keeps the machine code next to this file (numba compiles in
@@ -18,7 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["governed_scale", "law_scale", "max_scale", "track_substeps"]
+__all__ = ["body_pose", "governed_scale", "law_scale", "max_scale", "track_substeps"]
 
 
 @njit(cache=True, inline="always")
@@ -282,3 +284,104 @@ def track_substeps(
                 q_new, v = q_max[j], 0.0
             q[j] = q_new
             qd[j] = v
+
+
+# ----------------------------------------------------------------------------------------------------
+# The simulated operator's body
+# ----------------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _rz(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    out = np.zeros((3, 3))
+    out[0, 0], out[0, 1], out[1, 0], out[1, 1], out[2, 2] = c, -s, s, c, 1.0
+    return out
+
+
+@njit(cache=True, inline="always")
+def _ry(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    out = np.zeros((3, 3))
+    out[0, 0], out[0, 2], out[1, 1], out[2, 0], out[2, 2] = c, s, 1.0, -s, c
+    return out
+
+
+@njit(cache=True, inline="always")
+def _mv(R: np.ndarray, x: float, y: float, z: float) -> np.ndarray:
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = R[i, 0] * x + R[i, 1] * y + R[i, 2] * z
+    return out
+
+
+@njit(cache=True, inline="always")
+def _unit3(v: np.ndarray) -> np.ndarray:
+    n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    return v / n if n > 1e-12 else v
+
+
+@njit(cache=True)
+def _two_link(
+    a: np.ndarray, target: np.ndarray, l1: float, l2: float, pole: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    d_vec = target - a
+    d = math.sqrt(d_vec[0] * d_vec[0] + d_vec[1] * d_vec[1] + d_vec[2] * d_vec[2])
+    reach = 0.999 * (l1 + l2)
+    n = _unit3(d_vec) if d > 1e-9 else np.array([0.0, 0.0, -1.0])
+    d = min(max(d, abs(l1 - l2) + 1e-6), reach)
+    end = a + n * d
+    x = (l1 * l1 - l2 * l2 + d * d) / (2.0 * d)
+    r = math.sqrt(max(l1 * l1 - x * x, 0.0))
+    perp = pole - n * (pole[0] * n[0] + pole[1] * n[1] + pole[2] * n[2])
+    if math.sqrt(perp[0] * perp[0] + perp[1] * perp[1] + perp[2] * perp[2]) < 1e-9:
+        perp = np.array([-n[2], 0.0, n[0]])  # n x (0, 1, 0)
+    return a + n * x + _unit3(perp) * r, end
+
+
+@njit(cache=True)
+def body_pose(
+    posture: np.ndarray, lh: np.ndarray, rh: np.ndarray, sway: np.ndarray, dims: np.ndarray, out: np.ndarray
+) -> None:
+    """Joints (19, 3) of the simulated operator's body frame into ``out`` for a posture (lean, twist, dx,
+    dy) (rad, rad, m, m), hand targets ``lh``, ``rh`` (3,) and a sway (3,) (m): the loop form of
+    :meth:`app.control.operator_sim._Body.pose` (the joint order of :data:`app.prediction.skeleton.JOINTS`).
+    ``dims``: :meth:`app.control.operator_sim._Body.kernel_dims`."""
+    k, pelvis_z, l_spine, l_chest, l_neck, l_head = dims[0], dims[1], dims[2], dims[3], dims[4], dims[5]
+    sh_y, sh_z, l_upper, l_fore, l_hand = dims[6], dims[7], dims[8], dims[9], dims[10]
+    hip_y, hip_z, l_thigh, l_shank = dims[11], dims[12], dims[13], dims[14]
+    ankle_z, foot_y = dims[15], dims[16]
+    arm, protraction = dims[17], dims[18]
+    lean, twist, dx, dy = posture[0], posture[1], posture[2], posture[3]
+    p = np.array([dx, dy, pelvis_z - 0.08 * k * (1.0 - math.cos(lean))]) + sway
+    R_half = _rz(0.6 * twist) @ _ry(0.45 * lean)
+    R = _rz(twist) @ _ry(lean)
+    spine = p + _mv(R_half, 0.0, 0.0, l_spine)
+    chest = spine + _mv(R, 0.0, 0.0, l_chest)
+    neck = chest + _mv(R, 0.0, 0.0, l_neck)
+    head = neck + _mv(R @ _ry(-0.35 * lean + 0.2), 0.0, 0.0, l_head)
+    out[0], out[1], out[2], out[3], out[4] = p, spine, chest, neck, head
+    for i in range(2):
+        side = 1.0 if i == 0 else -1.0
+        hand = lh if i == 0 else rh
+        base = 5 if i == 0 else 9
+        sh = chest + _mv(R, 0.0, side * sh_y, sh_z)
+        u = _unit3(_unit3(hand - sh) + np.array([0.0, 0.0, -0.7]))
+        w = hand - l_hand * u
+        ws = w - sh
+        excess = math.sqrt(ws[0] * ws[0] + ws[1] * ws[1] + ws[2] * ws[2]) - 0.85 * arm
+        if excess > 0:  # the shoulder comes forward on a long reach
+            sh = sh + _unit3(ws) * min(protraction, excess)
+        pu = _unit3(np.array([-0.3, side * 0.6, -1.0]))
+        pole = _mv(R, pu[0], pu[1], pu[2])
+        elbow, wrist = _two_link(sh, w, l_upper, l_fore, pole)
+        out[base], out[base + 1], out[base + 2] = sh, elbow, wrist
+        out[base + 3] = wrist + l_hand * u
+    R_p = _rz(0.35 * twist)
+    for i in range(2):
+        side = 1.0 if i == 0 else -1.0
+        base = 13 if i == 0 else 16
+        hip = p + _mv(R_p, 0.0, side * hip_y, hip_z)
+        ankle = np.array([0.0, side * foot_y, ankle_z])
+        knee, ankle = _two_link(hip, ankle, l_thigh, l_shank, np.array([1.0, 0.0, 0.0]))
+        out[base], out[base + 1], out[base + 2] = hip, knee, ankle

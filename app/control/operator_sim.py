@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from app.control._kernels import body_pose
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
 
 if TYPE_CHECKING:
@@ -52,6 +53,7 @@ _J = JOINT_INDEX
 #: Postures searched for a reach: forward lean (rad) and a step of the pelvis towards the table (m).
 _LEAN_GRID = np.arange(0.0, 1.3501, 0.05)
 _DX_GRID = np.array([0.0, 0.04, 0.08, 0.12])
+_NOISE_BLOCK = 256  # frames of tracking noise drawn at once
 
 
 def min_jerk(s: float | np.ndarray) -> float | np.ndarray:
@@ -237,6 +239,7 @@ class _Body:
         )
         self.arm = self.l_upper + self.l_fore
         self.protraction = 0.05 * k
+        self._dims = self.kernel_dims()
 
     def pelvis(self, posture: np.ndarray) -> np.ndarray:
         lean, _, dx, dy = posture
@@ -263,8 +266,51 @@ class _Body:
         u = _unit(_unit(hand - shoulder) + np.array([0.0, 0.0, -0.7]))
         return hand - self.l_hand * u, u
 
+    def kernel_dims(self) -> np.ndarray:
+        """The segment lengths (m) in the order :func:`app.control._kernels.body_pose` reads them."""
+        return np.array(
+            [
+                self.k,
+                self.pelvis_z,
+                self.l_spine,
+                self.l_chest,
+                self.l_neck,
+                self.l_head,
+                self.sh_y,
+                self.sh_z,
+                self.l_upper,
+                self.l_fore,
+                self.l_hand,
+                self.hip_y,
+                self.hip_z,
+                self.l_thigh,
+                self.l_shank,
+                self.ankle_z,
+                self.foot_y,
+                self.arm,
+                self.protraction,
+            ],
+            dtype=np.float64,
+        )
+
     def pose(self, posture: np.ndarray, lh: np.ndarray, rh: np.ndarray, sway: np.ndarray) -> np.ndarray:
-        """Joints (J, 3) in the body frame for a posture (lean, twist, dx, dy) and hand targets."""
+        """Joints (J, 3) in the body frame for a posture (lean, twist, dx, dy) and hand targets (compiled:
+        :func:`app.control._kernels.body_pose`; the same numbers as :meth:`pose_reference`)."""
+        out = np.empty((NUM_JOINTS, 3))
+        body_pose(
+            np.asarray(posture, dtype=np.float64),
+            np.asarray(lh, dtype=np.float64),
+            np.asarray(rh, dtype=np.float64),
+            np.asarray(sway, dtype=np.float64),
+            self._dims,
+            out,
+        )
+        return out
+
+    def pose_reference(
+        self, posture: np.ndarray, lh: np.ndarray, rh: np.ndarray, sway: np.ndarray
+    ) -> np.ndarray:
+        """:meth:`pose` in NumPy."""
         lean, twist = posture[0], posture[1]
         out = np.empty((NUM_JOINTS, 3))
         p = self.pelvis(posture) + sway
@@ -422,6 +468,7 @@ class SimulatedOperator:
         self._notify_count = 0
         self._work_left_s = 0.0
         self._cache: tuple[int, HumanFrame] | None = None
+        self._noise_block: tuple[int, np.ndarray] | None = None
         self._oldest_t = self.t0
         self.actions: deque[OperatorAction] = deque(maxlen=512)
 
@@ -451,8 +498,7 @@ class SimulatedOperator:
         self._plan_until(tk)
         joints = self.to_world(self._pose_body(tk))
         if self.noise and self.params.noise_m > 0:
-            rng = np.random.default_rng([self.seed, 0x7015E, k])
-            joints = joints + rng.normal(0.0, self.params.noise_m, size=joints.shape)
+            joints = joints + self._noise(k)
         frame = HumanFrame(t=tk, joints=joints, confidence=np.ones(NUM_JOINTS))
         self._cache = (k, frame)
         if tk - self._oldest_t > 90.0:
@@ -460,6 +506,16 @@ class SimulatedOperator:
             for track in self._tracks.values():
                 track.prune(self._oldest_t)
         return frame
+
+    def _noise(self, k: int) -> np.ndarray:
+        """The tracking noise (J, 3) (m) of frame ``k``: drawn per block of frames from a generator seeded
+        by the operator's seed and the block (the same for a frame however it is reached)."""
+        block, i = divmod(k, _NOISE_BLOCK)
+        if self._noise_block is None or self._noise_block[0] != block:
+            rng = np.random.default_rng([self.seed, 0x7015E, block])
+            draws = rng.normal(0.0, self.params.noise_m, size=(_NOISE_BLOCK, NUM_JOINTS, 3))
+            self._noise_block = (block, draws)
+        return self._noise_block[1][i]
 
     def _pose_body(self, t: float) -> np.ndarray:
         p = self.params

@@ -87,6 +87,26 @@ def test_simulated_operator_is_deterministic_under_a_seed_however_it_is_queried(
     assert not np.allclose(_run_operator(c, 15.0, notify), frames_a)
 
 
+def test_the_compiled_body_pose_equals_the_numpy_reference() -> None:
+    """The operator's compiled pose function gives the NumPy reference's joints, for bodies of several
+    heights, postures from upright to a deep twisted lean, and hands near and out of reach (protraction and
+    the clamped two-link chains)."""
+    from app.control.operator_sim import _Body
+
+    rng = np.random.default_rng(6)
+    for i in range(400):
+        body = _Body(float(rng.uniform(1.4, 2.1)))
+        posture = np.array([rng.uniform(0.0, 1.35), rng.uniform(-0.5, 0.5), rng.uniform(0, 0.12), 0.0])
+        lh = rng.uniform([-0.2, -0.6, 0.3], [1.2, 0.8, 1.6])
+        rh = rng.uniform([-0.2, -0.8, 0.3], [1.2, 0.6, 1.6])
+        if i % 50 == 0:
+            lh = rh = np.array([0.0, 0.0, 5.0])  # far out of reach, straight up
+        sway = rng.normal(0.0, 0.01, 3)
+        np.testing.assert_allclose(
+            body.pose(posture, lh, rh, sway), body.pose_reference(posture, lh, rh, sway), rtol=0, atol=1e-12
+        )
+
+
 def test_frames_lie_on_the_30_hz_grid() -> None:
     op = SimulatedOperator(CELL, seed=1, t0=2.0)
     assert op.frame_at(1.99) is None
