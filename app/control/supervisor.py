@@ -1317,8 +1317,9 @@ class Supervisor:
             # (a plan that ends before then: the robot rests at its end and the switch waits for T + D)
             tau_b = min(tau + _ramp_distance(s, cfg.scale_up_rate, D), active.traj.t_end)
             t_start = T + D
-            q_s = active.traj.q(tau_b)
-            qd_s = active.traj.qd(tau_b) if tau_b < active.traj.t_end else np.zeros(6)
+            q_s, qd_s = _state(active.traj, tau_b)
+            if tau_b >= active.traj.t_end:
+                qd_s = np.zeros(6)
         req = BackupRequest(
             key=seq,
             t_request=T,
