@@ -35,7 +35,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from app.config import Box, WorkCell
-from app.planning.kinematics import UR5e
+from app.planning import _kernels
+from app.planning.kinematics import _TWIST, UR5e
+from app.planning.kinematics import A as _DH_A
+from app.planning.kinematics import D as _DH_D
 from app.prediction.skeleton import BONES, JOINT_INDEX, JOINTS, NUM_JOINTS
 
 if TYPE_CHECKING:
@@ -248,7 +251,21 @@ def _work(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
 
 
 def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
-    """Distances between segments [p1, q1] and [p2, q2], all (..., 3) broadcastable; returns (...,) in m."""
+    """Distances between segments [p1, q1] and [p2, q2], all (..., 3) broadcastable; returns (...,) in m.
+
+    Compiled (:func:`app.planning._kernels.segment_distances`); :func:`_segment_distance_numpy` is the
+    reference."""
+    p1, q1, p2, q2 = (np.asarray(v, dtype=float) for v in (p1, q1, p2, q2))
+    p1, q1, p2, q2 = np.broadcast_arrays(p1, q1, p2, q2)
+    if p1.shape[-1:] != (3,):
+        raise ValueError(f"segment_distance: points must have shape (..., 3), got {p1.shape}")
+    shape = p1.shape[:-1]
+    flat = (_kernels.as_f64(v.reshape(-1, 3)) for v in (p1, q1, p2, q2))
+    return _kernels.segment_distances(*flat).reshape(shape)
+
+
+def _segment_distance_numpy(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """:func:`segment_distance` in NumPy (the reference of the compiled kernel)."""
     p1, q1, p2, q2 = (np.asarray(v, dtype=float) for v in (p1, q1, p2, q2))
     p1, q1, p2, q2 = np.broadcast_arrays(p1, q1, p2, q2)
     shape = p1.shape[:-1]
@@ -598,6 +615,10 @@ class CollisionModel:
         human_radii: Person capsule radii: a :class:`HumanRadii`, a mapping of its field names to radii (m),
             or an array (M,) in the order of :data:`HUMAN_CAPSULES`; default ``HumanRadii()``.
 
+        compiled: Run the forward kinematics to the capsules and the capsule distances in the compiled
+            kernels (:mod:`app.planning._kernels`); False: the NumPy implementations (the reference). Also
+            tells the planner whether it may use its fused compiled checks.
+
     The model is immutable after construction; its methods allocate their own work arrays, so one instance may
     be used from several threads.
     """
@@ -608,9 +629,12 @@ class CollisionModel:
         *,
         kin: UR5e | None = None,
         human_radii: HumanRadii | Mapping[str, float] | np.ndarray | None = None,
+        compiled: bool = True,
     ) -> None:
         self.cell = cell
-        self.kin = kin if kin is not None else UR5e.from_workcell(cell)
+        self.kin = kin if kin is not None else UR5e.from_workcell(cell, compiled=compiled)
+        # the compiled capsule layout is the UR5e's (kinematics.D, A and the twists)
+        self.compiled = bool(compiled) and type(self.kin) is UR5e
         self.robot_radii = np.array([*(ROBOT_LINK_RADII[n] for n in ROBOT_LINKS[:-1]), cell.tool.radius_m])
         self.human_radii = _radii_from(human_radii)
         self.static_boxes: tuple[Box, ...] = tuple(cell.static_boxes)
@@ -633,6 +657,14 @@ class CollisionModel:
         self._self_i, self._self_j = pairs[:, 0], pairs[:, 1]
         for arr in (self.robot_radii, self.human_radii, self._T_box_world, self._box_half, self.static_pairs):
             arr.setflags(write=False)
+        # writeable contiguous copies for the compiled kernels (one array type per kernel argument)
+        self._k_ra = np.array(self.robot_radii)
+        self._k_rh = np.array(self.human_radii)
+        self._k_ia = np.array(_HUMAN_A, dtype=np.int64)
+        self._k_ib = np.array(_HUMAN_B, dtype=np.int64)
+        self._k_links = np.arange(_NL, dtype=np.int64)
+        self._k_self_i = np.array(self._self_i, dtype=np.int64)
+        self._k_self_j = np.array(self._self_j, dtype=np.int64)
 
     # ------------------------------------------------------------------ geometry
     def _robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -642,6 +674,22 @@ class CollisionModel:
 
     def _robot_segments_cm(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Robot segment starts and directions, component-major, each (L, 3, B)."""
+        if not self.compiled:
+            return self._robot_segments_cm_numpy(q)
+        kin = self.kin
+        return _kernels.robot_segments(
+            _kernels.as_f64(q),
+            kin._T_base_k,
+            kin._t_tcp_k,
+            _DH_D,
+            _DH_A,
+            _TWIST,
+            SHOULDER_OFFSET_M,
+            FOREARM_OFFSET_M,
+        )
+
+    def _robot_segments_cm_numpy(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_robot_segments_cm` in NumPy (the reference of the compiled kernel)."""
         p, z, p_tcp = self.kin.link_origins_and_axes(q)  # (7, 3, B), (7, 3, B), (3, B)
         B = q.shape[0]
         z1 = z[1]
@@ -704,6 +752,11 @@ class CollisionModel:
         joints = self._check_joints(joints, "distance_to_human")
         if q.shape[0] == 0 or joints.shape[0] == 0:
             return np.empty((q.shape[0], joints.shape[0]))
+        if self.compiled:
+            a_c, d_c = self._robot_segments_cm(q)
+            return _kernels.cross_min_distance(
+                a_c, d_c, self._k_ra, _kernels.as_f64(joints), self._k_ia, self._k_ib, self._k_rh
+            )
         U, a = _robot_features(*self._robot_segments_cm(q))
         V, e = _human_features(joints)
         return _cross_min_distance(U, a, self.robot_radii, V, e, self.human_radii)
@@ -746,6 +799,22 @@ class CollisionModel:
             raise ValueError(
                 f"distance_to_human_paired: segments must be ({_NL}, 3, K) each, got {a_c.shape}"
             )
+        if self.compiled:
+            ia, ib, rh = self._k_ia, self._k_ib, self._k_rh
+            if (links is not None and len(links) == 0) or (capsules is not None and len(capsules) == 0):
+                return np.full(q.shape[0], np.inf)
+            if capsules is not None:
+                ia, ib, rh = ia[capsules], ib[capsules], rh[capsules]
+            return _kernels.paired_min_distance(
+                _kernels.as_f64(a_c),
+                _kernels.as_f64(d_c),
+                self._k_ra,
+                self._k_links if links is None else _kernels.as_i64(links),
+                _kernels.as_f64(joints),
+                ia,
+                ib,
+                rh,
+            )
         ra, ia, ib, rh = self.robot_radii, _HUMAN_A, _HUMAN_B, self.human_radii
         if links is not None:
             if len(links) == 0:
@@ -757,6 +826,58 @@ class CollisionModel:
             ia, ib, rh = ia[capsules], ib[capsules], rh[capsules]
         jt = np.ascontiguousarray(joints.transpose(1, 2, 0))  # (J, 3, K)
         return _paired_min_distance(a_c, d_c, ra, jt, ia, ib, rh)
+
+    def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """Signed surface distance of every robot capsule at one configuration to every person capsule.
+
+        Args:
+            q: Configuration (6,), rad.
+            joints: Person poses (P, J, 3), world frame, m.
+
+        Returns:
+            (P, L, M) distances in m (negative: overlap), capsules in the order of :data:`ROBOT_LINKS` and
+            :data:`HUMAN_CAPSULES`.
+        """
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (6,):
+            raise ValueError(f"pair_distances: q must have shape (6,), got {q.shape}")
+        joints = self._check_joints(joints, "pair_distances")
+        if not self.compiled:
+            ra, rb, rr = self.robot_capsules(q[None])
+            ha, hb, hr = self.human_capsules(joints)
+            return capsule_distance(
+                ra[0][None, :, None, :],
+                rb[0][None, :, None, :],
+                rr[None, :, None],
+                ha[:, None, :, :],
+                hb[:, None, :, :],
+                hr[None, None, :],
+            )
+        a_c, d_c = self._robot_segments_cm(q[None])
+        return _kernels.pair_distances(
+            a_c, d_c, self._k_ra, _kernels.as_f64(joints), self._k_ia, self._k_ib, self._k_rh
+        )
+
+    def kernel_geometry(self) -> tuple[Any, ...] | None:
+        """The arguments the compiled checks of :mod:`app.planning._kernels` take for this model's robot
+        and person (``T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ra, ia, ib, rh``), or None
+        when the model runs in NumPy (``compiled=False``)."""
+        if not self.compiled:
+            return None
+        kin = self.kin
+        return (
+            kin._T_base_k,
+            kin._t_tcp_k,
+            _DH_D,
+            _DH_A,
+            _TWIST,
+            SHOULDER_OFFSET_M,
+            FOREARM_OFFSET_M,
+            self._k_ra,
+            self._k_ia,
+            self._k_ib,
+            self._k_rh,
+        )
 
     def robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Robot capsule segments for configurations q (K, 6), component-major: starts and directions
@@ -875,6 +996,13 @@ class CollisionModel:
         """Signed distances (B, P) of the link pairs :data:`SELF_COLLISION_PAIRS`, m (``segments`` as in
         :meth:`static_clearance`)."""
         q = self._check_q(q, "self_distances")
+        if self.compiled:
+            a_c, d_c = self._robot_segments_cm(q) if segments is None else segments
+            if a_c.shape != (_NL, 3, q.shape[0]) or d_c.shape != a_c.shape:
+                raise ValueError(f"segments must be ({_NL}, 3, B) each for q (B, 6), got {a_c.shape}")
+            return _kernels.self_distances(
+                _kernels.as_f64(a_c), _kernels.as_f64(d_c), self._k_ra, self._k_self_i, self._k_self_j
+            )
         pa, pd = self._segments_bl(q, segments)
         i, j = self._self_i, self._self_j
         return capsule_distance(

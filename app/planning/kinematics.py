@@ -36,6 +36,7 @@ from typing import Literal
 import numpy as np
 
 from app.config import R_WORLD_TOOL_DOWN, WorkCell
+from app.planning import _kernels
 
 __all__ = [
     "ALPHA",
@@ -60,6 +61,7 @@ A = np.array([0.0, -0.425, -0.3922, 0.0, 0.0, 0.0])
 ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])
 _CA = np.round(np.cos(ALPHA))  # the twists are 0 and +-pi/2: exact 0/1/-1 entries
 _SA = np.round(np.sin(ALPHA))
+_TWIST = _SA.copy()  # the compiled chain's twist signs (+1: pi/2, -1: -pi/2, 0: none)
 #: Batches up to this size go through the 4x4 product form of the chain.
 _SMALL_BATCH = 8
 
@@ -231,6 +233,8 @@ class UR5e:
         T_world_base: Pose (4, 4) of DH frame 0 in the world (identity by default).
         T_flange_tcp: Pose (4, 4) of the tool centre point in the flange frame (identity by default).
         q_min, q_max: Joint position limits (6,) in rad (defaults :data:`Q_MIN`, :data:`Q_MAX`).
+        compiled: Run the forward kinematics in the compiled kernel (:mod:`app.planning._kernels`; the same
+            operations as the NumPy chain, so the same results); False: NumPy (the reference).
 
     All methods are batched over the first axis and fully vectorised; none keeps state between calls, so one
     instance can be shared by threads.
@@ -243,7 +247,9 @@ class UR5e:
         T_flange_tcp: np.ndarray | None = None,
         q_min: np.ndarray | None = None,
         q_max: np.ndarray | None = None,
+        compiled: bool = True,
     ) -> None:
+        self.compiled = bool(compiled)
         self.T_world_base = _as_transform(T_world_base, "T_world_base")
         self.T_flange_tcp = _as_transform(T_flange_tcp, "T_flange_tcp")
         self.T_base_world = _inverse_transform(self.T_world_base)
@@ -258,11 +264,16 @@ class UR5e:
         self._tool_identity = bool(np.array_equal(self.T_flange_tcp, np.eye(4)))
         for arr in (self.T_world_base, self.T_flange_tcp, self.T_base_world, self.T_tcp_flange):
             arr.setflags(write=False)
+        # writeable contiguous copies for the compiled kernels (one array type per kernel argument)
+        self._T_base_k = np.array(self.T_world_base)
+        self._t_tcp_k = np.array(self.T_flange_tcp[:3, 3])
 
     @classmethod
-    def from_workcell(cls, cell: WorkCell) -> UR5e:
+    def from_workcell(cls, cell: WorkCell, *, compiled: bool = True) -> UR5e:
         """Kinematics placed as in a work cell (robot mount and tool)."""
-        return cls(T_world_base=cell.robot.T_world_base(), T_flange_tcp=cell.tool.T_flange_tcp())
+        return cls(
+            T_world_base=cell.robot.T_world_base(), T_flange_tcp=cell.tool.T_flange_tcp(), compiled=compiled
+        )
 
     # ------------------------------------------------------------------ forward kinematics
     def _chain(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -271,6 +282,13 @@ class UR5e:
         Returns ``(x, y, z, p)`` each (7, 3, B) (component-major so that every step works on contiguous rows):
         the columns of the rotations and the origins.
         """
+        if not self.compiled:
+            return self._chain_numpy(q)
+        out = _kernels.chain_frames(_kernels.as_f64(q), self._T_base_k, D, A, _TWIST)
+        return out[0], out[1], out[2], out[3]
+
+    def _chain_numpy(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_chain` in NumPy (the reference of the compiled kernel)."""
         B = q.shape[0]
         if B <= _SMALL_BATCH:
             return self._chain_small(q)

@@ -1,0 +1,1036 @@
+"""Compiled (numba) kernels for the geometric hot paths: UR5e forward kinematics to capsule segments,
+segment-segment distances, robot-person minimum distances, and the planner's time-sampled separation checks.
+
+The NumPy implementations in :mod:`app.planning.kinematics` and :mod:`app.planning.collision` stay the
+reference (the tests compare against them); the public functions route through these kernels.
+
+Numerics: every kernel is ``fastmath=False`` float64. The forward kinematics performs the same operations in
+the same order as the component-major NumPy chain. The closest points of two segments follow the same three
+clamped steps as :func:`app.planning.collision._closest_sq` (Ericson, Real-Time Collision Detection, 5.1.9),
+but the distance is then taken from the closest points themselves (``|r + s d1 - t d2|``) instead of the
+expansion in dot products: it agrees with the NumPy reference to round-off (below 1e-12 m) wherever the axes
+are more than a micrometre apart, and is exact to round-off where they touch (the expansion's square root
+of a cancelled difference is off by up to a few 1e-8 m there).
+
+Calling convention: arrays are C-contiguous float64 (index arrays int64); the callers make sure of it so that
+each kernel compiles for one signature only. Compiled code is cached next to this file (``cache=True``);
+where that directory is not writable numba falls back to its per-user cache, and where no cache location can
+be written at all the kernels are compiled in memory on first use (a warning is logged once).
+
+Layouts: robot segments are *component-major* ``(L, 3, B)`` (starts ``a`` and directions ``d = end -
+start``), as :meth:`app.planning.collision.CollisionModel.robot_segments` returns them; person poses are
+``(H, J, 3)`` and a person capsule ``m`` runs from joint ``ia[m]`` to joint ``ib[m]``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numba
+import numpy as np
+
+__all__ = [
+    "as_bool",
+    "as_f64",
+    "as_i64",
+    "chain_frames",
+    "cross_min_distance",
+    "moves_separation_ok",
+    "pair_distances",
+    "paired_min_distance",
+    "robot_segments",
+    "sample_separation_ok",
+    "segment_distances",
+    "self_distances",
+    "trajectory_separation_bad",
+]
+
+logger = logging.getLogger(__name__)
+
+_TINY = 1e-18  # m^4: as app.planning.collision._TINY (parallel segments, points)
+_NL = 9  # robot capsules (app.planning.collision.ROBOT_LINKS)
+_warned_no_cache = False
+
+
+def _jit(fn: Callable[..., Any]) -> Any:
+    """``numba.njit(cache=True)``, or in-memory compilation where no cache location is writable."""
+    global _warned_no_cache
+    try:
+        return numba.njit(cache=True, fastmath=False, nogil=True)(fn)
+    except RuntimeError as exc:  # numba found no writable cache directory for this file
+        if not _warned_no_cache:
+            logger.warning("numba kernels compile in memory on every start (no cache location): %s", exc)
+            _warned_no_cache = True
+        return numba.njit(cache=False, fastmath=False, nogil=True)(fn)
+
+
+def as_f64(x: Any) -> np.ndarray:
+    """``x`` as a C-contiguous, writeable float64 array (a copy only where needed): the one array type the
+    kernels are compiled for (numba compiles read-only and strided arrays separately)."""
+    if isinstance(x, np.ndarray) and x.dtype == np.float64 and x.flags.c_contiguous and x.flags.writeable:
+        return x
+    return np.array(x, dtype=np.float64, order="C")
+
+
+def as_bool(x: Any) -> np.ndarray:
+    """``x`` as a C-contiguous, writeable bool array (see :func:`as_f64`)."""
+    if isinstance(x, np.ndarray) and x.dtype == np.bool_ and x.flags.c_contiguous and x.flags.writeable:
+        return x
+    return np.array(x, dtype=np.bool_, order="C")
+
+
+def as_i64(x: Any) -> np.ndarray:
+    """``x`` as a C-contiguous, writeable int64 array (see :func:`as_f64`)."""
+    if isinstance(x, np.ndarray) and x.dtype == np.int64 and x.flags.c_contiguous and x.flags.writeable:
+        return x
+    return np.array(x, dtype=np.int64, order="C")
+
+
+# ------------------------------------------------------------------------------------------ scalar helpers
+
+
+@_jit
+def _clip01(x: float) -> float:
+    if x < 0.0:
+        return 0.0
+    if x > 1.0:
+        return 1.0
+    return x  # NaN stays NaN (as np.maximum / np.minimum)
+
+
+@_jit
+def _seg_dist(
+    p1x: float,
+    p1y: float,
+    p1z: float,
+    d1x: float,
+    d1y: float,
+    d1z: float,
+    p2x: float,
+    p2y: float,
+    p2z: float,
+    d2x: float,
+    d2y: float,
+    d2z: float,
+) -> float:
+    """Distance between segments p1 + s d1 and p2 + t d2 (s, t in [0, 1]), m."""
+    rx = p1x - p2x
+    ry = p1y - p2y
+    rz = p1z - p2z
+    a = d1x * d1x + d1y * d1y + d1z * d1z
+    e = d2x * d2x + d2y * d2y + d2z * d2z
+    b = d1x * d2x + d1y * d2y + d1z * d2z
+    c = d1x * rx + d1y * ry + d1z * rz
+    f = d2x * rx + d2y * ry + d2z * rz
+    inv_a = 1.0 / a if a > _TINY else 0.0
+    inv_e = 1.0 / e if e > _TINY else 0.0
+    den = a * e - b * b
+    if den < _TINY:
+        den = _TINY
+    s = _clip01((b * f - c * e) / den)
+    t = _clip01((b * s + f) * inv_e)
+    s = _clip01((b * t - c) * inv_a)
+    dx = rx + s * d1x - t * d2x
+    dy = ry + s * d1y - t * d2y
+    dz = rz + s * d1z - t * d2z
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@_jit
+def _nan_min(best: float, d: float) -> float:
+    """min(best, d) that keeps a NaN once one appears (as ndarray.min)."""
+    if d < best or d != d:
+        return d
+    return best
+
+
+# ------------------------------------------------------------------------------------ forward kinematics
+
+
+@_jit
+def _chain_one(
+    q: np.ndarray,
+    k: int,
+    T_base: np.ndarray,
+    dh_d: np.ndarray,
+    dh_a: np.ndarray,
+    twist: np.ndarray,
+    X: np.ndarray,
+    Y: np.ndarray,
+    Z: np.ndarray,
+    P: np.ndarray,
+) -> None:
+    """World axes and origins (7, 3) each of DH frames 0..6 for configuration ``q[k]`` (component order of
+    :meth:`app.planning.kinematics.UR5e._chain`)."""
+    x0, x1, x2 = T_base[0, 0], T_base[1, 0], T_base[2, 0]
+    y0, y1, y2 = T_base[0, 1], T_base[1, 1], T_base[2, 1]
+    z0, z1, z2 = T_base[0, 2], T_base[1, 2], T_base[2, 2]
+    p0, p1, p2 = T_base[0, 3], T_base[1, 3], T_base[2, 3]
+    X[0, 0], X[0, 1], X[0, 2] = x0, x1, x2
+    Y[0, 0], Y[0, 1], Y[0, 2] = y0, y1, y2
+    Z[0, 0], Z[0, 1], Z[0, 2] = z0, z1, z2
+    P[0, 0], P[0, 1], P[0, 2] = p0, p1, p2
+    for i in range(6):
+        c = math.cos(q[k, i])
+        s = math.sin(q[k, i])
+        # R_i = Rz(q_i) Rx(alpha_i): the parent axes turned about z ...
+        nx0 = c * x0 + s * y0
+        nx1 = c * x1 + s * y1
+        nx2 = c * x2 + s * y2
+        ny0 = c * y0 - s * x0
+        ny1 = c * y1 - s * x1
+        ny2 = c * y2 - s * x2
+        # ... the origin: d along the parent z, then a along the new x ...
+        di = dh_d[i]
+        ai = dh_a[i]
+        if di != 0.0:
+            p0 = p0 + di * z0
+            p1 = p1 + di * z1
+            p2 = p2 + di * z2
+        if ai != 0.0:
+            p0 = p0 + ai * nx0
+            p1 = p1 + ai * nx1
+            p2 = p2 + ai * nx2
+        # ... then the twist (0, pi/2, -pi/2) permutes y and z with signs.
+        tw = twist[i]
+        if tw > 0.0:
+            y0, y1, y2 = z0, z1, z2
+            z0, z1, z2 = -ny0, -ny1, -ny2
+        elif tw < 0.0:
+            y0, y1, y2 = -z0, -z1, -z2
+            z0, z1, z2 = ny0, ny1, ny2
+        else:
+            y0, y1, y2 = ny0, ny1, ny2
+        x0, x1, x2 = nx0, nx1, nx2
+        X[i + 1, 0], X[i + 1, 1], X[i + 1, 2] = x0, x1, x2
+        Y[i + 1, 0], Y[i + 1, 1], Y[i + 1, 2] = y0, y1, y2
+        Z[i + 1, 0], Z[i + 1, 1], Z[i + 1, 2] = z0, z1, z2
+        P[i + 1, 0], P[i + 1, 1], P[i + 1, 2] = p0, p1, p2
+
+
+@_jit
+def chain_frames(
+    q: np.ndarray, T_base: np.ndarray, dh_d: np.ndarray, dh_a: np.ndarray, twist: np.ndarray
+) -> np.ndarray:
+    """World axes and origins of DH frames 0..6, ``(4, 7, 3, B)``: ``[x, y, z, p]`` component-major.
+
+    Args:
+        q: Joint angles (B, 6), rad.
+        T_base: Pose (4, 4) of DH frame 0 in the world.
+        dh_d, dh_a: DH offsets and lengths (6,), m.
+        twist: Sign (6,) of each DH twist (+1: pi/2, -1: -pi/2, 0: none).
+    """
+    B = q.shape[0]
+    out = np.empty((4, 7, 3, B))
+    X = np.empty((7, 3))
+    Y = np.empty((7, 3))
+    Z = np.empty((7, 3))
+    P = np.empty((7, 3))
+    for k in range(B):
+        _chain_one(q, k, T_base, dh_d, dh_a, twist, X, Y, Z, P)
+        for f in range(7):
+            for j in range(3):
+                out[0, f, j, k] = X[f, j]
+                out[1, f, j, k] = Y[f, j]
+                out[2, f, j, k] = Z[f, j]
+                out[3, f, j, k] = P[f, j]
+    return out
+
+
+@_jit
+def _segments_one(
+    q: np.ndarray,
+    k: int,
+    T_base: np.ndarray,
+    t_tcp: np.ndarray,
+    dh_d: np.ndarray,
+    dh_a: np.ndarray,
+    twist: np.ndarray,
+    off_shoulder: float,
+    off_forearm: float,
+    X: np.ndarray,
+    Y: np.ndarray,
+    Z: np.ndarray,
+    P: np.ndarray,
+    SA: np.ndarray,
+    SD: np.ndarray,
+) -> None:
+    """Robot capsule segments (9, 3) starts ``SA`` and directions ``SD`` for configuration ``q[k]``, as
+    :meth:`app.planning.collision.CollisionModel._robot_segments_cm` lays them out."""
+    _chain_one(q, k, T_base, dh_d, dh_a, twist, X, Y, Z, P)
+    for j in range(3):
+        z1 = Z[1, j]
+        e1 = P[1, j] + off_shoulder * z1  # shoulder end
+        e2 = P[2, j] + off_shoulder * z1  # upper-arm end
+        e3 = P[2, j] + off_forearm * z1  # elbow end
+        e4 = P[3, j] + off_forearm * z1  # forearm end
+        tcp = P[6, j] + t_tcp[0] * X[6, j] + t_tcp[1] * Y[6, j] + t_tcp[2] * Z[6, j]
+        SA[0, j] = P[0, j]
+        SD[0, j] = P[1, j] - P[0, j]
+        SA[1, j] = P[1, j]
+        SD[1, j] = e1 - P[1, j]
+        SA[2, j] = e1
+        SD[2, j] = e2 - e1
+        SA[3, j] = e2
+        SD[3, j] = e3 - e2
+        SA[4, j] = e3
+        SD[4, j] = e4 - e3
+        SA[5, j] = e4
+        SD[5, j] = P[4, j] - e4
+        SA[6, j] = P[4, j]
+        SD[6, j] = P[5, j] - P[4, j]
+        SA[7, j] = P[5, j]
+        SD[7, j] = P[6, j] - P[5, j]
+        SA[8, j] = P[6, j]
+        SD[8, j] = tcp - P[6, j]
+
+
+@_jit
+def robot_segments(
+    q: np.ndarray,
+    T_base: np.ndarray,
+    t_tcp: np.ndarray,
+    dh_d: np.ndarray,
+    dh_a: np.ndarray,
+    twist: np.ndarray,
+    off_shoulder: float,
+    off_forearm: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Robot capsule segments for configurations ``q`` (B, 6): starts and directions (9, 3, B) each (m).
+
+    ``t_tcp`` (3,): the TCP in the flange frame (m); ``off_shoulder``/``off_forearm``: the offsets of the
+    upper-arm and forearm centre lines along the shoulder axis (m)."""
+    B = q.shape[0]
+    a = np.empty((_NL, 3, B))
+    d = np.empty((_NL, 3, B))
+    X = np.empty((7, 3))
+    Y = np.empty((7, 3))
+    Z = np.empty((7, 3))
+    P = np.empty((7, 3))
+    SA = np.empty((_NL, 3))
+    SD = np.empty((_NL, 3))
+    for k in range(B):
+        _segments_one(q, k, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, X, Y, Z, P, SA, SD)
+        for l in range(_NL):  # noqa: E741
+            for j in range(3):
+                a[l, j, k] = SA[l, j]
+                d[l, j, k] = SD[l, j]
+    return a, d
+
+
+# ---------------------------------------------------------------------------------------------- distances
+
+
+@_jit
+def segment_distances(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Distances (N,) between segments [p1, q1] and [p2, q2], each (N, 3), m."""
+    N = p1.shape[0]
+    out = np.empty(N)
+    for n in range(N):
+        out[n] = _seg_dist(
+            p1[n, 0],
+            p1[n, 1],
+            p1[n, 2],
+            q1[n, 0] - p1[n, 0],
+            q1[n, 1] - p1[n, 1],
+            q1[n, 2] - p1[n, 2],
+            p2[n, 0],
+            p2[n, 1],
+            p2[n, 2],
+            q2[n, 0] - p2[n, 0],
+            q2[n, 1] - p2[n, 1],
+            q2[n, 2] - p2[n, 2],
+        )
+    return out
+
+
+@_jit
+def _person_capsules(joints: np.ndarray, h: int, ia: np.ndarray, ib: np.ndarray, C: np.ndarray) -> None:
+    """Person capsules of pose ``joints[h]`` (J, 3) into ``C`` (M, 6): start and direction."""
+    for m in range(ia.shape[0]):
+        for j in range(3):
+            s = joints[h, ia[m], j]
+            C[m, j] = s
+            C[m, 3 + j] = joints[h, ib[m], j] - s
+
+
+@_jit
+def self_distances(
+    a: np.ndarray, d: np.ndarray, ra: np.ndarray, pi: np.ndarray, pj: np.ndarray
+) -> np.ndarray:
+    """Signed distances (B, P) between robot capsules ``pi[p]`` and ``pj[p]`` (segments (L, 3, B))."""
+    B = a.shape[2]
+    n = pi.shape[0]
+    out = np.empty((B, n))
+    for k in range(B):
+        for p in range(n):
+            i = pi[p]
+            j = pj[p]
+            s = _seg_dist(
+                a[i, 0, k],
+                a[i, 1, k],
+                a[i, 2, k],
+                d[i, 0, k],
+                d[i, 1, k],
+                d[i, 2, k],
+                a[j, 0, k],
+                a[j, 1, k],
+                a[j, 2, k],
+                d[j, 0, k],
+                d[j, 1, k],
+                d[j, 2, k],
+            )
+            out[k, p] = s - ra[i] - ra[j]
+    return out
+
+
+@_jit
+def paired_min_distance(
+    a: np.ndarray,
+    d: np.ndarray,
+    ra: np.ndarray,
+    links: np.ndarray,
+    joints: np.ndarray,
+    ia: np.ndarray,
+    ib: np.ndarray,
+    rh: np.ndarray,
+) -> np.ndarray:
+    """Min signed distance (K,) between robot configuration k (segments (L, 3, K), only the capsules
+    ``links``) and person pose k (``joints`` (K, J, 3), capsules ``ia``/``ib``/``rh`` (M,)), m."""
+    K = a.shape[2]
+    M = ia.shape[0]
+    nl = links.shape[0]
+    out = np.empty(K)
+    C = np.empty((M, 6))
+    R = np.empty((nl, 6))
+    for k in range(K):
+        _person_capsules(joints, k, ia, ib, C)
+        for i in range(nl):
+            l = links[i]  # noqa: E741
+            for j in range(3):
+                R[i, j] = a[l, j, k]
+                R[i, 3 + j] = d[l, j, k]
+        best = np.inf
+        for m in range(M):
+            for i in range(nl):
+                s = _seg_dist(
+                    R[i, 0], R[i, 1], R[i, 2], R[i, 3], R[i, 4], R[i, 5],
+                    C[m, 0], C[m, 1], C[m, 2], C[m, 3], C[m, 4], C[m, 5],
+                )  # fmt: skip
+                best = _nan_min(best, s - (ra[links[i]] + rh[m]))
+        out[k] = best
+    return out
+
+
+@_jit
+def cross_min_distance(
+    a: np.ndarray,
+    d: np.ndarray,
+    ra: np.ndarray,
+    joints: np.ndarray,
+    ia: np.ndarray,
+    ib: np.ndarray,
+    rh: np.ndarray,
+) -> np.ndarray:
+    """Min signed distance (B, H) between every robot configuration (segments (L, 3, B)) and every person
+    pose (``joints`` (H, J, 3)), m."""
+    L = a.shape[0]
+    B = a.shape[2]
+    H = joints.shape[0]
+    M = ia.shape[0]
+    out = np.empty((B, H))
+    C = np.empty((M, 6))
+    R = np.empty((L, 6))
+    for h in range(H):
+        _person_capsules(joints, h, ia, ib, C)
+        for k in range(B):
+            for i in range(L):
+                for j in range(3):
+                    R[i, j] = a[i, j, k]
+                    R[i, 3 + j] = d[i, j, k]
+            best = np.inf
+            for m in range(M):
+                for i in range(L):
+                    s = _seg_dist(
+                        R[i, 0], R[i, 1], R[i, 2], R[i, 3], R[i, 4], R[i, 5],
+                        C[m, 0], C[m, 1], C[m, 2], C[m, 3], C[m, 4], C[m, 5],
+                    )  # fmt: skip
+                    best = _nan_min(best, s - (ra[i] + rh[m]))
+            out[k, h] = best
+    return out
+
+
+@_jit
+def pair_distances(
+    a: np.ndarray,
+    d: np.ndarray,
+    ra: np.ndarray,
+    joints: np.ndarray,
+    ia: np.ndarray,
+    ib: np.ndarray,
+    rh: np.ndarray,
+) -> np.ndarray:
+    """Signed distance (P, L, M) of every robot capsule (one configuration: segments (L, 3, 1)) to every
+    capsule of every person pose (``joints`` (P, J, 3)), m."""
+    L = a.shape[0]
+    P = joints.shape[0]
+    M = ia.shape[0]
+    out = np.empty((P, L, M))
+    C = np.empty((M, 6))
+    for p in range(P):
+        _person_capsules(joints, p, ia, ib, C)
+        for i in range(L):
+            for m in range(M):
+                s = _seg_dist(
+                    a[i, 0, 0], a[i, 1, 0], a[i, 2, 0], d[i, 0, 0], d[i, 1, 0], d[i, 2, 0],
+                    C[m, 0], C[m, 1], C[m, 2], C[m, 3], C[m, 4], C[m, 5],
+                )  # fmt: skip
+                out[p, i, m] = s - ra[i] - rh[m]
+    return out
+
+
+# --------------------------------------------------------------------------- planner: time-sampled checks
+
+
+@_jit
+def _too_close(
+    SA: np.ndarray,
+    SD: np.ndarray,
+    near: np.ndarray,
+    ra: np.ndarray,
+    C: np.ndarray,
+    rh: np.ndarray,
+    req: float,
+) -> bool:
+    """Whether some robot capsule flagged ``near`` (segments ``SA``/``SD`` (L, 3)) comes closer than ``req``
+    to some person capsule ``C`` (M, 6) (a NaN distance counts as too close)."""
+    for m in range(C.shape[0]):
+        for i in range(SA.shape[0]):
+            if not near[i]:
+                continue
+            s = _seg_dist(
+                SA[i, 0], SA[i, 1], SA[i, 2], SD[i, 0], SD[i, 1], SD[i, 2],
+                C[m, 0], C[m, 1], C[m, 2], C[m, 3], C[m, 4], C[m, 5],
+            )  # fmt: skip
+            if not (s - (ra[i] + rh[m]) >= req):
+                return True
+    return False
+
+
+@_jit
+def _pose_index(times: np.ndarray, t: float) -> int:
+    """``searchsorted(times, t, side="right")`` by bisection."""
+    lo = 0
+    hi = times.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if t < times[mid]:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@_jit
+def _pose_at(
+    ts: float,
+    times: np.ndarray,
+    joints: np.ndarray,
+    djoints: np.ndarray,
+    dtimes: np.ndarray,
+    pose: np.ndarray,
+) -> None:
+    """The forecast pose (J, 3) at time ``ts`` into ``pose`` (:meth:`HumanForecast.poses_at`'s linear
+    interpolation between the samples ``times`` (H,), ``joints`` (H, J, 3); the ends held)."""
+    H = times.shape[0]
+    J = joints.shape[1]
+    if H == 1:
+        for jj in range(J):
+            for j in range(3):
+                pose[jj, j] = joints[0, jj, j]
+        return
+    tc = min(max(ts, times[0]), times[H - 1])
+    i0 = min(_pose_index(times, tc), H - 1) - 1
+    w = (tc - times[i0]) / dtimes[i0]
+    for jj in range(J):
+        for j in range(3):
+            pose[jj, j] = joints[i0, jj, j] + w * djoints[i0, jj, j]
+
+
+@_jit
+def _sphere_gaps_near(
+    cen: np.ndarray, rad: np.ndarray, lo: np.ndarray, hi: np.ndarray, req: float, near: np.ndarray
+) -> bool:
+    """Per robot capsule (spheres ``cen`` (L, 3), ``rad`` (L,)): whether its sphere comes within ``req`` of
+    the box ``lo``/``hi`` (3+,) (into ``near`` (L,)); returns whether any does."""
+    any_near = False
+    for l in range(cen.shape[0]):  # noqa: E741
+        g2 = 0.0
+        for j in range(3):
+            c = cen[l, j]
+            g = max(max(lo[j] - c, c - hi[j]), 0.0)
+            g2 += g * g
+        near[l] = math.sqrt(g2) - rad[l] < req
+        any_near = any_near or near[l]
+    return any_near
+
+
+@_jit
+def sample_separation_ok(
+    q: np.ndarray,
+    t: np.ndarray,
+    req: np.ndarray,
+    cen: np.ndarray,
+    rad: np.ndarray,
+    use_spheres: bool,
+    groups: np.ndarray,
+    n_groups: int,
+    times: np.ndarray,
+    joints: np.ndarray,
+    djoints: np.ndarray,
+    dtimes: np.ndarray,
+    lo_pair: np.ndarray,
+    hi_pair: np.ndarray,
+    T_base: np.ndarray,
+    t_tcp: np.ndarray,
+    dh_d: np.ndarray,
+    dh_a: np.ndarray,
+    twist: np.ndarray,
+    off_shoulder: float,
+    off_forearm: float,
+    ra: np.ndarray,
+    ia: np.ndarray,
+    ib: np.ndarray,
+    rh: np.ndarray,
+) -> tuple[np.ndarray, int]:
+    """The planner's sample check (:meth:`app.planning.search._Separation.check`) in one pass.
+
+    Sample ``s`` (configuration ``q[s]`` (6,)) passes when for every time offset ``o`` its surface distance
+    to the forecast pose at ``t[o, s]`` is at least ``req[o, s]`` (m). Broad phase (``use_spheres``): a
+    sphere (``cen[s]`` (L, 3), ``rad[s]`` (L,)) per robot capsule against the box ``lo_pair``/``hi_pair``
+    around the person over the forecast interval of the sample's time; capsules far from it are not
+    computed, and a sample with none near passes without forward kinematics. The pose at ``t`` is the
+    forecast's linear interpolation (``times`` (H,), ``joints`` (H, J, 3), ``djoints``/``dtimes`` its
+    differences; the ends held). With ``n_groups > 0`` the samples of one group (``groups`` (S,)) matter
+    only together: once one fails, the group's remaining samples are reported failing without computing.
+
+    Returns ``(ok (S,) bool, exact)``: the verdicts and how many (sample, offset) pairs needed the exact
+    distance.
+    """
+    S = q.shape[0]
+    n_off = t.shape[0]
+    L = ra.shape[0]
+    M = ia.shape[0]
+    J = joints.shape[1]
+    n_pair = lo_pair.shape[0]
+    ok = np.ones(S, dtype=np.bool_)
+    failed = np.zeros(max(n_groups, 1), dtype=np.bool_)
+    near = np.ones(L, dtype=np.bool_)
+    X = np.empty((7, 3))
+    Y = np.empty((7, 3))
+    Z = np.empty((7, 3))
+    P = np.empty((7, 3))
+    SA = np.empty((L, 3))
+    SD = np.empty((L, 3))
+    pose = np.empty((1, J, 3))
+    C = np.empty((M, 6))
+    exact = 0
+    for s in range(S):
+        if n_groups > 0 and failed[groups[s]]:
+            ok[s] = False
+            continue
+        have_segments = False
+        for o in range(n_off):
+            ts = t[o, s]
+            rq = req[o, s]
+            if use_spheres:
+                i = min(max(_pose_index(times, ts) - 1, 0), n_pair - 1)
+                if not _sphere_gaps_near(cen[s], rad[s], lo_pair[i], hi_pair[i], rq, near):
+                    continue
+            if not have_segments:
+                _segments_one(
+                    q, s, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, X, Y, Z, P, SA, SD
+                )
+                have_segments = True
+            _pose_at(ts, times, joints, djoints, dtimes, pose[0])
+            _person_capsules(pose, 0, ia, ib, C)
+            exact += 1
+            if _too_close(SA, SD, near, ra, C, rh, rq):
+                ok[s] = False
+                if n_groups > 0:
+                    failed[groups[s]] = True
+                break
+    return ok, exact
+
+
+@_jit
+def _searchsorted_left(times: np.ndarray, t: float) -> int:
+    """``searchsorted(times, t, side="left")`` by bisection."""
+    lo = 0
+    hi = times.shape[0]
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if times[mid] < t:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@_jit
+def _window_box(
+    t0: float,
+    t1: float,
+    times: np.ndarray,
+    lo_tab: np.ndarray,
+    hi_tab: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+) -> None:
+    """The box (``lo`` (3,), ``hi`` (4,): upper corner and the largest margin) that contains the person over
+    ``[t0, t1]``, from the sparse table of unions ``lo_tab`` (K, H, 3) / ``hi_tab`` (K, H, 4) (level k holds
+    the unions over the index ranges [i, i + 2^k)); :meth:`app.planning.search._Separation._boxes`."""
+    H = times.shape[0]
+    i0 = min(max(_pose_index(times, t0) - 1, 0), H - 1)
+    i1 = max(min(_searchsorted_left(times, t1), H - 1), i0)
+    n = i1 - i0 + 1
+    k = 0
+    while (2 << k) <= n:
+        k += 1
+    b = i1 - (1 << k) + 1
+    for j in range(3):
+        lo[j] = min(lo_tab[k, i0, j], lo_tab[k, b, j])
+    for j in range(4):
+        hi[j] = max(hi_tab[k, i0, j], hi_tab[k, b, j])
+
+
+@_jit
+def _margin_at(t: float, times: np.ndarray, margins: np.ndarray, growth: float, cap: float) -> float:
+    """The forecast's margin (m) at time ``t`` (:meth:`app.planning.search._Separation._margins`)."""
+    m = np.interp(t, times, margins)
+    if growth > 0.0:
+        m = min(m + growth * max(t - times[times.shape[0] - 1], 0.0), cap)
+    return m
+
+
+@_jit
+def _required(v: float, margin: float, prm: np.ndarray) -> float:
+    """:func:`app.planning.safety.forecast_clearance` + the extra distance, capped at the floor (m); ``prm``
+    as in :func:`moves_separation_ok`."""
+    req = max(v, 0.0) * prm[2] + prm[3] + prm[4] + max(prm[5], margin)
+    return min(req + prm[6], prm[7])
+
+
+@_jit
+def _profile_sample(
+    s: float, s_prev: float, u0: float, L: float, dur: float, f: float, A: float, end_rest: bool
+) -> tuple[float, float]:
+    """One sample of :func:`app.planning.search._profile_samples`: path fraction at profile time ``s`` and
+    the largest path speed over ``[s_prev, s]``."""
+    t1 = (f - u0) / A
+    if s <= t1:
+        pos = (u0 + 0.5 * A * s) * s
+    else:
+        pos = (u0 + 0.5 * A * t1) * t1 + f * (s - t1)
+    speed = min(u0 + A * s, f)
+    if end_rest:
+        up = min(f, math.sqrt((2.0 * A * L + u0 * u0) / 2.0))
+        if u0 * u0 <= 2.0 * A * L:
+            ta = (up - u0) / A
+            rem = dur - s
+            if s <= ta:
+                pos = (u0 + 0.5 * A * s) * s
+            elif rem <= up / A:
+                pos = L - 0.5 * A * rem * rem
+            else:
+                pos = (u0 + 0.5 * A * ta) * ta + up * (s - ta)
+            speed = min(min(u0 + A * min(s, ta), up), A * (dur - s_prev))
+        else:
+            a_forced = u0 / max(dur, 1e-12)
+            pos = u0 * s - 0.5 * a_forced * s * s
+            speed = max(u0 - a_forced * s_prev, 0.0)
+    frac = pos / max(L, 1e-12) if L > 1e-12 else 1.0
+    return min(max(frac, 0.0), 1.0), speed
+
+
+@_jit
+def moves_separation_ok(
+    q_a: np.ndarray,
+    dq: np.ndarray,
+    cen_a: np.ndarray,
+    rad_a: np.ndarray,
+    cen_b: np.ndarray,
+    rad_b: np.ndarray,
+    travel: np.ndarray,
+    t_dep: np.ndarray,
+    h: np.ndarray,
+    u0: np.ndarray,
+    Lp: np.ndarray,
+    dur: np.ndarray,
+    f: np.ndarray,
+    kv: np.ndarray,
+    peak: np.ndarray,
+    end_rest: np.ndarray,
+    hold: np.ndarray,
+    A: float,
+    sample_dt: float,
+    hold_s: float,
+    offsets: np.ndarray,
+    prm: np.ndarray,
+    times: np.ndarray,
+    joints: np.ndarray,
+    djoints: np.ndarray,
+    dtimes: np.ndarray,
+    lo_pair: np.ndarray,
+    hi_pair: np.ndarray,
+    margins: np.ndarray,
+    lo_tab: np.ndarray,
+    hi_tab: np.ndarray,
+    T_base: np.ndarray,
+    t_tcp: np.ndarray,
+    dh_d: np.ndarray,
+    dh_a: np.ndarray,
+    twist: np.ndarray,
+    off_shoulder: float,
+    off_forearm: float,
+    ra: np.ndarray,
+    ia: np.ndarray,
+    ib: np.ndarray,
+    rh: np.ndarray,
+) -> tuple[np.ndarray, int, int]:
+    """The planner's move check (:meth:`app.planning.search.Planner._moves_ok`) in one pass.
+
+    Move ``k``: from ``q_a[k]`` (6,) by ``dq[k]`` (6,) over ``h[k]`` s from ``t_dep[k]``, its path speed
+    profile given by entry speed ``u0``, path length ``Lp``, profile duration ``dur``, cruise speed ``f``,
+    whether it ends at rest ``end_rest`` (the same as :func:`app.planning.search._profile_samples`); ``kv``:
+    m/s per unit of path speed; ``peak``: its largest path speed; robot capsule spheres at its start
+    (``cen_a`` (M, L, 3), ``rad_a`` (M, L)) and end (``cen_b``, ``rad_b``) and how far the joints can carry
+    each capsule (``travel`` (M, L)); where ``hold[k]`` the robot must also stand at the end for ``hold_s``.
+
+    Stage 0: a move whose capsules (spheres grown by the travel) stay beyond the requirement of the box
+    around the person over the move's whole time window passes. Otherwise its samples (every ``sample_dt``
+    of the move, its end, then the hold) are checked like :func:`sample_separation_ok` (each at every time
+    ``offsets`` (n_off,)), and the move fails at its first sample that is too close. ``prm`` (8,):
+    ``growth_mps, max_margin_m, robot_time_s, intrusion_m, z_robot_m, z_human_m, extra_m, floor_m`` (+inf:
+    none); ``margins`` (H,): the forecast's margins; ``lo_tab``/``hi_tab``: the sparse table of
+    :func:`_window_box`; the rest as in :func:`sample_separation_ok`.
+
+    Returns ``(ok (M,) bool, samples, exact)``: the verdicts, the (sample, offset) pairs looked at and those
+    that needed the exact distance.
+    """
+    M = q_a.shape[0]
+    L = ra.shape[0]
+    NC = ia.shape[0]
+    J = joints.shape[1]
+    n_pair = lo_pair.shape[0]
+    n_off = offsets.shape[0]
+    growth = prm[0]
+    cap = prm[1]
+    lo_off = offsets[0]
+    hi_off = offsets[0]
+    for o in range(n_off):
+        lo_off = min(lo_off, offsets[o])
+        hi_off = max(hi_off, offsets[o])
+    n_hold = max(math.ceil(hold_s / sample_dt - 1e-9), 0)
+    hold_step = hold_s / max(n_hold, 1)
+    ok = np.ones(M, dtype=np.bool_)
+    near = np.ones(L, dtype=np.bool_)
+    cen = np.empty((L, 3))
+    rad = np.empty(L)
+    lo = np.empty(3)
+    hi = np.empty(4)
+    qbuf = np.empty((1, 6))
+    X = np.empty((7, 3))
+    Y = np.empty((7, 3))
+    Z = np.empty((7, 3))
+    P = np.empty((7, 3))
+    SA = np.empty((L, 3))
+    SD = np.empty((L, 3))
+    pose = np.empty((1, J, 3))
+    C = np.empty((NC, 6))
+    n_samples = 0
+    n_exact = 0
+    for k in range(M):
+        # stage 0: the whole move (and its hold) against the person's box over its time window
+        t0 = t_dep[k] + lo_off
+        t1 = t_dep[k] + h[k] + (hold_s if hold[k] else 0.0) + hi_off
+        _window_box(t0, t1, times, lo_tab, hi_tab, lo, hi)
+        m_hi = max(
+            hi[3],
+            max(_margin_at(t0, times, margins, growth, cap), _margin_at(t1, times, margins, growth, cap)),
+        )
+        rq = _required(kv[k] * peak[k], m_hi, prm)
+        for l in range(L):  # noqa: E741
+            for j in range(3):
+                cen[l, j] = 0.5 * (cen_a[k, l, j] + cen_b[k, l, j])
+            rad[l] = 0.5 * (rad_a[k, l] + rad_b[k, l] + travel[k, l])
+        if not _sphere_gaps_near(cen, rad, lo, hi, rq, near):
+            continue
+        # the samples: every sample_dt of the move (its end included), then the hold
+        hk = h[k]
+        n = max(math.ceil(hk / sample_dt - 1e-9), 1)
+        tot = n + (n_hold if hold[k] else 0)
+        clock = dur[k] / max(hk, 1e-12) if hk > 0 else 1.0
+        for i in range(1, tot + 1):
+            in_move = i <= n
+            tau = (i / n if in_move else 1.0) * hk
+            frac, speed = _profile_sample(
+                tau * clock,
+                (i - 1 if in_move else n) / n * hk * clock,
+                u0[k],
+                Lp[k],
+                dur[k],
+                f[k],
+                A,
+                end_rest[k],
+            )
+            if not in_move:
+                frac = 1.0
+            for j in range(6):
+                qbuf[0, j] = q_a[k, j] + frac * dq[k, j]
+            ts = t_dep[k] + tau + (0.0 if in_move else (i - n) * hold_step)
+            v = kv[k] * speed if in_move else 0.0
+            # each capsule lies within its start sphere grown by frac * travel and its end sphere grown by
+            # (1 - frac) * travel: the smaller of the two
+            for l in range(L):  # noqa: E741
+                r_a = rad_a[k, l] + frac * travel[k, l]
+                r_b = rad_b[k, l] + (1.0 - frac) * travel[k, l]
+                if r_a <= r_b:
+                    rad[l] = r_a
+                    for j in range(3):
+                        cen[l, j] = cen_a[k, l, j]
+                else:
+                    rad[l] = r_b
+                    for j in range(3):
+                        cen[l, j] = cen_b[k, l, j]
+            have_segments = False
+            for o in range(n_off):
+                to = ts + offsets[o]
+                rq = _required(v, _margin_at(to, times, margins, growth, cap), prm)
+                n_samples += 1
+                ip = min(max(_pose_index(times, to) - 1, 0), n_pair - 1)
+                if not _sphere_gaps_near(cen, rad, lo_pair[ip], hi_pair[ip], rq, near):
+                    continue
+                if not have_segments:
+                    _segments_one(
+                        qbuf,
+                        0,
+                        T_base,
+                        t_tcp,
+                        dh_d,
+                        dh_a,
+                        twist,
+                        off_shoulder,
+                        off_forearm,
+                        X,
+                        Y,
+                        Z,
+                        P,
+                        SA,
+                        SD,
+                    )
+                    have_segments = True
+                _pose_at(to, times, joints, djoints, dtimes, pose[0])
+                _person_capsules(pose, 0, ia, ib, C)
+                n_exact += 1
+                if _too_close(SA, SD, near, ra, C, rh, rq):
+                    ok[k] = False
+                    break
+            if not ok[k]:
+                break
+    return ok, n_samples, n_exact
+
+
+@_jit
+def trajectory_separation_bad(
+    a0: np.ndarray,
+    d0: np.ndarray,
+    a1: np.ndarray,
+    d1: np.ndarray,
+    eps: float,
+    joints: np.ndarray,
+    margins: np.ndarray,
+    robot_time_s: float,
+    intrusion_m: float,
+    z_robot_m: float,
+    z_human_m: float,
+    floor_m: float,
+    r_human_max: float,
+    ra: np.ndarray,
+    ia: np.ndarray,
+    ib: np.ndarray,
+    rh: np.ndarray,
+) -> np.ndarray:
+    """Samples of a trajectory closer to the forecast person than required (:meth:`Planner._separation_bad`).
+
+    Sample k: robot segments ``a0``/``d0`` (L, 3, K) and ``a1``/``d1`` a time ``eps`` (s) later;
+    the robot speed is the largest displacement of a capsule end over ``eps``; the requirement is
+    :func:`app.planning.safety.forecast_clearance` for that speed and ``margins[k]`` (SSM constants
+    passed in), capped at ``floor_m`` (+inf: no cap); the person is ``joints[k]`` (J, 3). Only capsules
+    whose bounding sphere comes within the requirement of the box around the pose are computed.
+
+    Returns:
+        (K,) bool: True where the surface distance is below the requirement (and where an input is NaN).
+    """
+    L = a0.shape[0]
+    K = a0.shape[2]
+    J = joints.shape[1]
+    M = ia.shape[0]
+    bad = np.zeros(K, dtype=np.bool_)
+    SA = np.empty((L, 3))
+    SD = np.empty((L, 3))
+    near = np.zeros(L, dtype=np.bool_)
+    C = np.empty((M, 6))
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for k in range(K):
+        finite = margins[k] == margins[k]
+        step = 0.0
+        for l in range(L):  # noqa: E741
+            sa = 0.0
+            sb = 0.0
+            for j in range(3):
+                da = a1[l, j, k] - a0[l, j, k]
+                db = (a1[l, j, k] + d1[l, j, k]) - (a0[l, j, k] + d0[l, j, k])
+                sa += da * da
+                sb += db * db
+            m2 = max(sa, sb)
+            finite = finite and m2 == m2
+            step = max(step, math.sqrt(m2))
+        for j in range(3):
+            lo[j] = np.inf
+            hi[j] = -np.inf
+        for jj in range(J):
+            for j in range(3):
+                x = joints[k, jj, j]
+                finite = finite and x == x
+                lo[j] = min(lo[j], x)
+                hi[j] = max(hi[j], x)
+        if not finite:  # a NaN configuration or pose is never taken for safe
+            bad[k] = True
+            continue
+        v = max(step / eps, 0.0)
+        req = v * robot_time_s + intrusion_m + z_robot_m + max(z_human_m, margins[k])
+        req = min(req, floor_m)
+        any_near = False
+        for l in range(L):  # noqa: E741
+            g2 = 0.0
+            h2 = 0.0
+            for j in range(3):
+                dd = d0[l, j, k]
+                c = a0[l, j, k] + 0.5 * dd
+                g = max(max((lo[j] - r_human_max) - c, c - (hi[j] + r_human_max)), 0.0)
+                g2 += g * g
+                h2 += dd * dd
+                SA[l, j] = a0[l, j, k]
+                SD[l, j] = dd
+            near[l] = math.sqrt(g2) - (0.5 * math.sqrt(h2) + ra[l]) < req
+            any_near = any_near or near[l]
+        if not any_near:
+            continue
+        _person_capsules(joints, k, ia, ib, C)
+        bad[k] = _too_close(SA, SD, near, ra, C, rh, req)
+    return bad
