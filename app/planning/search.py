@@ -92,6 +92,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from app.planning import _kernels
 from app.planning.roadmap import NUM_BRANCHES, Roadmap
 from app.planning.safety import SSMParams, forecast_clearance
 from app.planning.trajectory import Plan, Trajectory, TrajectoryError, fit_knots
@@ -319,6 +320,7 @@ class _Separation:
         subsets: bool = False,
         cap_ends: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
         robot_r: np.ndarray | None = None,
+        kernel: tuple[object, ...] | None = None,
     ) -> None:
         self.model = model
         self.forecast = forecast
@@ -329,6 +331,7 @@ class _Separation:
         self.samples = 0
         self.exact_samples = 0
         self.t_static = math.inf  # from then on the person holds still and the margin is constant (s)
+        self._kernel = None
         if forecast is None:
             return
         m_end = float(forecast.margins[-1])
@@ -360,6 +363,39 @@ class _Separation:
         self._lo_pair = self._lo_tab[1] if len(self._lo_tab) > 1 else lo
         self._hi_pair = self._hi_tab[1] if len(self._hi_tab) > 1 else hi
         self._n_pair = self._lo_pair.shape[0]
+        # the compiled check (``kernel``: CollisionModel.kernel_geometry()) and its forecast arrays
+        self._kernel = kernel
+        if kernel is not None:
+            H, J = joints.shape[0], joints.shape[1]
+            self._k_forecast = (
+                _kernels.as_f64(self._times),
+                _kernels.as_f64(joints),
+                _kernels.as_f64(self._djoints if H > 1 else np.zeros((1, J, 3))),
+                _kernels.as_f64(self._dtimes if H > 1 else np.ones(1)),
+                _kernels.as_f64(self._lo_pair),
+                _kernels.as_f64(self._hi_pair),
+            )
+            # the sparse table as (levels, H, .) arrays (level k is valid on its first H - 2^k + 1 rows)
+            n_lev = len(self._lo_tab)
+            lo_tab, hi_tab = np.zeros((n_lev, H, 3)), np.zeros((n_lev, H, 4))
+            for k, (a, b) in enumerate(zip(self._lo_tab, self._hi_tab, strict=True)):
+                lo_tab[k, : a.shape[0]] = a
+                hi_tab[k, : b.shape[0]] = b
+            self._k_window = (_kernels.as_f64(self._margin_arr), lo_tab, hi_tab)
+            self._k_params = np.array(
+                [
+                    forecast.growth_mps,
+                    self._cap,
+                    ssm.robot_time_s,
+                    ssm.intrusion_m,
+                    ssm.z_robot_m,
+                    ssm.z_human_m,
+                    extra_m,
+                    math.inf if floor_m is None else floor_m,
+                ],
+                dtype=np.float64,
+            )
+            self._k_offsets = np.array(offsets, dtype=np.float64)
         # per person capsule boxes (for the exact stage to skip capsules far from the robot), sparse table
         # the exact stage's shortcuts need the collision model's segments and capsule subsets
         self._subsets = subsets and cap_ends is not None and robot_r is not None
@@ -461,6 +497,8 @@ class _Separation:
         S = q.shape[0]
         if self.forecast is None or S == 0:
             return np.ones(S, dtype=bool)
+        if self._kernel is not None:
+            return self._check_compiled(q, t, v, cen, rad, groups)
         n_off = len(self.offsets)
         if n_off > 1:
             t = (t[None, :] + np.asarray(self.offsets)[:, None]).reshape(-1)
@@ -521,6 +559,49 @@ class _Separation:
                 d = self.model.distance_to_human_paired(q[near], poses)
             ok[near] = d >= rn
         return ok.reshape(n_off, S).all(axis=0) if n_off > 1 else ok
+
+    def _check_compiled(
+        self,
+        q: np.ndarray,
+        t: np.ndarray,
+        v: np.ndarray,
+        cen: np.ndarray | None,
+        rad: np.ndarray | None,
+        groups: np.ndarray | None,
+    ) -> np.ndarray:
+        """:meth:`check` in one compiled pass (:func:`app.planning._kernels.sample_separation_ok`): the same
+        broad phase and exact distances, with the exact stage stopping at the first capsule pair that is too
+        close and skipping the rest of a group once one of its samples failed."""
+        S = q.shape[0]
+        n_off = len(self.offsets)
+        t_all = np.asarray(t, dtype=np.float64)[None, :] + np.asarray(self.offsets, dtype=np.float64)[:, None]
+        v_all = np.broadcast_to(np.asarray(v, dtype=np.float64), (n_off, S)).reshape(-1)
+        req = self._required(v_all, t_all.reshape(-1)).reshape(n_off, S)
+        use_spheres = cen is not None and rad is not None
+        if use_spheres:
+            cen_k, rad_k = _kernels.as_f64(cen), _kernels.as_f64(rad)
+        else:
+            cen_k, rad_k = np.zeros((1, 1, 3)), np.zeros((1, 1))
+        if groups is None:
+            groups_k, n_groups = np.zeros(1, dtype=np.int64), 0
+        else:
+            groups_k = _kernels.as_i64(groups)
+            n_groups = int(groups_k.max()) + 1
+        ok, exact = _kernels.sample_separation_ok(
+            _kernels.as_f64(q),
+            t_all,
+            _kernels.as_f64(req),
+            cen_k,
+            rad_k,
+            use_spheres,
+            groups_k,
+            n_groups,
+            *self._k_forecast,
+            *self._kernel,
+        )
+        self.samples += n_off * S
+        self.exact_samples += exact
+        return ok
 
     def _upper_bound(
         self, a_c: np.ndarray, d_c: np.ndarray, poses: np.ndarray, links: np.ndarray, caps: np.ndarray
@@ -627,6 +708,9 @@ class Planner:
             for name in ("in_static_collision", "self_collision")
         )
         self._robot_r = np.asarray(collision.robot_capsules(np.zeros((1, 6)))[2], dtype=np.float64)
+        # the fused compiled checks, when the model is the (compiled) UR5e capsule model
+        get_geometry = getattr(collision, "kernel_geometry", None)
+        self._kernel_geometry = get_geometry() if callable(get_geometry) and self._segments_ok else None
         self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
         # which joints each person capsule runs between (joint indices fed in as coordinates) and its radius
         coded = np.repeat(np.arange(NUM_JOINTS, dtype=np.float64)[None, :, None], 3, axis=2)
@@ -934,6 +1018,7 @@ class Planner:
             subsets=self._subsets_ok and self._segments_ok,
             cap_ends=self._cap_ends,
             robot_r=self._robot_r,
+            kernel=self._kernel_geometry,
         )
 
     # ------------------------------------------------------------------------------------------ public
@@ -1184,6 +1269,28 @@ class Planner:
         model = self.collision
         a0, d0 = model.robot_segments(q) if segs is None else segs  # (L, 3, K)
         a1, d1 = model.robot_segments(traj.q(ts + eps))
+        if self._kernel_geometry is not None:
+            ssm = self.config.ssm
+            ra, ia, ib, rh = self._kernel_geometry[7:]
+            return _kernels.trajectory_separation_bad(
+                _kernels.as_f64(a0),
+                _kernels.as_f64(d0),
+                _kernels.as_f64(a1),
+                _kernels.as_f64(d1),
+                eps,
+                _kernels.as_f64(joints),
+                _kernels.as_f64(margins),
+                ssm.robot_time_s,
+                ssm.intrusion_m,
+                ssm.z_robot_m,
+                ssm.z_human_m,
+                math.inf if floor_m is None else float(floor_m),
+                self._human_r_max,
+                ra,
+                ia,
+                ib,
+                rh,
+            )
         step = np.maximum(
             np.sqrt(np.einsum("lik,lik->lk", a1 - a0, a1 - a0)),
             np.sqrt(np.einsum("lik,lik->lk", (a1 + d1) - (a0 + d0), (a1 + d1) - (a0 + d0))),
@@ -1768,6 +1875,26 @@ class Planner:
         result = np.ones(M, dtype=bool)
         if sep.forecast is None or M == 0:
             return result
+        if sep._kernel is not None:
+            return self._moves_ok_compiled(
+                sep,
+                q_a,
+                pts_a,
+                cen_a,
+                rad_a,
+                cv,
+                b,
+                target,
+                t_dep,
+                h,
+                u0,
+                L,
+                end_rest,
+                f,
+                hold,
+                hold_s,
+                target_geometry=target_geometry,
+            )
         sel, owner, q, t, v, cen, rad = self._move_samples(
             sep,
             q_a,
@@ -1791,6 +1918,99 @@ class Planner:
             ok_s = sep.check(q, t, v, cen, rad, owner)
             result[sel] = np.bincount(owner, weights=~ok_s, minlength=sel.size) == 0
         return result
+
+    def _move_prep(
+        self,
+        q_a: np.ndarray,
+        pts_a: np.ndarray,
+        cv: np.ndarray,
+        b: np.ndarray,
+        target: np.ndarray,
+        h: np.ndarray,
+        u0: np.ndarray,
+        L: np.ndarray,
+        end_rest: np.ndarray,
+        f: np.ndarray,
+        target_geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    ) -> tuple[np.ndarray, ...]:
+        """Per move (arguments as in :meth:`_move_samples`): the joint step ``dq`` (M, 6), how far the
+        joints can carry each capsule ``travel`` (M, L), the target's spheres ``cen_b`` (M, L, 3) / ``rad_b``
+        (M, L), the profile's duration and peak speed, its clock (profile seconds per real second) and
+        ``kv`` (m/s per unit of path speed)."""
+        M = q_a.shape[0]
+        dq = target - q_a
+        cum = np.concatenate([np.zeros((M, 1)), np.cumsum(np.abs(dq) * self._lever, axis=1)], axis=1)
+        travel = cum[:, self._moved_by]  # (M, L): how far joints 1..J(l) can carry capsule l
+        if target_geometry is None:
+            pts_b, cen_b, rad_b = self._pts_all[cv, b], self._cen_all[cv, b], self._rad_all[cv, b]
+        else:
+            pts_b, cen_b, rad_b = target_geometry
+        chord = np.max(np.linalg.norm(pts_b - pts_a, axis=-1), axis=-1)
+        dur, _, peak = _profile_arrays(u0, L, f, self._A, end_rest)
+        moving = L > 1e-12
+        clock = np.where(h > 0, dur / np.maximum(h, 1e-12), 1.0)  # profile seconds per real second
+        # m/s per unit of path speed
+        kv = np.where(moving, self.config.speed_factor * chord * clock / np.maximum(L, 1e-12), 0.0)
+        return dq, travel, cen_b, rad_b, dur, peak, clock, kv
+
+    def _moves_ok_compiled(
+        self,
+        sep: _Separation,
+        q_a: np.ndarray,
+        pts_a: np.ndarray,
+        cen_a: np.ndarray,
+        rad_a: np.ndarray,
+        cv: np.ndarray,
+        b: np.ndarray,
+        target: np.ndarray,
+        t_dep: np.ndarray,
+        h: np.ndarray,
+        u0: np.ndarray,
+        L: np.ndarray,
+        end_rest: np.ndarray,
+        f: np.ndarray,
+        hold: np.ndarray,
+        hold_s: float,
+        *,
+        target_geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
+        """:meth:`_moves_ok` in one compiled pass (:func:`app.planning._kernels.moves_separation_ok`): the
+        same stage 0, samples and exact distances; a move stops at its first sample that fails."""
+        dq, travel, cen_b, rad_b, dur, peak, _, kv = self._move_prep(
+            q_a, pts_a, cv, b, target, h, u0, L, end_rest, f, target_geometry
+        )
+        f64 = _kernels.as_f64
+        M = q_a.shape[0]
+        ok, n_samples, n_exact = _kernels.moves_separation_ok(
+            f64(q_a),
+            f64(dq),
+            f64(cen_a),
+            f64(rad_a),
+            f64(cen_b),
+            f64(rad_b),
+            f64(travel),
+            f64(np.broadcast_to(t_dep, (M,))),
+            f64(h),
+            f64(u0),
+            f64(L),
+            f64(dur),
+            f64(np.broadcast_to(f, (M,))),
+            f64(kv),
+            f64(peak),
+            _kernels.as_bool(np.broadcast_to(end_rest, (M,))),
+            _kernels.as_bool(np.broadcast_to(hold, (M,))),
+            self._A,
+            self.config.sample_dt_s,
+            float(hold_s),
+            sep._k_offsets,
+            sep._k_params,
+            *sep._k_forecast,
+            *sep._k_window,
+            *sep._kernel,
+        )
+        sep.samples += n_samples
+        sep.exact_samples += n_exact
+        return ok
 
     def _move_samples(
         self,
@@ -1833,19 +2053,9 @@ class Planner:
         M = q_a.shape[0]
         cfg = self.config
         A = self._A
-        dq = target - q_a
-        cum = np.concatenate([np.zeros((M, 1)), np.cumsum(np.abs(dq) * self._lever, axis=1)], axis=1)
-        travel = cum[:, self._moved_by]  # (M, L): how far joints 1..J(l) can carry capsule l
-        if target_geometry is None:
-            pts_b, cen_b, rad_b = self._pts_all[cv, b], self._cen_all[cv, b], self._rad_all[cv, b]
-        else:
-            pts_b, cen_b, rad_b = target_geometry
-        chord = np.max(np.linalg.norm(pts_b - pts_a, axis=-1), axis=-1)
-        dur, _, peak = _profile_arrays(u0, L, f, A, end_rest)
-        moving = L > 1e-12
-        clock = np.where(h > 0, dur / np.maximum(h, 1e-12), 1.0)  # profile seconds per real second
-        # m/s per unit of path speed
-        kv = np.where(moving, cfg.speed_factor * chord * clock / np.maximum(L, 1e-12), 0.0)
+        dq, travel, cen_b, rad_b, dur, peak, clock, kv = self._move_prep(
+            q_a, pts_a, cv, b, target, h, u0, L, end_rest, f, target_geometry
+        )
         # stage 0: moves far from the person over their whole time window pass without samples; a capsule
         # point is within frac * T of its start and (1 - frac) * T of its end, so within
         # T / 2 + (rho_a + rho_b) / 2 of the middle of the two sphere centres
@@ -2346,6 +2556,34 @@ class _Run:
         n_wait = parts[0][0].shape[0] if parts else 0
         pts, cen, rad = self._parent_geometry(par)
         hold = cv == self.goal if self.goal is not None else np.full(idx.size, self.hold_s > 0)
+        if sep._kernel is not None:
+            # compiled: the waits (each sample on its own) and the moves in two passes
+            if todo.size:
+                res_w = sep.check(*parts[0]).reshape(todo.size, -1)
+                t_w = parts[0][1].reshape(todo.size, -1)
+                first_bad = t_w[np.arange(todo.size), np.argmin(res_w, axis=1)]
+                self.wait_ok[todo] = np.where(res_w.all(axis=1), np.inf, first_bad)
+            if waiting.size:
+                ok[waiting] = dep[waiting] < self.wait_ok[par[waiting]] - _EPS_T
+            ok &= p._moves_ok(
+                sep,
+                q_par,
+                pts,
+                cen,
+                rad,
+                cv,
+                b,
+                target,
+                dep,
+                self.h[idx],
+                self.u0[idx],
+                self.L[idx],
+                self.end[idx],
+                self.fc[idx],
+                hold,
+                self.hold_s,
+            )
+            return ok
         sel, owner, *samples = p._move_samples(
             sep,
             q_par,
