@@ -757,24 +757,41 @@ def _profile_sample(
 
 
 @_jit
+def _profile(u0: float, L: float, f: float, A: float, end_rest: bool) -> tuple[float, float]:
+    """Duration and peak path speed of one move (:func:`app.planning.search._profile_arrays`)."""
+    u0sq = u0 * u0
+    two_al = 2.0 * A * L
+    if not end_rest:
+        u1 = min(math.sqrt(u0sq + two_al), f)
+        return (u1 - u0) / A + max(L - (u1 * u1 - u0sq) / (2.0 * A), 0.0) / f, u1
+    up = min(f, math.sqrt((two_al + u0sq) / 2.0))
+    if u0sq <= two_al:
+        cruise = max(L - (up * up - u0sq) / (2.0 * A) - up * up / (2.0 * A), 0.0)
+        return (up - u0) / A + cruise / max(up, 1e-12) + up / A, up
+    return 2.0 * L / max(u0, 1e-12), u0
+
+
+@_jit
 def moves_separation_ok(
     q_a: np.ndarray,
-    dq: np.ndarray,
+    target: np.ndarray,
+    pts_a: np.ndarray,
     cen_a: np.ndarray,
     rad_a: np.ndarray,
-    cen_b: np.ndarray,
-    rad_b: np.ndarray,
-    travel: np.ndarray,
+    pts_tab: np.ndarray,
+    cen_tab: np.ndarray,
+    rad_tab: np.ndarray,
+    rows: np.ndarray,
     t_dep: np.ndarray,
     h: np.ndarray,
     u0: np.ndarray,
     Lp: np.ndarray,
-    dur: np.ndarray,
     f: np.ndarray,
-    kv: np.ndarray,
-    peak: np.ndarray,
     end_rest: np.ndarray,
     hold: np.ndarray,
+    lever: np.ndarray,
+    moved_by: np.ndarray,
+    speed_factor: float,
     A: float,
     sample_dt: float,
     hold_s: float,
@@ -803,17 +820,20 @@ def moves_separation_ok(
 ) -> tuple[np.ndarray, int, int]:
     """The planner's move check (:meth:`app.planning.search.Planner._moves_ok`) in one pass.
 
-    Move ``k``: from ``q_a[k]`` (6,) by ``dq[k]`` (6,) over ``h[k]`` s from ``t_dep[k]``, its path speed
-    profile given by entry speed ``u0``, path length ``Lp``, profile duration ``dur``, cruise speed ``f``,
-    whether it ends at rest ``end_rest`` (the same as :func:`app.planning.search._profile_samples`); ``kv``:
-    m/s per unit of path speed; ``peak``: its largest path speed; robot capsule spheres at its start
-    (``cen_a`` (M, L, 3), ``rad_a`` (M, L)) and end (``cen_b``, ``rad_b``) and how far the joints can carry
-    each capsule (``travel`` (M, L)); where ``hold[k]`` the robot must also stand at the end for ``hold_s``.
+    Move ``k`` runs straight in joint space from ``q_a[k]`` to ``target[k]`` (6,), departing at ``t_dep[k]``
+    and lasting ``h[k]`` s; its path-speed profile (:func:`app.planning.search._profile_samples`) has entry
+    speed ``u0``, path length ``Lp``, cruise speed ``f`` and ends at rest where ``end_rest``; where
+    ``hold[k]`` the robot must then stand at the target for ``hold_s``. Robot geometry at the start: capsule
+    end points ``pts_a`` (M, P, 3) and bounding spheres ``cen_a`` (M, L, 3) / ``rad_a`` (M, L); at the target:
+    row ``rows[k]`` of the tables ``pts_tab``/``cen_tab``/``rad_tab``. ``lever`` (6,) bounds how far a
+    joint's unit turn moves any point, ``moved_by`` (L,) is the last joint that moves each capsule (so
+    ``travel`` = how far the joints can carry it), and the robot speed of a sample is its path speed times
+    ``speed_factor`` x the largest chord per unit of path (as :meth:`Planner._move_prep`).
 
-    Stage 0: a move whose capsules (spheres grown by the travel) stay beyond the requirement of the box
-    around the person over the move's whole time window passes. Otherwise its samples (every ``sample_dt``
-    of the move, its end, then the hold) are checked like :func:`sample_separation_ok` (each at every time
-    ``offsets`` (n_off,)), and the move fails at its first sample that is too close. ``prm`` (8,):
+    Stage 0: a move whose capsules (the mid spheres grown by the travel) stay beyond the requirement of the
+    box around the person over the move's whole time window passes. Otherwise its samples (every
+    ``sample_dt`` of the move, its end, then the hold) are checked like :func:`sample_separation_ok` (each at
+    every time ``offsets`` (n_off,)), and the move fails at its first sample that is too close. ``prm`` (8,):
     ``growth_mps, max_margin_m, robot_time_s, intrusion_m, z_robot_m, z_human_m, extra_m, floor_m`` (+inf:
     none); ``margins`` (H,): the forecast's margins; ``lo_tab``/``hi_tab``: the sparse table of
     :func:`_window_box`; the rest as in :func:`sample_separation_ok`.
@@ -823,6 +843,7 @@ def moves_separation_ok(
     """
     M = q_a.shape[0]
     L = ra.shape[0]
+    NP = pts_a.shape[1]
     NC = ia.shape[0]
     J = joints.shape[1]
     n_pair = lo_pair.shape[0]
@@ -840,6 +861,9 @@ def moves_separation_ok(
     near = np.ones(L, dtype=np.bool_)
     cen = np.empty((L, 3))
     rad = np.empty(L)
+    travel = np.empty(L)
+    cum = np.empty(7)
+    dq = np.empty(6)
     lo = np.empty(3)
     hi = np.empty(4)
     qbuf = np.empty((1, 6))
@@ -854,50 +878,60 @@ def moves_separation_ok(
     n_samples = 0
     n_exact = 0
     for k in range(M):
+        rb = rows[k]
+        # how far the joints can carry each capsule, the largest chord, the profile
+        cum[0] = 0.0
+        for j in range(6):
+            dq[j] = target[k, j] - q_a[k, j]
+            cum[j + 1] = cum[j] + abs(dq[j]) * lever[j]
+        for l in range(L):  # noqa: E741
+            travel[l] = cum[moved_by[l]]
+        chord = 0.0
+        for p in range(NP):
+            d0 = pts_tab[rb, p, 0] - pts_a[k, p, 0]
+            d1 = pts_tab[rb, p, 1] - pts_a[k, p, 1]
+            d2 = pts_tab[rb, p, 2] - pts_a[k, p, 2]
+            chord = max(chord, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+        Lk = Lp[k]
+        dur, peak = _profile(u0[k], Lk, f[k], A, end_rest[k])
+        hk = h[k]
+        clock = dur / max(hk, 1e-12) if hk > 0 else 1.0  # profile seconds per real second
+        kv = speed_factor * chord * clock / max(Lk, 1e-12) if Lk > 1e-12 else 0.0
         # stage 0: the whole move (and its hold) against the person's box over its time window
         t0 = t_dep[k] + lo_off
-        t1 = t_dep[k] + h[k] + (hold_s if hold[k] else 0.0) + hi_off
+        t1 = t_dep[k] + hk + (hold_s if hold[k] else 0.0) + hi_off
         _window_box(t0, t1, times, lo_tab, hi_tab, lo, hi)
         m_hi = max(
             hi[3],
             max(_margin_at(t0, times, margins, growth, cap), _margin_at(t1, times, margins, growth, cap)),
         )
-        rq = _required(kv[k] * peak[k], m_hi, prm)
+        rq = _required(kv * peak, m_hi, prm)
         for l in range(L):  # noqa: E741
             for j in range(3):
-                cen[l, j] = 0.5 * (cen_a[k, l, j] + cen_b[k, l, j])
-            rad[l] = 0.5 * (rad_a[k, l] + rad_b[k, l] + travel[k, l])
+                cen[l, j] = 0.5 * (cen_a[k, l, j] + cen_tab[rb, l, j])
+            rad[l] = 0.5 * (rad_a[k, l] + rad_tab[rb, l] + travel[l])
         if not _sphere_gaps_near(cen, rad, lo, hi, rq, near):
             continue
         # the samples: every sample_dt of the move (its end included), then the hold
-        hk = h[k]
         n = max(math.ceil(hk / sample_dt - 1e-9), 1)
         tot = n + (n_hold if hold[k] else 0)
-        clock = dur[k] / max(hk, 1e-12) if hk > 0 else 1.0
         for i in range(1, tot + 1):
             in_move = i <= n
             tau = (i / n if in_move else 1.0) * hk
             frac, speed = _profile_sample(
-                tau * clock,
-                (i - 1 if in_move else n) / n * hk * clock,
-                u0[k],
-                Lp[k],
-                dur[k],
-                f[k],
-                A,
-                end_rest[k],
+                tau * clock, (i - 1 if in_move else n) / n * hk * clock, u0[k], Lk, dur, f[k], A, end_rest[k]
             )
             if not in_move:
                 frac = 1.0
             for j in range(6):
-                qbuf[0, j] = q_a[k, j] + frac * dq[k, j]
+                qbuf[0, j] = q_a[k, j] + frac * dq[j]
             ts = t_dep[k] + tau + (0.0 if in_move else (i - n) * hold_step)
-            v = kv[k] * speed if in_move else 0.0
+            v = kv * speed if in_move else 0.0
             # each capsule lies within its start sphere grown by frac * travel and its end sphere grown by
             # (1 - frac) * travel: the smaller of the two
             for l in range(L):  # noqa: E741
-                r_a = rad_a[k, l] + frac * travel[k, l]
-                r_b = rad_b[k, l] + (1.0 - frac) * travel[k, l]
+                r_a = rad_a[k, l] + frac * travel[l]
+                r_b = rad_tab[rb, l] + (1.0 - frac) * travel[l]
                 if r_a <= r_b:
                     rad[l] = r_a
                     for j in range(3):
@@ -905,7 +939,7 @@ def moves_separation_ok(
                 else:
                     rad[l] = r_b
                     for j in range(3):
-                        cen[l, j] = cen_b[k, l, j]
+                        cen[l, j] = cen_tab[rb, l, j]
             have_segments = False
             for o in range(n_off):
                 to = ts + offsets[o]

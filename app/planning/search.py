@@ -711,6 +711,15 @@ class Planner:
         # the fused compiled checks, when the model is the (compiled) UR5e capsule model
         get_geometry = getattr(collision, "kernel_geometry", None)
         self._kernel_geometry = get_geometry() if callable(get_geometry) and self._segments_ok else None
+        if self._kernel_geometry is not None:  # the node tables as the compiled move check reads them
+            n_rows = roadmap.num_nodes * NUM_BRANCHES
+            self._k_tables = (
+                _kernels.as_f64(self._pts_all.reshape(n_rows, -1, 3)),
+                _kernels.as_f64(self._cen_all.reshape(n_rows, -1, 3)),
+                _kernels.as_f64(self._rad_all.reshape(n_rows, -1)),
+            )
+            self._k_lever = _kernels.as_f64(self._lever)
+            self._k_moved_by = _kernels.as_i64(self._moved_by)
         self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
         # which joints each person capsule runs between (joint indices fed in as coordinates) and its radius
         coded = np.repeat(np.arange(NUM_JOINTS, dtype=np.float64)[None, :, None], 3, axis=2)
@@ -1975,32 +1984,37 @@ class Planner:
         target_geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
         """:meth:`_moves_ok` in one compiled pass (:func:`app.planning._kernels.moves_separation_ok`): the
-        same stage 0, samples and exact distances; a move stops at its first sample that fails."""
-        dq, travel, cen_b, rad_b, dur, peak, _, kv = self._move_prep(
-            q_a, pts_a, cv, b, target, h, u0, L, end_rest, f, target_geometry
-        )
-        f64 = _kernels.as_f64
-        M = q_a.shape[0]
+        same stage 0, samples and exact distances (and the same :meth:`_move_prep`); a move stops at its
+        first sample that fails."""
+        f64, M = _kernels.as_f64, q_a.shape[0]
+        if target_geometry is None:
+            pts_tab, cen_tab, rad_tab = self._k_tables
+            rows = _kernels.as_i64(np.asarray(cv) * NUM_BRANCHES + np.asarray(b))
+        else:
+            pts_tab, cen_tab, rad_tab = (f64(x) for x in target_geometry)
+            rows = np.arange(M, dtype=np.int64)
         ok, n_samples, n_exact = _kernels.moves_separation_ok(
             f64(q_a),
-            f64(dq),
+            f64(target),
+            f64(pts_a),
             f64(cen_a),
             f64(rad_a),
-            f64(cen_b),
-            f64(rad_b),
-            f64(travel),
-            f64(np.broadcast_to(t_dep, (M,))),
+            pts_tab,
+            cen_tab,
+            rad_tab,
+            rows,
+            _per_move(t_dep, M),
             f64(h),
             f64(u0),
             f64(L),
-            f64(dur),
-            f64(np.broadcast_to(f, (M,))),
-            f64(kv),
-            f64(peak),
-            _kernels.as_bool(np.broadcast_to(end_rest, (M,))),
-            _kernels.as_bool(np.broadcast_to(hold, (M,))),
+            _per_move(f, M),
+            _per_move(end_rest, M, np.bool_),
+            _per_move(hold, M, np.bool_),
+            self._k_lever,
+            self._k_moved_by,
+            float(self.config.speed_factor),
             self._A,
-            self.config.sample_dt_s,
+            float(self.config.sample_dt_s),
             float(hold_s),
             sep._k_offsets,
             sep._k_params,
@@ -2565,24 +2579,27 @@ class _Run:
                 self.wait_ok[todo] = np.where(res_w.all(axis=1), np.inf, first_bad)
             if waiting.size:
                 ok[waiting] = dep[waiting] < self.wait_ok[par[waiting]] - _EPS_T
-            ok &= p._moves_ok(
-                sep,
-                q_par,
-                pts,
-                cen,
-                rad,
-                cv,
-                b,
-                target,
-                dep,
-                self.h[idx],
-                self.u0[idx],
-                self.L[idx],
-                self.end[idx],
-                self.fc[idx],
-                hold,
-                self.hold_s,
-            )
+            live = np.flatnonzero(ok)  # a move after a wait that fails fails with it
+            if live.size:
+                il = idx[live]
+                ok[live] = p._moves_ok(
+                    sep,
+                    q_par[live],
+                    pts[live],
+                    cen[live],
+                    rad[live],
+                    cv[live],
+                    b[live],
+                    target[live],
+                    dep[live],
+                    self.h[il],
+                    self.u0[il],
+                    self.L[il],
+                    self.end[il],
+                    self.fc[il],
+                    hold[live],
+                    self.hold_s,
+                )
             return ok
         sel, owner, *samples = p._move_samples(
             sep,
@@ -2648,6 +2665,13 @@ class _Run:
 
 _NO_IDS = np.zeros(0, dtype=np.int64)
 _NO_ROW = -(2**62)  # option-table row of the start state (it has no alternatives)
+
+
+def _per_move(x: np.ndarray | float | bool, m: int, dtype: type = np.float64) -> np.ndarray:
+    """A per-move argument of the compiled checks: (m,) contiguous and writeable, broadcast if scalar."""
+    if isinstance(x, np.ndarray) and x.shape == (m,) and x.dtype == dtype and x.flags.c_contiguous:
+        return _kernels.as_bool(x) if dtype is np.bool_ else _kernels.as_f64(x)
+    return np.array(np.broadcast_to(np.asarray(x, dtype=dtype), (m,)), order="C")
 
 
 def _profile_arrays(
