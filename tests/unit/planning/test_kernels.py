@@ -1,0 +1,351 @@
+"""The compiled kernels (app.planning._kernels) against the NumPy reference implementations.
+
+Distances agree to 1e-9 m wherever the segment axes are apart; where they touch, the NumPy reference's
+expansion in dot products is off by up to a few 1e-8 m and the kernel is checked against the exact answer
+instead. The planner with compiled checks must return exactly what it returns with the NumPy checks.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from app.config import load_workcell
+from app.planning import _kernels
+from app.planning.collision import (
+    HUMAN_CAPSULES,
+    ROBOT_LINKS,
+    CollisionModel,
+    _segment_distance_numpy,
+    segment_distance,
+)
+from app.planning.kinematics import UR5e
+from app.planning.roadmap import RoadmapConfig, load_or_build_roadmap
+from app.planning.scenarios import reference_queries
+from app.planning.search import Planner
+from app.prediction.forecast import HumanForecast
+from app.prediction.skeleton import NUM_JOINTS
+
+TOL = 1e-9
+
+
+@pytest.fixture(scope="module")
+def cell():  # type: ignore[no-untyped-def]
+    return load_workcell()
+
+
+@pytest.fixture(scope="module")
+def models(cell):  # type: ignore[no-untyped-def]
+    return CollisionModel(cell), CollisionModel(cell, compiled=False)
+
+
+def _poses(rng: np.random.Generator, n: int, spread: float = 0.35) -> np.ndarray:
+    """Person-sized clouds of joints in front of the robot, (n, J, 3)."""
+    centre = np.array([0.55, 0.25, 0.45]) + rng.uniform(-0.3, 0.3, (n, 1, 3))
+    return centre + spread * rng.normal(size=(n, NUM_JOINTS, 3))
+
+
+# ------------------------------------------------------------------------------------------ segments
+
+
+@pytest.mark.parametrize("n", [1, 500])
+def test_segment_distances_match_the_numpy_reference(n: int) -> None:
+    rng = np.random.default_rng(n)
+    p1, q1, p2, q2 = (rng.uniform(-1.0, 1.0, (n, 3)) for _ in range(4))
+    kind = rng.integers(0, 5, n)
+    q1[kind == 1] = p1[kind == 1]  # a point
+    q2[kind == 2] = p2[kind == 2]
+    par = kind == 3  # parallel, offset and shifted along
+    q2[par] = p2[par] + rng.uniform(-1.5, 1.5, (par.sum(), 1)) * (q1[par] - p1[par])
+    col = kind == 4  # collinear, overlapping or not
+    p2[col] = p1[col] + rng.uniform(-2.0, 2.0, (col.sum(), 1)) * (q1[col] - p1[col])
+    q2[col] = p2[col] + rng.uniform(-1.5, 1.5, (col.sum(), 1)) * (q1[col] - p1[col])
+    got = segment_distance(p1, q1, p2, q2)
+    ref = _segment_distance_numpy(p1, q1, p2, q2)
+    assert got.shape == (n,)
+    apart = ref > 1e-6
+    np.testing.assert_allclose(got[apart], ref[apart], rtol=0.0, atol=TOL)
+    np.testing.assert_allclose(got[~apart], ref[~apart], rtol=0.0, atol=1e-7)
+
+
+def test_touching_parallel_and_degenerate_segments_have_their_exact_distance() -> None:
+    o = np.zeros(3)
+    x, y, z = np.eye(3)
+    cases = [
+        # crossing axes: exactly 0 (NumPy's expansion only gets within ~1e-8)
+        ((-x, x, -y + 0.3 * z * 0, y), 0.0),
+        ((o, x, 0.5 * x - y, 0.5 * x + y), 0.0),
+        # touching at an end
+        ((o, x, x, x + y), 0.0),
+        # parallel, 0.3 apart, overlapping
+        ((o, x, 0.3 * y + 0.2 * x, 0.3 * y + 2.0 * x), 0.3),
+        # collinear, a gap of 0.5
+        ((o, x, 1.5 * x, 3.0 * x), 0.5),
+        # a point and a segment, two points
+        ((0.5 * x + 0.4 * z, 0.5 * x + 0.4 * z, o, x), 0.4),
+        ((o, o, 0.3 * y, 0.3 * y), 0.3),
+        ((y, y, y, y), 0.0),
+    ]
+    for (p1, q1, p2, q2), expected in cases:
+        got = float(segment_distance(p1, q1, p2, q2))
+        assert abs(got - expected) <= 1e-12, (p1, q1, p2, q2, got)
+        assert abs(float(_segment_distance_numpy(p1, q1, p2, q2)) - got) <= 1e-7
+        # the same pair swapped and reversed
+        assert abs(float(segment_distance(q2, p2, q1, p1)) - expected) <= 1e-12
+
+
+def test_segment_distance_broadcasts_like_the_reference() -> None:
+    rng = np.random.default_rng(3)
+    p1, q1 = rng.normal(size=(2, 4, 1, 3))
+    p2, q2 = rng.normal(size=(2, 1, 5, 3))
+    got = segment_distance(p1, q1, p2, q2)
+    assert got.shape == (4, 5)
+    np.testing.assert_allclose(got, _segment_distance_numpy(p1, q1, p2, q2), rtol=0.0, atol=TOL)
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        segment_distance(np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 2)))
+
+
+# ------------------------------------------------------------------------------------------ kinematics
+
+
+@pytest.mark.parametrize("n", [1, 7, 64])
+def test_compiled_chain_equals_the_numpy_chain(cell, n: int) -> None:  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(n)
+    q = rng.uniform(-2 * np.pi, 2 * np.pi, (n, 6))
+    kin, ref = UR5e.from_workcell(cell), UR5e.from_workcell(cell, compiled=False)
+    for a, b in zip(kin._chain(q), ref._chain(q), strict=True):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(kin.fk(q), ref.fk(q), rtol=0.0, atol=1e-12)
+    np.testing.assert_allclose(kin.fk_tcp(q), ref.fk_tcp(q), rtol=0.0, atol=1e-12)
+    for a, b in zip(kin.link_origins_and_axes(q), ref.link_origins_and_axes(q), strict=True):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [1, 40])
+def test_compiled_capsules_equal_the_numpy_capsules(models, n: int) -> None:  # type: ignore[no-untyped-def]
+    fast, ref = models
+    rng = np.random.default_rng(10 + n)
+    q = rng.uniform(-np.pi, np.pi, (n, 6))
+    for a, b in zip(fast.robot_segments(q), ref.robot_segments(q), strict=True):
+        assert a.shape == (len(ROBOT_LINKS), 3, n)
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
+    for a, b in zip(fast.robot_capsules(q), ref.robot_capsules(q), strict=True):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------ robot-person
+
+
+@pytest.mark.parametrize("n", [1, 37])
+def test_robot_person_distances_match_the_reference(models, n: int) -> None:  # type: ignore[no-untyped-def]
+    fast, ref = models
+    rng = np.random.default_rng(20 + n)
+    q = rng.uniform(-np.pi, np.pi, (n, 6))
+    joints = _poses(rng, n)
+    got = fast.distance_to_human_paired(q, joints)
+    assert got.shape == (n,)
+    np.testing.assert_allclose(got, ref.distance_to_human_paired(q, joints), rtol=0.0, atol=TOL)
+    cross = fast.distance_to_human(q, joints[: max(1, n // 3)])
+    np.testing.assert_allclose(cross, ref.distance_to_human(q, joints[: max(1, n // 3)]), rtol=0.0, atol=TOL)
+    np.testing.assert_allclose(np.diag(fast.distance_to_human(q, joints)), got, rtol=0.0, atol=1e-12)
+    # capsule subsets, and the segments passed in
+    links, caps = np.array([2, 4, 8]), np.array([0, 5, 11, len(HUMAN_CAPSULES) - 1])
+    segs = fast.robot_segments(q)
+    sub = fast.distance_to_human_paired(q, joints, segments=segs, links=links, capsules=caps)
+    ref_sub = ref.distance_to_human_paired(q, joints, links=links, capsules=caps)
+    np.testing.assert_allclose(sub, ref_sub, rtol=0.0, atol=TOL)
+    assert np.all(sub >= got - 1e-12)
+    assert np.all(np.isinf(fast.distance_to_human_paired(q, joints, links=np.array([], dtype=int))))
+
+
+def test_penetrating_and_nan_inputs(models) -> None:  # type: ignore[no-untyped-def]
+    fast, ref = models
+    q = np.zeros((2, 6))
+    tcp = fast.robot_capsules(q)[1][:, -1]  # (2, 3): the TCP
+    joints = np.repeat(tcp[:, None, :], NUM_JOINTS, axis=1)  # a person collapsed onto the TCP
+    joints[:, :, 2] += np.linspace(-0.02, 0.02, NUM_JOINTS)
+    got = fast.distance_to_human_paired(q, joints)
+    assert np.all(got < -0.05)  # deep overlap: minus both radii
+    np.testing.assert_allclose(got, ref.distance_to_human_paired(q, joints), rtol=0.0, atol=1e-7)
+    joints[1, 3] = np.nan
+    assert np.isnan(fast.distance_to_human_paired(q, joints)[1])
+    assert np.isnan(fast.distance_to_human(q, joints)[:, 1]).all()
+
+
+def test_self_and_pair_distances_match_the_reference(models) -> None:  # type: ignore[no-untyped-def]
+    fast, ref = models
+    rng = np.random.default_rng(30)
+    q = rng.uniform(-np.pi, np.pi, (25, 6))
+    np.testing.assert_allclose(fast.self_distances(q), ref.self_distances(q), rtol=0.0, atol=TOL)
+    np.testing.assert_array_equal(fast.self_collision(q), ref.self_collision(q))
+    joints = _poses(rng, 3)
+    got = fast.pair_distances(q[0], joints)
+    assert got.shape == (3, len(ROBOT_LINKS), len(HUMAN_CAPSULES))
+    np.testing.assert_allclose(got, ref.pair_distances(q[0], joints), rtol=0.0, atol=TOL)
+    np.testing.assert_allclose(
+        got.min(axis=(1, 2)), ref.distance_to_human(q[:1], joints)[0], rtol=0.0, atol=TOL
+    )
+    with pytest.raises(ValueError, match=r"\(6,\)"):
+        fast.pair_distances(q[:2], joints)
+
+
+def test_each_kernel_compiles_for_one_signature(models) -> None:  # type: ignore[no-untyped-def]
+    fast, _ = models
+    rng = np.random.default_rng(4)
+    q = rng.uniform(-1.0, 1.0, (5, 6))
+    joints = _poses(rng, 5)
+    ro_q, ro_joints = q.copy(), joints.copy()
+    ro_q.setflags(write=False)
+    ro_joints.setflags(write=False)
+    for qq, jj in ((q, joints), (ro_q, ro_joints), (q[:, ::1].T.copy().T, np.asfortranarray(joints))):
+        fast.distance_to_human_paired(qq, jj)
+        fast.distance_to_human(qq, jj[:2])
+        fast.self_distances(qq)
+    for kernel in (
+        _kernels.robot_segments,
+        _kernels.paired_min_distance,
+        _kernels.cross_min_distance,
+        _kernels.self_distances,
+    ):
+        assert len(kernel.signatures) == 1, kernel
+
+
+def test_without_a_cache_location_the_kernels_compile_in_memory() -> None:
+    code = textwrap.dedent(
+        """
+        import logging
+        import numba.core.caching as caching
+        impl = getattr(caching, "CacheImpl", None) or caching._CacheImpl
+        impl._locator_classes = []  # no writable cache location: a read-only install and home
+        logging.basicConfig(level=logging.WARNING)
+        import numpy as np
+        from app.planning import _kernels
+        d = _kernels.segment_distances(np.zeros((1, 3)), np.ones((1, 3)), np.array([[1.0, 0, 0]]),
+                                       np.array([[1.0, 0, 1]]))
+        print(round(float(d[0]), 12))
+        """
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == str(round(np.sqrt(0.5), 12))
+    assert "compile in memory" in out.stderr
+
+
+# ------------------------------------------------------------------------------------------ the planner
+
+
+@pytest.fixture(scope="module")
+def planners(cell, models, tmp_path_factory):  # type: ignore[no-untyped-def]
+    fast, ref = models
+    cfg = RoadmapConfig(num_nodes=120, k_neighbors=8)
+    rm = load_or_build_roadmap(cell, config=cfg, cache_dir=tmp_path_factory.mktemp("rm"), collision=fast)
+    return rm, Planner(rm, fast), Planner(rm, ref)
+
+
+def test_the_planner_uses_the_compiled_checks_only_with_a_compiled_model(planners) -> None:  # type: ignore[no-untyped-def]
+    _, fast, ref = planners
+    assert fast._kernel_geometry is not None
+    assert ref._kernel_geometry is None
+
+
+def test_sample_checks_match_the_numpy_check(cell, planners) -> None:  # type: ignore[no-untyped-def]
+    rm, fast, ref = planners
+    rng = np.random.default_rng(5)
+    queries = reference_queries(cell, rm, n=3, seed=2)
+    verdicts = []
+    for qr in queries:
+        for offsets in ((0.0,), (0.0, 0.25)):
+            s_fast = fast._separation(qr.forecast, extra_m=0.02, offsets=offsets)
+            s_ref = ref._separation(qr.forecast, extra_m=0.02, offsets=offsets)
+            nodes = rng.integers(0, rm.num_nodes, 300)
+            br = rng.integers(0, 8, 300)
+            q = rm.ik[nodes, br]
+            t = qr.t_start + rng.uniform(-0.2, 2.0, 300)
+            v = rng.uniform(0.0, 1.0, 300)
+            cen, rad = fast._cen_all[nodes, br], fast._rad_all[nodes, br]
+            np.testing.assert_array_equal(s_fast.check(q, t, v), s_ref.check(q, t, v))
+            got = s_fast.check(q, t, v, cen, rad)
+            np.testing.assert_array_equal(got, s_ref.check(q, t, v, cen, rad))
+            verdicts.append(got)
+            # with groups only the verdict of a whole group counts
+            groups = np.repeat(np.arange(60), 5)
+            a = s_fast.check(q, t, v, cen, rad, groups)
+            b = s_ref.check(q, t, v, cen, rad, groups)
+            np.testing.assert_array_equal(
+                np.bincount(groups, weights=~a) == 0, np.bincount(groups, weights=~b) == 0
+            )
+    both = np.concatenate(verdicts)
+    assert 0 < both.sum() < both.size  # passes and failures were exercised
+
+
+def test_move_checks_and_verification_match_the_numpy_checks(cell, planners) -> None:  # type: ignore[no-untyped-def]
+    rm, fast, ref = planners
+    rng = np.random.default_rng(6)
+    qr = reference_queries(cell, rm, n=1, seed=3)[0]
+    for hold in (False, True):
+        s_fast = fast._separation(qr.forecast, extra_m=0.02)
+        s_ref = ref._separation(qr.forecast, extra_m=0.02)
+        n = 200
+        u, bu = rng.integers(0, rm.num_nodes, n), rng.integers(0, 8, n)
+        cv, b = rng.integers(0, rm.num_nodes, n), rng.integers(0, 8, n)
+        q_a = rm.ik[u, bu]
+        target = fast._align(rm.ik[cv, b], q_a)
+        L = fast._metric(target - q_a)
+        f = rng.choice([0.2, 0.6, 1.0], n)
+        u0 = rng.uniform(0.0, 1.0, n) * f
+        end = rng.random(n) < 0.5
+        h = np.maximum(L / f, 0.05) * rng.uniform(1.0, 1.5, n)
+        t_dep = qr.t_start + rng.uniform(0.0, 1.5, n)
+        args = (q_a, fast._pts_all[u, bu], fast._cen_all[u, bu], fast._rad_all[u, bu], cv, b, target, t_dep)
+        rest = (h, u0, L, end, f, np.full(n, hold), 0.3)
+        got = fast._moves_ok(s_fast, *args, *rest)
+        want = ref._moves_ok(s_ref, *args, *rest)
+        np.testing.assert_array_equal(got, want)
+        assert 0 < got.sum() < n  # both kinds of answer were exercised
+    # the trajectory verification (first_violation) on the plans of a few queries
+    found = []
+    for qr in reference_queries(cell, rm, n=3, seed=4):
+        res = ref.plan(q_start=qr.q_start, t_start=qr.t_start, goal=qr.goal, forecast=None)
+        if not res.ok:
+            continue
+        traj = res.trajectory
+        for fc in (qr.forecast, _shifted(qr.forecast, rng)):
+            got = fast.first_violation(traj, fc, t_from=traj.t_start, t_to=traj.t_end + 0.3)
+            assert got == ref.first_violation(traj, fc, t_from=traj.t_start, t_to=traj.t_end + 0.3)
+            found.append(got is None)
+    assert any(found) and not all(found)  # trajectories with and without a violation
+
+
+def _shifted(fc: HumanForecast, rng: np.random.Generator) -> HumanForecast:
+    """The forecast person moved toward the robot (so that trajectories do violate it)."""
+    return HumanForecast(
+        t0=fc.t0,
+        times=fc.times,
+        joints=fc.joints - np.array([0.0, 0.35, 0.0]) + 0.01 * rng.normal(size=fc.joints.shape),
+        margins=fc.margins,
+        growth_mps=fc.growth_mps,
+        max_margin_m=fc.max_margin_m,
+    )
+
+
+def test_plans_are_the_same_with_and_without_the_compiled_checks(cell, planners) -> None:  # type: ignore[no-untyped-def]
+    rm, fast, ref = planners
+    for qr in reference_queries(cell, rm, n=6, seed=9):
+        for workers in (1, 16):
+            kw = dict(
+                q_start=qr.q_start, t_start=qr.t_start, goal=qr.goal, forecast=qr.forecast, workers=workers
+            )
+            a, b = fast.plan(**kw), ref.plan(**kw)
+            assert (a.ok, a.reason, a.expanded) == (b.ok, b.reason, b.expanded)
+            if a.ok:
+                np.testing.assert_array_equal(a.plan.times, b.plan.times)
+                np.testing.assert_array_equal(a.plan.q, b.plan.q)
+        e_a = fast.emergency(q_start=qr.q_start, t_start=qr.t_start, forecast=qr.forecast, horizon_s=0.2)
+        e_b = ref.emergency(q_start=qr.q_start, t_start=qr.t_start, forecast=qr.forecast, horizon_s=0.2)
+        assert (e_a.ok, e_a.reason) == (e_b.ok, e_b.reason)
