@@ -719,6 +719,7 @@ class Planner:
                 _kernels.as_f64(self._rad_all.reshape(n_rows, -1)),
             )
             self._k_lever = _kernels.as_f64(self._lever)
+            self._k_q_lo, self._k_q_hi = _kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max)
             self._k_moved_by = _kernels.as_i64(self._moved_by)
         self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
         # which joints each person capsule runs between (joint indices fed in as coordinates) and its radius
@@ -1234,6 +1235,8 @@ class Planner:
     ) -> float | None:
         dt = self.config.verify_dt_s if dt_s is None else dt_s
         ts = traj.sample(dt, t_from=t_from, t_to=max(t_to, t_from))
+        if self._kernel_geometry is not None and forecast is not None and isinstance(traj, Trajectory):
+            return self._verify_compiled(traj, forecast, ts, static=static, floor_m=floor_m)
         q = traj.q(ts)
         bad = ~self._within_limits(q)
         # forward kinematics once for the static scene and the person (when the model takes segments)
@@ -1257,6 +1260,55 @@ class Planner:
         if not np.any(bad):
             return None
         return float(ts[np.argmax(bad)])
+
+    def _verify_compiled(
+        self,
+        traj: Trajectory,
+        forecast: HumanForecast,
+        ts: np.ndarray,
+        *,
+        static: bool,
+        floor_m: float | None,
+    ) -> float | None:
+        """:meth:`_verify` with the limits and the separation in one compiled pass that stops at the first
+        failing sample (:func:`app.planning._kernels.trajectory_first_violation`); the static scene, where
+        asked for, in NumPy first (the compiled pass then only looks at the samples before its first
+        failure)."""
+        n = ts.shape[0]
+        first = n
+        if static:
+            moving = np.flatnonzero((ts >= traj.t_start) & (ts <= traj.t_end))
+            if moving.size:
+                q = traj.q(ts[moving])
+                bad = ~self._within_limits(q)
+                segs = self.collision.robot_segments(q) if self._static_segments_ok else None
+                bad |= self._static_bad(q, segs)
+                if bad.any():
+                    first = int(moving[np.argmax(bad)])
+        ssm = self.config.ssm
+        f64 = _kernels.as_f64
+        k = _kernels.trajectory_first_violation(
+            f64(ts[:first]),
+            *traj._kernel_knots(),
+            1e-4,
+            self._k_q_lo,
+            self._k_q_hi,
+            f64(forecast.times),
+            f64(forecast.joints),
+            f64(forecast.margins),
+            float(forecast.growth_mps),
+            max(float(forecast.max_margin_m), float(forecast.margins.max())),
+            ssm.robot_time_s,
+            ssm.intrusion_m,
+            ssm.z_robot_m,
+            ssm.z_human_m,
+            math.inf if floor_m is None else float(floor_m),
+            self._human_r_max,
+            *self._kernel_geometry,
+        )
+        if k >= 0:
+            first = k
+        return None if first == n else float(ts[first])
 
     def _separation_bad(
         self,

@@ -212,7 +212,7 @@ class Trajectory:
     Build it with :meth:`from_plan` (or :meth:`from_knots` for already fitted knots).
     """
 
-    __slots__ = ("_h", "_kin", "_q", "_qd", "_times", "_times_list")
+    __slots__ = ("_h", "_kin", "_knots_k", "_q", "_qd", "_times", "_times_list")
 
     def __init__(self, times: np.ndarray, q: np.ndarray, qd: np.ndarray, *, kin: UR5e | None = None) -> None:
         times = np.asarray(times, dtype=np.float64)
@@ -232,6 +232,7 @@ class Trajectory:
         self._h = np.diff(times) if K > 1 else np.ones(0)
         self._times_list = times.tolist()  # for the scalar look-up of :meth:`state`
         self._kin = kin
+        self._knots_k: tuple[np.ndarray, ...] | None = None
 
     @classmethod
     def from_knots(
@@ -308,6 +309,15 @@ class Trajectory:
     def shifted(self, dt_s: float) -> Trajectory:
         """The same trajectory ``dt_s`` seconds later."""
         return Trajectory(self._times + dt_s, self._q, self._qd, kin=self._kin)
+
+    def _kernel_knots(self) -> tuple[np.ndarray, ...]:
+        """Knot times (K,), configurations and velocities (K, 6) and intervals (K - 1,) as the compiled
+        kernels take them (writeable contiguous copies, made once)."""
+        if self._knots_k is None:
+            self._knots_k = tuple(
+                np.array(a, dtype=np.float64) for a in (self._times, self._q, self._qd, self._h)
+            )
+        return self._knots_k
 
     # -- evaluation ----------------------------------------------------------------------------------------
     def _locate(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
