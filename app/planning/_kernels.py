@@ -46,7 +46,6 @@ __all__ = [
     "segment_distances",
     "self_distances",
     "trajectory_first_violation",
-    "trajectory_separation_bad",
 ]
 
 logger = logging.getLogger(__name__)
@@ -709,9 +708,34 @@ def _window_box(
 
 
 @_jit
+def _interp(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
+    """``np.interp(x, xp, fp)`` for one ``x`` and increasing ``xp`` (NumPy's algorithm, without its
+    per-call arrays)."""
+    n = xp.shape[0]
+    if n == 1:
+        return fp[0]
+    if x != x:
+        return x
+    if x < xp[0]:
+        return fp[0]
+    if x > xp[n - 1]:
+        return fp[n - 1]
+    j = _pose_index(xp, x) - 1
+    if j >= n - 1 or xp[j] == x:
+        return fp[j]
+    slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
+    r = slope * (x - xp[j]) + fp[j]
+    if r != r:
+        r = slope * (x - xp[j + 1]) + fp[j + 1]
+        if r != r and fp[j] == fp[j + 1]:
+            r = fp[j]
+    return r
+
+
+@_jit
 def _margin_at(t: float, times: np.ndarray, margins: np.ndarray, growth: float, cap: float) -> float:
     """The forecast's margin (m) at time ``t`` (:meth:`app.planning.search._Separation._margins`)."""
-    m = np.interp(t, times, margins)
+    m = _interp(t, times, margins)
     if growth > 0.0:
         m = min(m + growth * max(t - times[times.shape[0] - 1], 0.0), cap)
     return m
@@ -977,98 +1001,6 @@ def moves_separation_ok(
             if not ok[k]:
                 break
     return ok, n_samples, n_exact
-
-
-@_jit
-def trajectory_separation_bad(
-    a0: np.ndarray,
-    d0: np.ndarray,
-    a1: np.ndarray,
-    d1: np.ndarray,
-    eps: float,
-    joints: np.ndarray,
-    margins: np.ndarray,
-    robot_time_s: float,
-    intrusion_m: float,
-    z_robot_m: float,
-    z_human_m: float,
-    floor_m: float,
-    r_human_max: float,
-    ra: np.ndarray,
-    ia: np.ndarray,
-    ib: np.ndarray,
-    rh: np.ndarray,
-) -> np.ndarray:
-    """Samples of a trajectory closer to the forecast person than required (:meth:`Planner._separation_bad`).
-
-    Sample k: robot segments ``a0``/``d0`` (L, 3, K) and ``a1``/``d1`` a time ``eps`` (s) later;
-    the robot speed is the largest displacement of a capsule end over ``eps``; the requirement is
-    :func:`app.planning.safety.forecast_clearance` for that speed and ``margins[k]`` (SSM constants
-    passed in), capped at ``floor_m`` (+inf: no cap); the person is ``joints[k]`` (J, 3). Only capsules
-    whose bounding sphere comes within the requirement of the box around the pose are computed.
-
-    Returns:
-        (K,) bool: True where the surface distance is below the requirement (and where an input is NaN).
-    """
-    L = a0.shape[0]
-    K = a0.shape[2]
-    J = joints.shape[1]
-    M = ia.shape[0]
-    bad = np.zeros(K, dtype=np.bool_)
-    SA = np.empty((L, 3))
-    SD = np.empty((L, 3))
-    near = np.zeros(L, dtype=np.bool_)
-    C = np.empty((M, 6))
-    lo = np.empty(3)
-    hi = np.empty(3)
-    for k in range(K):
-        finite = margins[k] == margins[k]
-        step = 0.0
-        for l in range(L):  # noqa: E741
-            sa = 0.0
-            sb = 0.0
-            for j in range(3):
-                da = a1[l, j, k] - a0[l, j, k]
-                db = (a1[l, j, k] + d1[l, j, k]) - (a0[l, j, k] + d0[l, j, k])
-                sa += da * da
-                sb += db * db
-            m2 = max(sa, sb)
-            finite = finite and m2 == m2
-            step = max(step, math.sqrt(m2))
-        for j in range(3):
-            lo[j] = np.inf
-            hi[j] = -np.inf
-        for jj in range(J):
-            for j in range(3):
-                x = joints[k, jj, j]
-                finite = finite and x == x
-                lo[j] = min(lo[j], x)
-                hi[j] = max(hi[j], x)
-        if not finite:  # a NaN configuration or pose is never taken for safe
-            bad[k] = True
-            continue
-        v = max(step / eps, 0.0)
-        req = v * robot_time_s + intrusion_m + z_robot_m + max(z_human_m, margins[k])
-        req = min(req, floor_m)
-        any_near = False
-        for l in range(L):  # noqa: E741
-            g2 = 0.0
-            h2 = 0.0
-            for j in range(3):
-                dd = d0[l, j, k]
-                c = a0[l, j, k] + 0.5 * dd
-                g = max(max((lo[j] - r_human_max) - c, c - (hi[j] + r_human_max)), 0.0)
-                g2 += g * g
-                h2 += dd * dd
-                SA[l, j] = a0[l, j, k]
-                SD[l, j] = dd
-            near[l] = math.sqrt(g2) - (0.5 * math.sqrt(h2) + ra[l]) < req
-            any_near = any_near or near[l]
-        if not any_near:
-            continue
-        _person_capsules(joints, k, ia, ib, C)
-        bad[k] = _too_close(SA, SD, near, ra, C, rh, req)
-    return bad
 
 
 @_jit

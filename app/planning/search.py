@@ -1330,28 +1330,6 @@ class Planner:
         model = self.collision
         a0, d0 = model.robot_segments(q) if segs is None else segs  # (L, 3, K)
         a1, d1 = model.robot_segments(traj.q(ts + eps))
-        if self._kernel_geometry is not None:
-            ssm = self.config.ssm
-            ra, ia, ib, rh = self._kernel_geometry[7:]
-            return _kernels.trajectory_separation_bad(
-                _kernels.as_f64(a0),
-                _kernels.as_f64(d0),
-                _kernels.as_f64(a1),
-                _kernels.as_f64(d1),
-                eps,
-                _kernels.as_f64(joints),
-                _kernels.as_f64(margins),
-                ssm.robot_time_s,
-                ssm.intrusion_m,
-                ssm.z_robot_m,
-                ssm.z_human_m,
-                math.inf if floor_m is None else float(floor_m),
-                self._human_r_max,
-                ra,
-                ia,
-                ib,
-                rh,
-            )
         step = np.maximum(
             np.sqrt(np.einsum("lik,lik->lk", a1 - a0, a1 - a0)),
             np.sqrt(np.einsum("lik,lik->lk", (a1 + d1) - (a0 + d0), (a1 + d1) - (a0 + d0))),
