@@ -504,13 +504,36 @@ def _too_close(
     C: np.ndarray,
     rh: np.ndarray,
     req: float,
+    SB: np.ndarray,
 ) -> bool:
     """Whether some robot capsule flagged ``near`` (segments ``SA``/``SD`` (L, 3)) comes closer than ``req``
-    to some person capsule ``C`` (M, 6) (a NaN distance counts as too close)."""
+    to some person capsule ``C`` (M, 6) (a NaN distance counts as too close). ``SB`` (L, 4): scratch.
+
+    A pair whose bounding spheres (centre of the axis, half its length plus the radius) are at least
+    ``req`` apart cannot be too close (the surface distance is never below the spheres' gap) and is not
+    computed."""
+    L = SA.shape[0]
+    for i in range(L):
+        if near[i]:
+            h2 = 0.0
+            for j in range(3):
+                SB[i, j] = SA[i, j] + 0.5 * SD[i, j]
+                h2 += SD[i, j] * SD[i, j]
+            SB[i, 3] = 0.5 * math.sqrt(h2) + ra[i]
     for m in range(C.shape[0]):
-        for i in range(SA.shape[0]):
+        cx = C[m, 0] + 0.5 * C[m, 3]
+        cy = C[m, 1] + 0.5 * C[m, 4]
+        cz = C[m, 2] + 0.5 * C[m, 5]
+        rm = 0.5 * math.sqrt(C[m, 3] * C[m, 3] + C[m, 4] * C[m, 4] + C[m, 5] * C[m, 5]) + rh[m]
+        for i in range(L):
             if not near[i]:
                 continue
+            lim = req + SB[i, 3] + rm
+            dx = SB[i, 0] - cx
+            dy = SB[i, 1] - cy
+            dz = SB[i, 2] - cz
+            if lim > 0.0 and dx * dx + dy * dy + dz * dz >= lim * lim:
+                continue  # the bounding spheres are far enough apart (a NaN never skips)
             s = _seg_dist(
                 SA[i, 0], SA[i, 1], SA[i, 2], SD[i, 0], SD[i, 1], SD[i, 2],
                 C[m, 0], C[m, 1], C[m, 2], C[m, 3], C[m, 4], C[m, 5],
@@ -635,6 +658,7 @@ def sample_separation_ok(
     P = np.empty((7, 3))
     SA = np.empty((L, 3))
     SD = np.empty((L, 3))
+    SB = np.empty((L, 4))
     pose = np.empty((1, J, 3))
     C = np.empty((M, 6))
     exact = 0
@@ -658,7 +682,7 @@ def sample_separation_ok(
             _pose_at(ts, times, joints, djoints, dtimes, pose[0])
             _person_capsules(pose, 0, ia, ib, C)
             exact += 1
-            if _too_close(SA, SD, near, ra, C, rh, rq):
+            if _too_close(SA, SD, near, ra, C, rh, rq, SB):
                 ok[s] = False
                 if n_groups > 0:
                     failed[groups[s]] = True
@@ -898,6 +922,7 @@ def moves_separation_ok(
     P = np.empty((7, 3))
     SA = np.empty((L, 3))
     SD = np.empty((L, 3))
+    SB = np.empty((L, 4))
     pose = np.empty((1, J, 3))
     C = np.empty((NC, 6))
     n_samples = 0
@@ -995,7 +1020,7 @@ def moves_separation_ok(
                 _pose_at(to, times, joints, djoints, dtimes, pose[0])
                 _person_capsules(pose, 0, ia, ib, C)
                 n_exact += 1
-                if _too_close(SA, SD, near, ra, C, rh, rq):
+                if _too_close(SA, SD, near, ra, C, rh, rq, SB):
                     ok[k] = False
                     break
             if not ok[k]:
@@ -1084,6 +1109,7 @@ def trajectory_first_violation(
     P = np.empty((7, 3))
     SA = np.empty((L, 3))
     SD = np.empty((L, 3))
+    SB = np.empty((L, 4))
     SA1 = np.empty((L, 3))
     SD1 = np.empty((L, 3))
     pose = np.empty((1, J, 3))
@@ -1157,6 +1183,6 @@ def trajectory_first_violation(
         if not any_near:
             continue
         _person_capsules(pose, 0, ia, ib, C)
-        if _too_close(SA, SD, near, ra, C, rh, req):
+        if _too_close(SA, SD, near, ra, C, rh, req, SB):
             return k
     return -1
