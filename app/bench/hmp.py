@@ -1,6 +1,10 @@
 """``hrc bench hmp``: forecast latency (one person, one CPU thread) and MPJPE on the CMU test split.
 
-Prints ``infer_ms`` {p50, p95} (Graph-Mixer, one person, including the numpy/torch conversion), ``update_ms``
+Prints ``infer_ms`` {p50, p95} (Graph-Mixer, one person, the per-frame call ``predict_batch`` on (1, T, J, 3)
+through the path the predictor uses, named by ``single_person_backend``: ``numba``, ``onnxruntime``,
+``torch-traced`` or ``torch``), ``infer_ms_by_backend`` (the network alone timed through each path that is
+available here, ``torch`` being eager ``predict_batch``; interleaved, so that all see the same machine
+load), ``update_ms``
 (the whole ``MotionPredictor.update``: repair, resampling, network, forecast object), ``mpjpe_mm``
 {graphmixer, constant_velocity, zero_velocity} each {"80": ..., "1000": ...} on every window of the CMU test
 split (``null`` with a ``note`` if the clips are not on this machine), ``params``, the aims' ratios, and
@@ -18,6 +22,41 @@ import numpy as np
 def _percentiles(samples_s: list[float]) -> dict[str, float]:
     a = np.asarray(samples_s) * 1000.0
     return {"p50": round(float(np.percentile(a, 50)), 4), "p95": round(float(np.percentile(a, 95)), 4)}
+
+
+def _by_backend(predictor, history: np.ndarray, repeats: int) -> dict[str, dict[str, float]]:
+    """The one-person forecast timed through each path available here (the predictor's own fallbacks)."""
+    from app.prediction.predictor import MotionPredictor
+
+    paths = {"numba": predictor._fast_forward(), "onnxruntime": predictor._onnx_session()}
+    paths["torch-traced"] = predictor._single_person_net()
+    x = history[0]
+    x32 = np.ascontiguousarray(history, dtype=np.float32)
+    calls = {}
+    if paths["numba"] is not None:
+        calls["numba"] = lambda f=paths["numba"]: f(x)
+    if paths["onnxruntime"] is not None:
+        calls["onnxruntime"] = lambda s=paths["onnxruntime"]: s.run(None, {"x": x32})[0].astype(np.float64)
+    if paths["torch-traced"] is not predictor.model:
+        import torch
+
+        def traced(net=paths["torch-traced"]) -> np.ndarray:
+            with torch.inference_mode():
+                return net(torch.from_numpy(x32)).numpy().astype(np.float64)
+
+        calls["torch-traced"] = traced
+    eager = MotionPredictor(kind="graphmixer", jit=False)  # the shipped weights, like ``predictor``
+    calls["torch"] = lambda: eager.predict_batch(history)
+    samples: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(10):
+        for call in calls.values():
+            call()
+    for _ in range(repeats):
+        for name, call in calls.items():
+            t = time.perf_counter()
+            call()
+            samples[name].append(time.perf_counter() - t)
+    return {name: _percentiles(s) for name, s in samples.items()}
 
 
 def run(*, quick: bool = False, progress: bool = True) -> dict:
@@ -38,6 +77,7 @@ def run(*, quick: bool = False, progress: bool = True) -> dict:
     base = rng.normal(scale=0.3, size=(NUM_JOINTS, 3)) + np.array([0.0, 0.0, 1.0])
     history = (base[None] + np.linspace(0.0, 0.3, predictor.history)[:, None, None] * [1.0, 0.2, 0.0])[None]
     kind = predictor.effective_kind
+    result["single_person_backend"] = predictor.single_person_backend
     for _ in range(20):
         predictor.predict_batch(history, kind=kind)
     samples = []
@@ -46,6 +86,8 @@ def run(*, quick: bool = False, progress: bool = True) -> dict:
         predictor.predict_batch(history, kind=kind)
         samples.append(time.perf_counter() - t)
     result["infer_ms"] = _percentiles(samples)
+    if predictor.model is not None:
+        result["infer_ms_by_backend"] = _by_backend(predictor, history, repeats)
     samples = []
     for k in range(repeats + predictor.history):
         frame = HumanFrame(t=k / predictor.fps, joints=base + np.array([0.03 * k, 0.0, 0.0]))

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from app.prediction.baselines import constant_velocity, zero_velocity
+from app.prediction.fastforward import FastGraphMixer
 from app.prediction.forecast import HumanForecast
 from app.prediction.graphmixer import GraphMixer, GraphMixerConfig, save_checkpoint
 from app.prediction.predictor import (
@@ -108,7 +109,7 @@ def test_graphmixer_window_matches_predict_batch(tiny_weights: Path) -> None:
     out = p.predict_batch(many)
     assert out.shape == (2, 30, NUM_JOINTS, 3)
     np.testing.assert_allclose(out[1], out[0] + [0.5, 0.0, 0.0], atol=1e-5)
-    # the batch runs eagerly, one person through the traced copy: same numbers
+    # the batch runs eagerly, one person through the compiled pass: same numbers
     np.testing.assert_allclose(out[0], p.predict_batch(hist)[0], atol=1e-5)
     eager = MotionPredictor(weights=tiny_weights, jit=False).predict_batch(hist)
     np.testing.assert_allclose(eager, p.predict_batch(hist), atol=1e-5)
@@ -116,20 +117,31 @@ def test_graphmixer_window_matches_predict_batch(tiny_weights: Path) -> None:
         p.predict_batch(np.full((1, 10, NUM_JOINTS, 3), np.nan))
 
 
-def test_single_person_forecasts_run_through_onnx_runtime_with_the_same_numbers(
-    tiny_weights: Path, monkeypatch: pytest.MonkeyPatch
+def test_single_person_forecasts_run_through_the_compiled_pass_then_onnx_then_torch(
+    tiny_weights: Path, monkeypatch: pytest.MonkeyPatch, caplog
 ) -> None:
-    pytest.importorskip("onnxruntime")
+    import builtins
+    import weakref
+
     hist = np.stack([_pose(2.0 + DT * k) for k in range(10)])[None]
     hist = hist + np.random.default_rng(3).normal(0.0, 0.02, size=hist.shape)
+    eager = MotionPredictor(weights=tiny_weights, jit=False)
+    assert eager.single_person_backend == "torch"
+    expected = eager.predict_batch(hist)
     fast = MotionPredictor(weights=tiny_weights)
-    out = fast.predict_batch(hist)
-    assert fast._onnx_session() is not None
-    eager = MotionPredictor(weights=tiny_weights, jit=False).predict_batch(hist)
-    np.testing.assert_allclose(out, eager, atol=1e-5)
-    # without onnxruntime the traced torch network answers, with the same numbers
-    import builtins
-
+    assert fast.single_person_backend == "numba"
+    np.testing.assert_allclose(fast.predict_batch(hist), expected, atol=1e-5)
+    # a compiled pass that fails its check against torch at build is not used: ONNX Runtime answers
+    pytest.importorskip("onnxruntime")
+    monkeypatch.setattr("app.prediction.predictor._FAST_CACHE", weakref.WeakKeyDictionary())
+    real_call = FastGraphMixer.__call__
+    monkeypatch.setattr(FastGraphMixer, "__call__", lambda self, x: real_call(self, x) + 1e-3)
+    with caplog.at_level(logging.WARNING, logger="app.prediction.predictor"):
+        checked = MotionPredictor(weights=tiny_weights)
+        assert checked.single_person_backend == "onnxruntime"
+    assert "differs from the torch one" in caplog.text
+    np.testing.assert_allclose(checked.predict_batch(hist), expected, atol=1e-5)
+    # without onnxruntime either, the traced torch network answers, with the same numbers
     real_import = builtins.__import__
 
     def no_onnxruntime(name: str, *args, **kwargs):
@@ -138,9 +150,11 @@ def test_single_person_forecasts_run_through_onnx_runtime_with_the_same_numbers(
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_onnxruntime)
-    monkeypatch.setattr("app.prediction.predictor._ONNX_CACHE", __import__("weakref").WeakKeyDictionary())
+    monkeypatch.setattr("app.prediction.predictor._FAST_CACHE", weakref.WeakKeyDictionary())
+    monkeypatch.setattr("app.prediction.predictor._ONNX_CACHE", weakref.WeakKeyDictionary())
     slow = MotionPredictor(weights=tiny_weights)
-    np.testing.assert_allclose(slow.predict_batch(hist), eager, atol=1e-5)
+    assert slow.single_person_backend == "torch-traced"
+    np.testing.assert_allclose(slow.predict_batch(hist), expected, atol=1e-5)
     assert slow._onnx_session() is None
 
 
