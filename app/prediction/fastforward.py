@@ -1,4 +1,4 @@
-"""The Graph-Mixer's forward pass for one person without torch: the per-frame forecast, about 2.5x faster.
+"""The Graph-Mixer's forward pass for one person without torch: the per-frame forecast, 2x ONNX's speed.
 
 For one person the network (about 60k parameters, 8 million multiply-adds) spends most of its time in torch
 or ONNX Runtime on the overhead of a few hundred small operators. :class:`FastGraphMixer` prepares once what

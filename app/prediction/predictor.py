@@ -20,8 +20,8 @@ margin grows at ``growth_mps`` (the ISO/TS 15066 human speed bound) from zero.
 
 Inference: a single person's forecast (the per-frame call) runs through the compiled forward pass of
 :mod:`app.prediction.fastforward` (BLAS products and fused numba loops, no torch; built once at first use and
-checked against torch on probe inputs; about 2.5x less time per frame than ONNX Runtime, 8x less than the
-traced torch network, whose per-operator overhead dominates such a small network). Where that path is
+checked against torch on probe inputs; about 2x less time per frame than ONNX Runtime and 3.5x less than
+the traced torch network, whose per-operator overhead dominates such a small network). Where that path is
 unavailable or fails its check, ONNX Runtime (the network exported once, checked alike), else a traced,
 frozen torch copy; :attr:`MotionPredictor.single_person_backend` says which. Batches run eagerly in torch.
 All run on the caller's thread with one thread each (BLAS is held to one thread during the compiled pass);
