@@ -33,6 +33,7 @@ import numba
 import numpy as np
 
 __all__ = [
+    "align_rows",
     "as_bool",
     "as_f64",
     "as_i64",
@@ -319,6 +320,26 @@ def robot_segments(
                 a[l, j, k] = SA[l, j]
                 d[l, j, k] = SD[l, j]
     return a, d
+
+
+@_jit
+def align_rows(q: np.ndarray, q_ref: np.ndarray, q_min: np.ndarray, q_max: np.ndarray) -> np.ndarray:
+    """Every joint of ``q`` (n, 6) shifted by a multiple of 2 pi next to ``q_ref`` (n, 6) within the limits
+    ``q_min``/``q_max`` (6,), else left as it is (:meth:`app.planning.search.Planner._align`)."""
+    two_pi = 2.0 * math.pi
+    inv = 1.0 / two_pi
+    n = q.shape[0]
+    out = np.empty((n, 6))
+    for k in range(n):
+        for j in range(6):
+            x = q[k, j]
+            y = x + two_pi * np.rint((q_ref[k, j] - x) * inv)
+            if y > q_max[j]:
+                y = y - two_pi
+            if y < q_min[j]:
+                y = y + two_pi
+            out[k, j] = x if (y > q_max[j] or y < q_min[j]) else y
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- distances

@@ -681,6 +681,9 @@ class Planner:
         self.qd_max = pick(cfg.qd_max, kinematics.QD_MAX)
         self.qdd_max = pick(cfg.qdd_max, kinematics.QDD_MAX)
         self._inv_qd = 1.0 / self.qd_max
+        # the compiled row-wise _align (only with the compiled collision model: a NumPy model stays NumPy)
+        compiled = bool(getattr(collision, "compiled", False))
+        self._k_align = (_kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max)) if compiled else None
         # path acceleration in "fraction of full speed per second"
         self._A = float(np.min(self.qdd_max / self.qd_max)) * cfg.accel_fraction
         self._ik = roadmap.ik
@@ -823,6 +826,8 @@ class Planner:
     # ------------------------------------------------------------------------------------------ helpers
     def _align(self, q: np.ndarray, q_ref: np.ndarray) -> np.ndarray:
         """2 pi-shift every joint of ``q`` (..., 6) next to ``q_ref`` (broadcastable), within the limits."""
+        if self._k_align is not None and q.ndim == 2 and q.shape == q_ref.shape:
+            return _kernels.align_rows(_kernels.as_f64(q), _kernels.as_f64(q_ref), *self._k_align)
         nearest = q + _TWO_PI * np.rint((q_ref - q) * (1.0 / _TWO_PI))
         nearest = np.where(nearest > self.q_max, nearest - _TWO_PI, nearest)
         nearest = np.where(nearest < self.q_min, nearest + _TWO_PI, nearest)

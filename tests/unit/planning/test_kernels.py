@@ -349,3 +349,14 @@ def test_plans_are_the_same_with_and_without_the_compiled_checks(cell, planners)
         e_a = fast.emergency(q_start=qr.q_start, t_start=qr.t_start, forecast=qr.forecast, horizon_s=0.2)
         e_b = ref.emergency(q_start=qr.q_start, t_start=qr.t_start, forecast=qr.forecast, horizon_s=0.2)
         assert (e_a.ok, e_a.reason) == (e_b.ok, e_b.reason)
+
+
+def test_compiled_align_equals_the_numpy_align(planners) -> None:  # type: ignore[no-untyped-def]
+    _, fast, ref = planners
+    rng = np.random.default_rng(8)
+    q = rng.uniform(-7.0, 7.0, (500, 6))
+    q_ref = rng.uniform(-7.0, 7.0, (500, 6))
+    q[:4] = [np.pi, -np.pi, 3 * np.pi, -2.5 * np.pi, 2 * np.pi, 0.0]  # half-way ties and the limits
+    q_ref[:4] = 0.0
+    np.testing.assert_array_equal(fast._align(q, q_ref), ref._align(q, q_ref))
+    assert fast._k_align is not None and ref._k_align is None
