@@ -137,9 +137,16 @@ def frames_from_result(frames: Any) -> RecordedFrames | None:
 
 
 def _init_worker() -> None:
-    """Worker start-up: one BLAS/torch thread per process (the pool already uses every core)."""
+    """Worker start-up: one BLAS/torch thread per process (the pool already uses every core).
+
+    The variables reach the libraries loaded from here on (torch, onnxruntime); the BLAS that NumPy
+    loaded while this module was imported is limited through threadpoolctl.
+    """
     for name in _THREAD_ENV:
         os.environ[name] = "1"
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
 
 
 def run_trial_job(job: TrialJob) -> TrialOutcome:
