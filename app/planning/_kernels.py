@@ -409,6 +409,40 @@ def self_distances(
 
 
 @_jit
+def _min_pairs(R: np.ndarray, rr: np.ndarray, C: np.ndarray, rh: np.ndarray, SB: np.ndarray) -> float:
+    """Min signed distance between the robot capsules ``R`` (n, 6: start, direction; radii ``rr`` (n,)) and
+    the person capsules ``C`` (M, 6; radii ``rh`` (M,)); NaN if any distance is NaN. A pair whose bounding
+    spheres are already at least the best distance so far apart is not computed (its distance is never
+    below the spheres' gap). ``SB`` (n, 4): scratch."""
+    n = R.shape[0]
+    for i in range(n):
+        h2 = 0.0
+        for j in range(3):
+            SB[i, j] = R[i, j] + 0.5 * R[i, 3 + j]
+            h2 += R[i, 3 + j] * R[i, 3 + j]
+        SB[i, 3] = 0.5 * math.sqrt(h2) + rr[i]
+    best = np.inf
+    for m in range(C.shape[0]):
+        cx = C[m, 0] + 0.5 * C[m, 3]
+        cy = C[m, 1] + 0.5 * C[m, 4]
+        cz = C[m, 2] + 0.5 * C[m, 5]
+        rm = 0.5 * math.sqrt(C[m, 3] * C[m, 3] + C[m, 4] * C[m, 4] + C[m, 5] * C[m, 5]) + rh[m]
+        for i in range(n):
+            lim = best + SB[i, 3] + rm
+            dx = SB[i, 0] - cx
+            dy = SB[i, 1] - cy
+            dz = SB[i, 2] - cz
+            if lim > 0.0 and dx * dx + dy * dy + dz * dz >= lim * lim:
+                continue  # cannot beat the best so far (NaN never skips; +inf never skips)
+            s = _seg_dist(
+                R[i, 0], R[i, 1], R[i, 2], R[i, 3], R[i, 4], R[i, 5],
+                C[m, 0], C[m, 1], C[m, 2], C[m, 3], C[m, 4], C[m, 5],
+            )  # fmt: skip
+            best = _nan_min(best, s - (rr[i] + rh[m]))
+    return best
+
+
+@_jit
 def paired_min_distance(
     a: np.ndarray,
     d: np.ndarray,
@@ -427,6 +461,10 @@ def paired_min_distance(
     out = np.empty(K)
     C = np.empty((M, 6))
     R = np.empty((nl, 6))
+    rr = np.empty(nl)
+    SB = np.empty((nl, 4))
+    for i in range(nl):
+        rr[i] = ra[links[i]]
     for k in range(K):
         _person_capsules(joints, k, ia, ib, C)
         for i in range(nl):
@@ -434,15 +472,7 @@ def paired_min_distance(
             for j in range(3):
                 R[i, j] = a[l, j, k]
                 R[i, 3 + j] = d[l, j, k]
-        best = np.inf
-        for m in range(M):
-            for i in range(nl):
-                s = _seg_dist(
-                    R[i, 0], R[i, 1], R[i, 2], R[i, 3], R[i, 4], R[i, 5],
-                    C[m, 0], C[m, 1], C[m, 2], C[m, 3], C[m, 4], C[m, 5],
-                )  # fmt: skip
-                best = _nan_min(best, s - (ra[links[i]] + rh[m]))
-        out[k] = best
+        out[k] = _min_pairs(R, rr, C, rh, SB)
     return out
 
 
@@ -465,6 +495,7 @@ def cross_min_distance(
     out = np.empty((B, H))
     C = np.empty((M, 6))
     R = np.empty((L, 6))
+    SB = np.empty((L, 4))
     for h in range(H):
         _person_capsules(joints, h, ia, ib, C)
         for k in range(B):
@@ -472,15 +503,7 @@ def cross_min_distance(
                 for j in range(3):
                     R[i, j] = a[i, j, k]
                     R[i, 3 + j] = d[i, j, k]
-            best = np.inf
-            for m in range(M):
-                for i in range(L):
-                    s = _seg_dist(
-                        R[i, 0], R[i, 1], R[i, 2], R[i, 3], R[i, 4], R[i, 5],
-                        C[m, 0], C[m, 1], C[m, 2], C[m, 3], C[m, 4], C[m, 5],
-                    )  # fmt: skip
-                    best = _nan_min(best, s - (ra[i] + rh[m]))
-            out[k, h] = best
+            out[k, h] = _min_pairs(R, ra, C, rh, SB)
     return out
 
 
