@@ -18,8 +18,11 @@ Signed distance: the distance between the surfaces, negative when they overlap (
 segment distance minus both radii, exact; for a capsule and a box it is the minimum over the segment of the
 box's signed distance field minus the radius).
 
-Performance: :meth:`CollisionModel.distance_to_human` and :meth:`CollisionModel.distance_to_human_paired` are
-the planner's hot path. Both run a branch-free closest-point computation (no Python loop over pairs) on blocks
+Performance: the forward kinematics to the capsules and the robot-person, self and segment distances run in
+compiled kernels (:mod:`app.planning._kernels`, numba) unless the model is built with ``compiled=False``; the
+NumPy implementations below stay as their reference (``tests/unit/planning/test_kernels.py``).
+:meth:`CollisionModel.distance_to_human` and :meth:`CollisionModel.distance_to_human_paired` (NumPy) run a
+branch-free closest-point computation (no Python loop over pairs) on blocks
 small enough to stay in cache and to avoid fresh page-faulted allocations. The cross version (B x H) gets
 every dot product of the segment-segment problem from one matrix product of augmented vectors (BLAS); the
 paired version (K) lays the pairs out as (robot capsule, person capsule, configuration) so that every pass

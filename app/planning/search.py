@@ -59,7 +59,10 @@ Paper, section II-A, and where this goes further:
   without forward kinematics (bounding spheres of the robot capsules grown by how far the joints can carry
   them, against a box around the person); the exact distance runs only over the robot and person capsules
   that come near each other, and a sample certainly too close (an upper bound of the distance, from points on
-  the capsule axes) fails its move without exact distances for the move's other samples.
+  the capsule axes) fails its move without exact distances for the move's other samples. With the compiled
+  UR5e capsule model (:meth:`CollisionModel.kernel_geometry`) the move, sample and trajectory checks run
+  fused in :mod:`app.planning._kernels` (the same broad phase and distances; a move stops at its first
+  failing sample, a verification at its first failing instant); the NumPy checks are their reference.
 - **Shortcuts.** Roadmap paths follow straight TCP segments between samples, so in joint space they
   zig-zag and a spline through them slows down at every reversal. Before the fit, runs of waypoints are
   replaced greedily by one straight joint move where that move is statically free and keeps the forecast
