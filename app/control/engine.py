@@ -62,29 +62,17 @@ class CellGeometry:
     """
 
     def __init__(self, collision: Any, *, fd_step_s: float = 1e-3) -> None:
-        from app.planning.collision import capsule_distance
-
         self.collision = collision
         self.fd_step_s = float(fd_step_s)
-        self._capsule_distance = capsule_distance
 
     def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """(P, L, M) surface distance (m) of each robot part at ``q`` (6,) to each capsule of the person in
-        poses (P, J, 3)."""
-        q = np.asarray(q, dtype=np.float64).reshape(1, 6)
+        poses (P, J, 3) (:meth:`app.planning.collision.CollisionModel.pair_distances`)."""
+        q = np.asarray(q, dtype=np.float64).reshape(6)
         joints = np.asarray(joints, dtype=np.float64)
         if joints.ndim != 3 or joints.shape[1:] != (NUM_JOINTS, 3):
             raise ValueError(f"joints must have shape (P, {NUM_JOINTS}, 3), got {joints.shape}")
-        ra, rb, rr = self.collision.robot_capsules(q)  # (1, L, 3) x 2, (L,)
-        ha, hb, hr = self.collision.human_capsules(joints)  # (P, M, 3) x 2, (M,)
-        return self._capsule_distance(
-            ra[0][None, :, None, :],
-            rb[0][None, :, None, :],
-            rr[None, :, None],
-            ha[:, None, :, :],
-            hb[:, None, :, :],
-            hr[None, None, :],
-        )
+        return self.collision.pair_distances(q, joints)
 
     def part_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """(P, L) surface distance (m) of each robot part at ``q`` (6,) to the person in poses (P, J, 3)."""
