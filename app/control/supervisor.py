@@ -233,6 +233,15 @@ class ScaledView:
         return self.tau_ref + self.scale * np.maximum(t - self.t_ref, 0.0)
 
     @property
+    def base_trajectory(self) -> TrajectoryLike:
+        """The wrapped trajectory (the planner's compiled check evaluates its knots at :meth:`path_times`)."""
+        return self.traj
+
+    def path_times(self, t: np.ndarray) -> np.ndarray:
+        """Path times (N,) of ``traj`` at wall times ``t`` (N,)."""
+        return self._tau(t)
+
+    @property
     def t_start(self) -> float:
         return self.t_ref
 

@@ -1099,6 +1099,8 @@ def _hermite_q(
 @_jit
 def trajectory_first_violation(
     ts: np.ndarray,
+    tq0: np.ndarray,
+    tq1: np.ndarray,
     k_times: np.ndarray,
     k_q: np.ndarray,
     k_qd: np.ndarray,
@@ -1133,12 +1135,15 @@ def trajectory_first_violation(
     breaks the required separation from a forecast person (:meth:`app.planning.search.Planner._verify`).
 
     The trajectory: cubic Hermite knots ``k_times`` (K,), ``k_q``/``k_qd`` (K, 6), ``k_h`` (K - 1,) the knot
-    intervals. Limits: ``q_lo``/``q_hi`` (6,) less/plus 1e-9 rad. Robot speed: the largest displacement of a
-    capsule end between ``ts[k]`` and ``ts[k] + eps``, over ``eps``. Person: the forecast ``fc_times`` (H,),
-    ``fc_joints`` (H, J, 3), ``fc_margins`` (H,) interpolated as :meth:`HumanForecast.poses_at` does (the
-    last pose held, the margin growing at ``growth`` m/s up to ``cap``); requirement
-    :func:`app.planning.safety.forecast_clearance` (SSM constants), capped at ``floor_m``. Samples are
-    checked in order and the check stops at the first failure; a NaN counts as a failure.
+    intervals, evaluated at ``tq0[k]`` for the sample at wall time ``ts[k]`` (``tq0 = ts`` for a trajectory
+    in wall time; a path time for a view of it that runs at another speed). Limits: ``q_lo``/``q_hi`` (6,)
+    less/plus 1e-9 rad. Robot speed: the largest displacement of a capsule end between the configurations at
+    ``tq0[k]`` and ``tq1[k]`` (the path time of ``ts[k] + eps``), over ``eps``. Person: the forecast
+    ``fc_times`` (H,), ``fc_joints`` (H, J, 3), ``fc_margins`` (H,) interpolated as
+    :meth:`HumanForecast.poses_at` does (the last pose held, the margin growing at ``growth`` m/s up to
+    ``cap``); requirement :func:`app.planning.safety.forecast_clearance` (SSM constants), capped at
+    ``floor_m``. Samples are checked in order and the check stops at the first failure; a NaN counts as a
+    failure.
     """
     N = ts.shape[0]
     L = ra.shape[0]
@@ -1163,11 +1168,11 @@ def trajectory_first_violation(
     hi = np.empty(3)
     for k in range(N):
         t = ts[k]
-        _hermite_q(t, k_times, k_q, k_qd, k_h, q0[0])
+        _hermite_q(tq0[k], k_times, k_q, k_qd, k_h, q0[0])
         for j in range(6):
             if not (q0[0, j] >= q_lo[j] - 1e-9 and q0[0, j] <= q_hi[j] + 1e-9):
                 return k
-        _hermite_q(t + eps, k_times, k_q, k_qd, k_h, q1[0])
+        _hermite_q(tq1[k], k_times, k_q, k_qd, k_h, q1[0])
         _segments_one(q0, 0, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, X, Y, Z, P, SA, SD)
         _segments_one(
             q1, 0, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, X, Y, Z, P, SA1, SD1

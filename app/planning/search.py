@@ -91,7 +91,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -1243,8 +1243,10 @@ class Planner:
     ) -> float | None:
         dt = self.config.verify_dt_s if dt_s is None else dt_s
         ts = traj.sample(dt, t_from=t_from, t_to=max(t_to, t_from))
-        if self._kernel_geometry is not None and forecast is not None and isinstance(traj, Trajectory):
-            return self._verify_compiled(traj, forecast, ts, static=static, floor_m=floor_m)
+        if self._kernel_geometry is not None and forecast is not None:
+            view = _compiled_view(traj)
+            if view is not None:
+                return self._verify_compiled(traj, view, forecast, ts, static=static, floor_m=floor_m)
         q = traj.q(ts)
         bad = ~self._within_limits(q)
         # forward kinematics once for the static scene and the person (when the model takes segments)
@@ -1271,7 +1273,8 @@ class Planner:
 
     def _verify_compiled(
         self,
-        traj: Trajectory,
+        traj: Any,
+        view: tuple[Trajectory, Callable[[np.ndarray], np.ndarray]],
         forecast: HumanForecast,
         ts: np.ndarray,
         *,
@@ -1281,7 +1284,8 @@ class Planner:
         """:meth:`_verify` with the limits and the separation in one compiled pass that stops at the first
         failing sample (:func:`app.planning._kernels.trajectory_first_violation`); the static scene, where
         asked for, in NumPy first (the compiled pass then only looks at the samples before its first
-        failure)."""
+        failure). ``view``: the :class:`Trajectory` that ``traj`` evaluates and the map from wall times to
+        its times (:func:`_compiled_view`)."""
         n = ts.shape[0]
         first = n
         if static:
@@ -1295,10 +1299,15 @@ class Planner:
                     first = int(moving[np.argmax(bad)])
         ssm = self.config.ssm
         f64 = _kernels.as_f64
+        base, path_times = view
+        eps = 1e-4
+        t_wall = f64(ts[:first])
         k = _kernels.trajectory_first_violation(
-            f64(ts[:first]),
-            *traj._kernel_knots(),
-            1e-4,
+            t_wall,
+            f64(path_times(t_wall)),
+            f64(path_times(t_wall + eps)),
+            *base._kernel_knots(),
+            eps,
             self._k_q_lo,
             self._k_q_hi,
             f64(forecast.times),
@@ -2774,3 +2783,21 @@ def _map_nodes(waypoints: Plan, traj: Trajectory) -> np.ndarray:
 
 
 __all__ = ["Plan", "PlanResult", "Planner", "PlannerConfig", "RobotModel"]
+
+
+def _wall_times(t: np.ndarray) -> np.ndarray:
+    return t
+
+
+def _compiled_view(traj: Any) -> tuple[Trajectory, Callable[[np.ndarray], np.ndarray]] | None:
+    """The :class:`Trajectory` whose knots the compiled check evaluates for ``traj``, and the map from wall
+    times to its times: ``traj`` itself, or a view of one in another timing that names it
+    (``base_trajectory``) and maps wall times to its times (``path_times``, e.g. the supervisor's
+    speed-scaled view of the plan in execution); None for anything else (checked in NumPy)."""
+    if isinstance(traj, Trajectory):
+        return traj, _wall_times
+    base = getattr(traj, "base_trajectory", None)
+    path_times = getattr(traj, "path_times", None)
+    if isinstance(base, Trajectory) and callable(path_times):
+        return base, path_times
+    return None

@@ -7,6 +7,7 @@ instead. The planner with compiled checks must return exactly what it returns wi
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import textwrap
@@ -27,6 +28,7 @@ from app.planning.kinematics import UR5e
 from app.planning.roadmap import RoadmapConfig, load_or_build_roadmap
 from app.planning.scenarios import reference_queries
 from app.planning.search import Planner
+from app.planning.trajectory import Trajectory
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS
 
@@ -319,7 +321,32 @@ def test_move_checks_and_verification_match_the_numpy_checks(cell, planners) -> 
             got = fast.first_violation(traj, fc, t_from=traj.t_start, t_to=traj.t_end + 0.3)
             assert got == ref.first_violation(traj, fc, t_from=traj.t_start, t_to=traj.t_end + 0.3)
             found.append(got is None)
+            # a view of the trajectory in another timing (the supervisor's speed-scaled plan in execution)
+            view = _SlowView(traj, t_ref=traj.t_start - 0.2, tau_ref=traj.t_start + 0.1, scale=0.6)
+            got = fast.first_violation(view, fc, t_from=view.t_ref, t_to=view.t_end + 0.3)
+            assert got == ref.first_violation(view, fc, t_from=view.t_ref, t_to=view.t_end + 0.3)
+            found.append(got is None)
     assert any(found) and not all(found)  # trajectories with and without a violation
+
+
+class _SlowView:
+    """A trajectory run at ``scale`` of its speed from wall time ``t_ref`` at its time ``tau_ref`` (the
+    interface of :class:`app.control.supervisor.ScaledView` that the planner's check uses)."""
+
+    def __init__(self, traj: Trajectory, *, t_ref: float, tau_ref: float, scale: float) -> None:
+        self.base_trajectory, self.t_ref, self.tau_ref, self.scale = traj, t_ref, tau_ref, scale
+        self.t_start = t_ref
+        self.t_end = t_ref + (traj.t_end - tau_ref) / scale
+
+    def path_times(self, t: np.ndarray) -> np.ndarray:
+        return self.tau_ref + self.scale * np.maximum(np.asarray(t, dtype=np.float64) - self.t_ref, 0.0)
+
+    def q(self, t: np.ndarray) -> np.ndarray:
+        return self.base_trajectory.q(self.path_times(t))
+
+    def sample(self, dt_s: float, *, t_from: float, t_to: float) -> np.ndarray:
+        n = max(math.ceil((t_to - t_from) / dt_s - 1e-9), 1)
+        return np.linspace(t_from, t_to, n + 1)
 
 
 def _shifted(fc: HumanForecast, rng: np.random.Generator) -> HumanForecast:
