@@ -1235,3 +1235,215 @@ def trajectory_first_violation(
         if _too_close(SA, SD, near, ra, C, rh, req, SB):
             return k
     return -1
+
+
+# ------------------------------------------------------------------------------------ search bookkeeping
+# The search's state records (:class:`app.planning.search._Run`) as the kernels see them: one row per field
+# of three packed arrays (float, int, bool) and one column per state.
+REC_T, REC_U, REC_U0, REC_DEP, REC_FC, REC_L, REC_H, REC_PEAK, REC_WAIT_OK = range(9)
+REC_NODE, REC_BRANCH, REC_PARENT, REC_ROW, REC_SPEC_CHILD = range(5)
+REC_END, REC_SAME, REC_ACCEPTED, REC_QSET = range(4)
+_EPS_T = 1e-9
+
+
+@_jit
+def _profile3(u0: float, L: float, f: float, A: float, end_rest: bool) -> tuple[float, float, float]:
+    """Duration, exit and peak path speed of one move (:func:`app.planning.search._profile_arrays`, the same
+    formulas in the same order)."""
+    u0sq = u0 * u0
+    two_al = 2.0 * A * L
+    if not end_rest:
+        u1 = min(math.sqrt(u0sq + two_al), f)
+        return (u1 - u0) / A + max(L - (u1 * u1 - u0sq) / (2.0 * A), 0.0) / f, u1, u1
+    up = min(f, math.sqrt((two_al + u0sq) / 2.0))
+    if u0sq <= two_al:
+        cruise = max(L - (up * up - u0sq) / (2.0 * A) - up * up / (2.0 * A), 0.0)
+        return (up - u0) / A + cruise / max(up, 1e-12) + up / A, 0.0, up
+    return 2.0 * L / max(u0, 1e-12), 0.0, u0
+
+
+@_jit
+def _record_move(
+    n: int,
+    par: int,
+    node: int,
+    branch: int,
+    L: float,
+    same: bool,
+    t_dep: float,
+    u0: float,
+    fc: float,
+    alt: int,
+    row: int,
+    ctx: np.ndarray,
+    h_tab: np.ndarray,
+    h_pred: np.ndarray,
+    AT: np.ndarray,
+    F: np.ndarray,
+    I: np.ndarray,  # noqa: E741
+    B: np.ndarray,
+    alts: np.ndarray,
+    keys: np.ndarray,
+    tas: np.ndarray,
+    n0: int,
+) -> int:
+    """Time one move and record it as state ``n`` if it can improve its node and passes the prune (the
+    per-move body of :meth:`app.planning.search._Run.moves`); returns the next free state."""
+    if not math.isfinite(L):
+        return n
+    goal = int(ctx[0])
+    A = ctx[1]
+    end = node == goal
+    u0 = min(u0, fc)
+    h, u1, peak = _profile3(u0, L, fc, A, end)
+    if L > 1e-12:
+        h = max(h, ctx[2])
+    ta = t_dep + h
+    w = ctx[3]
+    stop_time = ctx[4]
+    if h_tab.shape[0] > 0:
+        hv = h_tab[node, branch]
+    elif stop_time == stop_time:
+        hv = max(stop_time - ta, 0.0)
+        w = 1.0
+    else:
+        hv = 0.0
+    if not (ta < AT[node] - _EPS_T and ta + hv <= ctx[5]):
+        return n
+    t_nongoal = ctx[6]
+    if t_nongoal < math.inf and node != goal:
+        hp = h_pred[node, branch] if h_pred.shape[0] > 0 else 0.0
+        if not ta + hp < t_nongoal:
+            return n
+    F[REC_T, n] = ta
+    F[REC_U, n] = u1
+    F[REC_U0, n] = u0
+    F[REC_DEP, n] = t_dep
+    F[REC_FC, n] = fc
+    F[REC_L, n] = L
+    F[REC_H, n] = h
+    F[REC_PEAK, n] = peak
+    I[REC_NODE, n] = node
+    I[REC_BRANCH, n] = branch
+    I[REC_PARENT, n] = par
+    I[REC_ROW, n] = row
+    B[REC_END, n] = end
+    B[REC_SAME, n] = same
+    alts[n] = alt
+    keys[n - n0] = ta + w * hv
+    tas[n - n0] = ta
+    return n + 1
+
+
+@_jit
+def children_moves(
+    sids: np.ndarray,
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    ord_flat: np.ndarray,
+    L_flat: np.ndarray,
+    same_flat: np.ndarray,
+    f: float,
+    n_branches: int,
+    ctx: np.ndarray,
+    h_tab: np.ndarray,
+    h_pred: np.ndarray,
+    AT: np.ndarray,
+    F: np.ndarray,
+    I: np.ndarray,  # noqa: E741
+    B: np.ndarray,
+    alts: np.ndarray,
+    n0: int,
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """:meth:`app.planning.search._Run.children` (then ``moves``): the moves from the states ``sids`` to
+    all roadmap neighbours (nearest branch, cruise speed ``f``; a speculative chain's move is not made
+    twice), recorded from state ``n0`` on in the same order. Returns (next free state, keys, arrival
+    times) of the recorded states. ``ctx``: ``goal`` (-2: none), path acceleration, shortest move,
+    heuristic weight, stop time (NaN: none), latest arrival, latest arrival at other nodes than the goal."""
+    total = 0
+    for s in sids:
+        u = I[REC_NODE, s]
+        total += indptr[u + 1] - indptr[u]
+    keys = np.empty(total)
+    tas = np.empty(total)
+    n = n0
+    for s in sids:
+        u = I[REC_NODE, s]
+        bu = I[REC_BRANCH, s]
+        spec = I[REC_SPEC_CHILD, s]
+        skip = I[REC_NODE, spec] if spec >= 0 else -1
+        t = F[REC_T, s]
+        us = F[REC_U, s]
+        for e in range(indptr[u], indptr[u + 1]):
+            v = indices[e]
+            if v == skip:
+                continue
+            row = e * n_branches + bu
+            n = _record_move(
+                n, s, v, ord_flat[row, 0], L_flat[row, 0], same_flat[row, 0], t, us, f, 0, row,
+                ctx, h_tab, h_pred, AT, F, I, B, alts, keys, tas, n0,
+            )  # fmt: skip
+    return n, keys[: n - n0], tas[: n - n0]
+
+
+@_jit
+def alternative_moves(
+    failed: np.ndarray,
+    kinds: np.ndarray,
+    no_row: int,
+    wait_step: float,
+    t_static: float,
+    start_b: np.ndarray,
+    start_L: np.ndarray,
+    ord_flat: np.ndarray,
+    L_flat: np.ndarray,
+    same_flat: np.ndarray,
+    ctx: np.ndarray,
+    h_tab: np.ndarray,
+    h_pred: np.ndarray,
+    AT: np.ndarray,
+    F: np.ndarray,
+    I: np.ndarray,  # noqa: E741
+    B: np.ndarray,
+    alts: np.ndarray,
+    n0: int,
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """:meth:`app.planning.search._Run.alternatives` (then ``moves``): for each failed nearest-branch move
+    the alternatives ``kinds`` (A, 4) = (kind, option, cruise speed, wait steps), alternative-major as
+    there, recorded from state ``n0`` on. Returns as :func:`children_moves`."""
+    fl = np.empty(failed.shape[0], dtype=np.int64)
+    m = 0
+    for s in failed:
+        if alts[s] == 0 and I[REC_ROW, s] != no_row:
+            fl[m] = s
+            m += 1
+    keys = np.empty(m * kinds.shape[0])
+    tas = np.empty(m * kinds.shape[0])
+    n = n0
+    for a in range(kinds.shape[0]):
+        kind = int(kinds[a, 0])
+        opt = int(kinds[a, 1])
+        fc = kinds[a, 2]
+        wait = kinds[a, 3]
+        for j in range(m):
+            s = fl[j]
+            par = I[REC_PARENT, s]
+            t = F[REC_T, par]
+            if not (wait <= 1 or t + (wait - 1) * wait_step < t_static):
+                continue
+            row = I[REC_ROW, s]
+            if row >= 0:
+                b = ord_flat[row, opt]
+                L = L_flat[row, opt]
+                same = same_flat[row, opt]
+            else:
+                b = start_b[-1 - row, opt]
+                L = start_L[-1 - row, opt]
+                same = False
+            u0 = 0.0 if wait != 0 else min(F[REC_U, par], fc)
+            t_dep = t + max(wait, 0.0) * wait_step
+            n = _record_move(
+                n, par, I[REC_NODE, s], b, L, same, t_dep, u0, fc, kind, row,
+                ctx, h_tab, h_pred, AT, F, I, B, alts, keys, tas, n0,
+            )  # fmt: skip
+    return n, keys[: n - n0], tas[: n - n0]

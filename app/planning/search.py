@@ -795,6 +795,7 @@ class Planner:
         self._same_flat = self._same_tab.reshape(E * NUM_BRANCHES, R)
         self._indptr = rm.indptr
         self._indices = rm.indices
+        self._k_indptr, self._k_indices = _kernels.as_i64(rm.indptr), _kernels.as_i64(rm.indices)
         self._src_state = (src[:, None] * NUM_BRANCHES + np.arange(NUM_BRANCHES)).reshape(-1)
         # per row, the nearest branch's configuration minus the parent's, shifted by multiples of 2 pi next
         # to it (without the limits: a shifted parent gets the same shift, see _Run.speculate)
@@ -2214,12 +2215,11 @@ class _Run:
         self.w_h = cfg.heuristic_weight
         self.AT = np.full(planner.roadmap.num_nodes, np.inf)
         cap = 256
-        for name in self._FLOAT:
-            setattr(self, name, np.zeros(cap))
-        for name in self._INT:
-            setattr(self, name, np.full(cap, -1, dtype=np.int64))
-        for name in self._BOOL:
-            setattr(self, name, np.zeros(cap, dtype=bool))
+        # the records, packed: one row per field (the attributes named in _FLOAT/_INT/_BOOL are views)
+        self._F = np.zeros((len(self._FLOAT), cap))
+        self._I = np.full((len(self._INT), cap), -1, dtype=np.int64)
+        self._B = np.zeros((len(self._BOOL), cap), dtype=bool)
+        self._bind()
         self.alt = np.zeros(cap, dtype=np.int8)
         self.status = np.zeros(cap, dtype=np.int8)  # check result: 0 not yet, 1 passed, 2 failed
         self.q = np.empty((cap, 6))  # the configuration once checked (or precomputed: ``qset``)
@@ -2229,6 +2229,10 @@ class _Run:
         self.same[0] = self.accepted[0] = self.qset[0] = True
         self.status[0] = 1
         self.next_rows = None if goal is None else planner._next_cache.get(goal)
+        # the compiled bookkeeping (with the compiled model; the NumPy code below is its reference)
+        self.compiled = planner._k_align is not None
+        self._h_tab_k = _kernels.as_f64(h_tab) if h_tab is not None else np.zeros((0, NUM_BRANCHES))
+        self._kinds: np.ndarray | None = None
         self.wait_ok[:] = np.nan  # per checked state: until when standing still there is safe (NaN: unknown)
         self.q[0] = q_start
         pts, cen, rad = planner._points_and_spheres(q_start[None])
@@ -2243,17 +2247,26 @@ class _Run:
         if self.n + m <= cap:
             return
         new = max(2 * cap, self.n + m)
-        for name in (*self._FLOAT, *self._INT, *self._BOOL, "alt", "status", "q"):
+        F = np.zeros((len(self._FLOAT), new))
+        F[:, :cap] = self._F
+        F[_kernels.REC_WAIT_OK, cap:] = np.nan
+        I = np.full((len(self._INT), new), -1, dtype=np.int64)  # noqa: E741
+        I[:, :cap] = self._I
+        B = np.zeros((len(self._BOOL), new), dtype=bool)
+        B[:, :cap] = self._B
+        self._F, self._I, self._B = F, I, B
+        self._bind()
+        for name in ("alt", "status", "q"):
             old = getattr(self, name)
-            arr = np.empty((new, *old.shape[1:]), dtype=old.dtype)
+            arr = np.zeros((new, *old.shape[1:]), dtype=old.dtype)
             arr[:cap] = old
-            if name == "wait_ok":
-                arr[cap:] = np.nan
-            elif name in self._BOOL or name == "status":
-                arr[cap:] = 0
-            elif name in self._INT:
-                arr[cap:] = -1
             setattr(self, name, arr)
+
+    def _bind(self) -> None:
+        """The record attributes as views of the packed arrays."""
+        for group, names in ((self._F, self._FLOAT), (self._I, self._INT), (self._B, self._BOOL)):
+            for k, name in enumerate(names):
+                setattr(self, name, group[k])
 
     def _options(self, row: np.ndarray, k: int | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Branch, length and roadmap-checked flag of option ``k`` of each option-table row."""
@@ -2385,9 +2398,36 @@ class _Run:
             row,
         )
 
+    def _context(self) -> tuple[np.ndarray, np.ndarray]:
+        """The compiled generation's scalars (see :func:`app.planning._kernels.children_moves`) and
+        ``h_pred`` ((0, 8) where there is none)."""
+        goal = -2 if self.goal is None else self.goal
+        stop = math.nan if self.stop_time is None else self.stop_time
+        ctx = np.array([goal, self.A, self.min_edge, self.w_h, stop, self.t_last, self.t_nongoal])
+        h_pred = self.h_pred if self.h_pred is not None else np.zeros((0, NUM_BRANCHES))
+        return ctx, _kernels.as_f64(h_pred)
+
+    def _recorded(
+        self, n: int, keys: np.ndarray, ta: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ids = np.arange(self.n, n)
+        self.n = n
+        return ids, keys, ta
+
     def children(self, sids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Moves from checked states to all their roadmap neighbours (nearest branch, cruise speed)."""
         p = self.p
+        if self.compiled:
+            u = self.node[sids]
+            self._grow(int((p._indptr[u + 1] - p._indptr[u]).sum()))
+            ctx, h_pred = self._context()
+            return self._recorded(
+                *_kernels.children_moves(
+                    sids, p._k_indptr, p._k_indices, p._ord_flat, p._L_flat, p._same_flat, self.f,
+                    NUM_BRANCHES, ctx, self._h_tab_k, h_pred, self.AT, self._F, self._I, self._B, self.alt,
+                    self.n,
+                )
+            )  # fmt: skip
         u, bu = self.node[sids], self.branch[sids]
         a, z = p._indptr[u], p._indptr[u + 1]
         cnt = z - a
@@ -2491,23 +2531,27 @@ class _Run:
     def alternatives(self, failed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """When the nearest branch at cruise speed fails: the next branches (alternative 1), the nearest one
         slower (2), after waiting (3), after stopping at the slowest speed (4)."""
+        cfg = self.p.config
+        if self.compiled:
+            if self._kinds is None:
+                self._kinds = np.array(self._alternative_kinds(), dtype=np.float64).reshape(-1, 4)
+            p = self.p
+            self._grow(failed.size * self._kinds.shape[0])
+            ctx, h_pred = self._context()
+            return self._recorded(
+                *_kernels.alternative_moves(
+                    failed, self._kinds, _NO_ROW, float(cfg.wait_step_s), float(self.sep.t_static),
+                    self.start_b, _kernels.as_f64(self.start_L), p._ord_flat, p._L_flat, p._same_flat,
+                    ctx, self._h_tab_k, h_pred, self.AT, self._F, self._I, self._B, self.alt, self.n,
+                )
+            )  # fmt: skip
         failed = failed[(self.alt[failed] == 0) & (self.row[failed] != _NO_ROW)]
         if failed.size == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
-        cfg = self.p.config
         par, node, row = self.parent[failed], self.node[failed], self.row[failed]
         t, u = self.t[par], self.u[par]
         n = failed.size
-        # (kind, option, cruise, wait steps) per alternative
-        kinds = [(1, k, self.f, 0) for k in range(1, self.p._R)]
-        if self.sep.forecast is not None:
-            slow = [fs for fs in cfg.slow_speed_fractions if fs < self.f]
-            kinds += [(2, 0, fs, 0) for fs in slow]
-            if slow:  # stop, then creep (slower than creeping on at the parent's speed)
-                kinds.append((4, 0, min(slow), -1))
-            K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
-            kinds += [(3, 0, self.f, k) for k in range(1, K + 1)]
-
+        kinds = self._alternative_kinds()
         if not kinds:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         spec = np.array(kinds, dtype=np.float64)  # (A, 4)
@@ -2533,6 +2577,19 @@ class _Run:
         u0 = np.where(wait != 0, 0.0, np.minimum(u_r, fc))  # from rest after a wait or a stop
         t_dep = t_r + np.maximum(wait, 0.0) * cfg.wait_step_s
         return self.moves(par_r, node_r, b, L, same, t_dep, u0, fc, alt, row_r)
+
+    def _alternative_kinds(self) -> list[tuple[int, int, float, int]]:
+        """(kind, option, cruise speed, wait steps) of each alternative of a failed move, in order."""
+        cfg = self.p.config
+        kinds = [(1, k, self.f, 0) for k in range(1, self.p._R)]
+        if self.sep.forecast is not None:
+            slow = [fs for fs in cfg.slow_speed_fractions if fs < self.f]
+            kinds += [(2, 0, fs, 0) for fs in slow]
+            if slow:  # stop, then creep (slower than creeping on at the parent's speed)
+                kinds.append((4, 0, min(slow), -1))
+            K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
+            kinds += [(3, 0, self.f, k) for k in range(1, K + 1)]
+        return kinds
 
     # -- checking (vectorised)
     def check(self, batch: np.ndarray) -> np.ndarray:
