@@ -1447,3 +1447,104 @@ def alternative_moves(
                 ctx, h_tab, h_pred, AT, F, I, B, alts, keys, tas, n0,
             )  # fmt: skip
     return n, keys[: n - n0], tas[: n - n0]
+
+
+@_jit
+def _align1(x: float, ref: float, lo: float, hi: float) -> float:
+    """One joint of :func:`align_rows`."""
+    two_pi = 2.0 * math.pi
+    y = x + two_pi * np.rint((ref - x) * (1.0 / two_pi))
+    if y > hi:
+        y = y - two_pi
+    if y < lo:
+        y = y + two_pi
+    return x if (y > hi or y < lo) else y
+
+
+@_jit
+def check_prepare(
+    batch: np.ndarray,
+    F: np.ndarray,
+    I: np.ndarray,  # noqa: E741
+    B: np.ndarray,
+    q: np.ndarray,
+    ik: np.ndarray,
+    q_lo: np.ndarray,
+    q_hi: np.ndarray,
+    pts_tab: np.ndarray,
+    cen_tab: np.ndarray,
+    rad_tab: np.ndarray,
+    start_pts: np.ndarray,
+    start_cen: np.ndarray,
+    start_rad: np.ndarray,
+    goal: int,
+    hold_default: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The per-batch set-up of :meth:`app.planning.search._Run.check` for the states ``batch`` (M,).
+
+    Returns ``target`` (M, 6): the state's branch aligned next to its parent's configuration (or its
+    precomputed configuration), ``same`` (M,): the roadmap's static edge check covers the move (the record's
+    flag, cleared where the move differs from the roadmap's), the parent's configuration ``q_par`` (M, 6)
+    and capsule points/spheres ``pts_a`` (M, P, 3), ``cen_a`` (M, L, 3), ``rad_a`` (M, L) (the start's where
+    the parent is not a roadmap node), the per-move floats (5, M): departure, duration, entry speed, length,
+    cruise speed, and whether each move must hold at its end (M,) (at the goal; without one
+    ``hold_default``)."""
+    M = batch.shape[0]
+    NP = pts_tab.shape[1]
+    NL = cen_tab.shape[1]
+    nb = ik.shape[1]
+    target = np.empty((M, 6))
+    same = np.empty(M, dtype=np.bool_)
+    q_par = np.empty((M, 6))
+    pts_a = np.empty((M, NP, 3))
+    cen_a = np.empty((M, NL, 3))
+    rad_a = np.empty((M, NL))
+    fl = np.empty((5, M))
+    hold = np.empty(M, dtype=np.bool_)
+    for k in range(M):
+        s = batch[k]
+        par = I[REC_PARENT, s]
+        cv = I[REC_NODE, s]
+        b = I[REC_BRANCH, s]
+        pn = I[REC_NODE, par]
+        pb = I[REC_BRANCH, par]
+        for j in range(6):
+            q_par[k, j] = q[par, j]
+        if B[REC_QSET, s]:
+            for j in range(6):
+                target[k, j] = q[s, j]
+        else:
+            for j in range(6):
+                target[k, j] = _align1(ik[cv, b, j], q_par[k, j], q_lo[j], q_hi[j])
+        sm = B[REC_SAME, s]
+        if sm:
+            for j in range(6):
+                ref = ik[pn, pb, j]
+                ref_t = _align1(ik[cv, b, j], ref, q_lo[j], q_hi[j])
+                if abs((ref_t - ref) - (target[k, j] - q_par[k, j])) > 1e-9:
+                    sm = False
+        same[k] = sm
+        if pn >= 0:
+            r = pn * nb + pb
+            for p in range(NP):
+                for j in range(3):
+                    pts_a[k, p, j] = pts_tab[r, p, j]
+            for l in range(NL):  # noqa: E741
+                for j in range(3):
+                    cen_a[k, l, j] = cen_tab[r, l, j]
+                rad_a[k, l] = rad_tab[r, l]
+        else:
+            for p in range(NP):
+                for j in range(3):
+                    pts_a[k, p, j] = start_pts[p, j]
+            for l in range(NL):  # noqa: E741
+                for j in range(3):
+                    cen_a[k, l, j] = start_cen[l, j]
+                rad_a[k, l] = start_rad[l]
+        fl[0, k] = F[REC_DEP, s]
+        fl[1, k] = F[REC_H, s]
+        fl[2, k] = F[REC_U0, s]
+        fl[3, k] = F[REC_L, s]
+        fl[4, k] = F[REC_FC, s]
+        hold[k] = cv == goal if goal != -2 else hold_default
+    return target, same, q_par, pts_a, cen_a, rad_a, fl, hold

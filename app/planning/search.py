@@ -727,6 +727,7 @@ class Planner:
             self._k_lever = _kernels.as_f64(self._lever)
             self._k_q_lo, self._k_q_hi = _kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max)
             self._k_moved_by = _kernels.as_i64(self._moved_by)
+            self._k_ik = _kernels.as_f64(self._ik)
         self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
         # which joints each person capsule runs between (joint indices fed in as coordinates) and its radius
         coded = np.repeat(np.arange(NUM_JOINTS, dtype=np.float64)[None, :, None], 3, axis=2)
@@ -2230,13 +2231,14 @@ class _Run:
         self.status[0] = 1
         self.next_rows = None if goal is None else planner._next_cache.get(goal)
         # the compiled bookkeeping (with the compiled model; the NumPy code below is its reference)
-        self.compiled = planner._k_align is not None
+        self.compiled = planner._k_align is not None and planner._kernel_geometry is not None
         self._h_tab_k = _kernels.as_f64(h_tab) if h_tab is not None else np.zeros((0, NUM_BRANCHES))
         self._kinds: np.ndarray | None = None
         self.wait_ok[:] = np.nan  # per checked state: until when standing still there is safe (NaN: unknown)
         self.q[0] = q_start
         pts, cen, rad = planner._points_and_spheres(q_start[None])
         self.start_pts, self.start_cen, self.start_rad = pts[0], cen[0], rad[0]
+        self._start_k = tuple(_kernels.as_f64(x) for x in (pts[0], cen[0], rad[0]))
         # option tables: rows e * 8 + b of the planner's edge tables, then the start's rows (-1 - j)
         self.start_b = np.zeros((1, planner._R), dtype=np.int64)
         self.start_L = np.full((1, planner._R), np.inf)
@@ -2594,6 +2596,8 @@ class _Run:
     # -- checking (vectorised)
     def check(self, batch: np.ndarray) -> np.ndarray:
         """Check a batch of moves; stores the configuration of every move that passes. Returns (M,) bool."""
+        if self.compiled:
+            return self._check_fast(batch)
         p = self.p
         par = self.parent[batch]
         cv = self.node[batch]
@@ -2627,6 +2631,78 @@ class _Run:
         self.q[good] = target[ok]
         self.status[batch] = np.where(ok, 1, 2)
         return ok
+
+    def _check_fast(self, batch: np.ndarray) -> np.ndarray:
+        """:meth:`check` with the compiled set-up (:func:`app.planning._kernels.check_prepare`) and the
+        compiled move check called directly: the same checks in the same order, the same result."""
+        p = self.p
+        sep = self.sep
+        target, same, q_par, pts, cen, rad, fl, hold = _kernels.check_prepare(
+            batch, self._F, self._I, self._B, self.q, p._k_ik, p._k_q_lo, p._k_q_hi, *p._k_tables,
+            self._start_k[0], self._start_k[1], self._start_k[2],
+            -2 if self.goal is None else self.goal, self.hold_s > 0,
+        )  # fmt: skip
+        M = batch.size
+        target_all = target
+        ok = np.ones(M, dtype=bool)
+        todo = np.flatnonzero(~same)
+        par = self.parent[batch]
+        if todo.size:
+            pt, st = par[todo], batch[todo]
+            ok[todo] = (
+                p._static_cached(
+                    self.node[pt], self.branch[pt], self.node[st], self.branch[st], q_par[todo], target[todo]
+                )
+                == 1
+            )
+        if sep.forecast is not None:
+            dep = fl[0]
+            # waits: the parent must be able to stand still until the departure (checked once per parent)
+            waiting = np.flatnonzero(ok & (dep > self.t[par] + _EPS_T))
+            if waiting.size:
+                wp = par[waiting]
+                wt = np.unique(wp[np.isnan(self.wait_ok[wp])])
+                if wt.size:
+                    self._check_waits(wt)
+                ok[waiting] = dep[waiting] < self.wait_ok[wp] - _EPS_T
+            live = np.flatnonzero(ok)
+            if live.size:
+                end = self.end[batch]
+                if live.size < M:
+                    q_par, target, pts, cen, rad, fl, hold, end = (
+                        q_par[live], target[live], pts[live], cen[live], rad[live], fl[:, live],
+                        hold[live], end[live],
+                    )  # fmt: skip
+                    fl = np.ascontiguousarray(fl)
+                cv, b = self.node[batch[live]], self.branch[batch[live]]
+                res, n_samples, n_exact = _kernels.moves_separation_ok(
+                    q_par, target, pts, cen, rad, *p._k_tables, cv * NUM_BRANCHES + b,
+                    fl[0], fl[1], fl[2], fl[3], fl[4], end, hold,
+                    p._k_lever, p._k_moved_by, float(p.config.speed_factor), p._A,
+                    float(p.config.sample_dt_s), float(self.hold_s),
+                    sep._k_offsets, sep._k_params, *sep._k_forecast, *sep._k_window, *sep._kernel,
+                )  # fmt: skip
+                sep.samples += n_samples
+                sep.exact_samples += n_exact
+                ok[live] = res
+        good = batch[ok]
+        self.q[good] = target_all[ok]
+        self.status[batch] = np.where(ok, 1, 2)
+        return ok
+
+    def _check_waits(self, todo: np.ndarray) -> None:
+        """Until when standing still at each of the checked states ``todo`` is safe (``wait_ok``)."""
+        cfg = self.p.config
+        K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
+        sub = max(1, math.ceil(cfg.wait_step_s / cfg.sample_dt_s - 1e-9))
+        n_w = K * sub
+        ts = self.t[todo][:, None] + (cfg.wait_step_s / sub) * np.arange(1, n_w + 1)
+        rep = np.repeat(np.arange(todo.size), n_w)
+        _, cen_w, rad_w = self._parent_geometry(todo)
+        res_w = self.sep.check(self.q[todo][rep], ts.reshape(-1), np.zeros(rep.size), cen_w[rep], rad_w[rep])
+        res_w = res_w.reshape(todo.size, -1)
+        first_bad = ts[np.arange(todo.size), np.argmin(res_w, axis=1)]
+        self.wait_ok[todo] = np.where(res_w.all(axis=1), np.inf, first_bad)
 
     def _parent_geometry(self, par: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         p = self.p
