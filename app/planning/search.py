@@ -1633,6 +1633,8 @@ class Planner:
             t_last=t_last,
         )
         run.row[0] = _NO_ROW
+        if run.compiled:
+            return self._search_compiled(run, t_start, sep, goal=goal, hold_s=hold_s, W=W, deadline=deadline)
         AT = run.AT
         heap: list[tuple[float, float, int]] = []
 
@@ -1765,19 +1767,135 @@ class Planner:
                     run.t_nongoal = min(run.t_nongoal, t_probe)
                     run.t_last = min(run.t_last, t_probe + longest)
                     run.h_pred = self._to_goal_neighbours(goal)
-        if goal is not None and t_last < t_start + cfg.max_plan_s and not expanded:
-            if t_last < t_start:
-                return None, expanded, "goal blocked by the person for good"
-            return None, expanded, f"goal blocked by the person from t={t_last - t_start:+.2f} s on"
-        what = "goal" if goal is not None else "the emergency horizon"
-        if blocked_from is not None:
-            return (
-                None,
-                expanded,
-                f"goal unreachable: every way into it is blocked once the person holds still "
-                f"(t={blocked_from - t_start:+.2f} s), no safe path arrives before ({expanded} expansions)",
-            )
-        return None, expanded, f"{what} unreachable: no safe path found after {expanded} expansions"
+        return _exhausted(goal, t_last, t_start, cfg.max_plan_s, expanded, blocked_from)
+
+    def _search_compiled(
+        self,
+        run: _Run,
+        t_start: float,
+        sep: _Separation,
+        *,
+        goal: int | None,
+        hold_s: float,
+        W: int,
+        deadline: float | None,
+    ) -> tuple[Plan | None, int, str]:
+        """The loop of :meth:`_search` over the compiled open list (:class:`_OpenList`): the same states
+        popped, checked and accepted in the same order (the pop loop runs in
+        :func:`app.planning._kernels.pop_batch` up to each step that needs Python), the same result."""
+        cfg = self.config
+        t_last = run.t_last
+        AT = run.AT
+        ol = _OpenList(run)
+        ol.push(run.start_moves())
+        goal_i = -2 if goal is None else goal
+        stop = math.inf if run.stop_time is None else run.stop_time
+        spec_len = W // 2 if goal is not None and W > 1 else 0
+        n_batches = 0
+        spec_rate = 1.0
+        chain_ids = _NO_IDS
+        expanded = 0
+        probed = goal is None or sep.forecast is None
+        t_static = sep.t_static
+        blocked_from: float | None = None
+        ctx = np.array([goal_i, stop, 0.0, run.t_nongoal, run.t_last, cfg.heuristic_weight])
+        h_pred = np.zeros((0, NUM_BRANCHES))
+        out = np.empty(W, dtype=np.int64)
+
+        def accept(sid: int, t: float, node: int) -> bool:
+            nonlocal expanded
+            AT[node] = t
+            run.accepted[sid] = True
+            expanded += 1
+            if node == goal_i or t >= stop:
+                return True
+            if ol.def_head[sid] >= 0:
+                ol.release(sid)
+            return False
+
+        while ol.hs[0]:
+            if deadline is not None and self._timer() > deadline:
+                return None, expanded, "deadline"
+            if expanded >= cfg.max_expansions:
+                return None, expanded, f"no plan within {cfg.max_expansions} expansions"
+            batch: list[int] = []
+            popped: list[int] = []
+            finals: list[int] = []  # entries
+            n_batches += 1
+            W_b = min(W, 8 + 4 * n_batches)
+            while True:
+                code, n_out, e = _kernels.pop_batch(
+                    ol.heap, ol.hs, ol.E_key, ol.E_negt, ol.E_id, ol.def_head, ol.def_next, AT, run._I,
+                    run._B, run.status, ctx, h_pred, len(batch), W_b, len(popped), spec_len > 0, out,
+                )  # fmt: skip
+                E_id = ol.E_id
+                for k in range(n_out):
+                    ek = int(out[k])
+                    sid = int(E_id[ek])
+                    batch.append(sid)
+                    popped.append(sid)
+                    node = int(run.node[sid])
+                    if node == goal_i or -ol.E_negt[ek] >= stop:
+                        finals.append(ek)
+                if code == _kernels.POP_SPECULATE:
+                    length = max(1, round(min(spec_len, W - 1) * spec_rate))
+                    chain = run.speculate(popped[0], length)
+                    chain_ids = chain[0]
+                    ol.push(chain)
+                    batch.extend(chain[0].tolist())
+                elif code == _kernels.POP_ACCEPT:
+                    sid = int(E_id[e])
+                    if accept(sid, -float(ol.E_negt[e]), int(run.node[sid])):
+                        return run.reconstruct(sid), expanded, "ok"
+                    ol.push(run.children(np.array([sid], dtype=np.int64)))
+                elif code == _kernels.POP_ALTERNATIVES:
+                    ol.push(run.alternatives(np.array([E_id[e]], dtype=np.int64)))
+                else:
+                    break
+            if not batch:
+                continue
+            run.check(np.array(batch, dtype=np.int64))
+            if chain_ids.size:
+                passed = float(np.mean(run.status[chain_ids] == 1)) * float(run.status[popped[0]] == 1)
+                spec_rate = 0.5 * spec_rate + 0.5 * passed
+                chain_ids = _NO_IDS
+            expand: list[int] = []
+            failed: list[int] = []
+            for k, sid in enumerate(popped):
+                if run.status[sid] != 1:
+                    failed.append(sid)
+                    continue
+                node = int(run.node[sid])
+                t = float(run.t[sid])
+                if t >= AT[node] - _EPS_T:
+                    continue
+                if node == goal_i or t >= stop:
+                    if k == 0:
+                        accept(sid, t, node)
+                        return run.reconstruct(sid), expanded, "ok"
+                    continue
+                if accept(sid, t, node):
+                    return run.reconstruct(sid), expanded, "ok"
+                expand.append(sid)
+            for ek in finals:
+                if run.status[ol.E_id[ek]] == 1 and ol.E_id[ek] != popped[0]:
+                    ol.push_back(ek)
+            if failed:
+                ol.push(run.alternatives(np.array(failed, dtype=np.int64)))
+            if expand:
+                ol.push(run.children(np.array(expand, dtype=np.int64)))
+            if not probed and expanded >= cfg.probe_after_expansions and goal is not None:
+                probed = True
+                t_probe = max(t_static, t_start)
+                longest = self._approach_probe(sep, goal, t_probe, hold_s, run.t_last)
+                if longest is not None:
+                    blocked_from = t_probe
+                    run.t_nongoal = min(run.t_nongoal, t_probe)
+                    run.t_last = min(run.t_last, t_probe + longest)
+                    run.h_pred = self._to_goal_neighbours(goal)
+                    h_pred = _kernels.as_f64(run.h_pred)
+                    ctx[2:5] = (1.0, run.t_nongoal, run.t_last)
+        return _exhausted(goal, t_last, t_start, cfg.max_plan_s, expanded, blocked_from)
 
     def _latest_goal_arrival(self, sep: _Separation, goal: int, t_start: float, hold_s: float) -> float:
         """The latest arrival at the goal from which the robot could stand there for ``hold_s``, when the
@@ -2841,6 +2959,82 @@ class _Run:
             qs.append(self.q[s])
             nodes.append(int(self.node[s]))
         return Plan(times=np.array(times), q=np.array(qs), nodes=np.array(nodes))
+
+
+class _OpenList:
+    """The compiled search's open list: entries ``(key, -t, state id)`` in an append-only table and a
+    binary heap of entry indices (:mod:`app.planning._kernels`: ``heap_add``, ``pop_batch``), plus the
+    entries that wait for a state to be accepted (linked lists: ``def_head`` per state, ``def_next`` per
+    entry). Pops in exactly the order of ``heapq`` over the tuples."""
+
+    def __init__(self, run: _Run) -> None:
+        self.run = run
+        cap = 1024
+        self.E_key = np.zeros(cap)
+        self.E_negt = np.zeros(cap)
+        self.E_id = np.zeros(cap, dtype=np.int64)
+        self.def_next = np.full(cap, -1, dtype=np.int64)
+        self.heap = np.zeros(cap, dtype=np.int64)
+        self.hs = np.zeros(2, dtype=np.int64)  # heap size, entries
+        self.def_head = np.full(run.t.shape[0], -1, dtype=np.int64)
+
+    def push(self, got: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
+        ids, keys, ts = got
+        m = ids.shape[0]
+        cap = self.E_key.shape[0]
+        if self.hs[1] + m > cap:
+            new = max(2 * cap, int(self.hs[1]) + m)
+            for name in ("E_key", "E_negt", "E_id", "def_next", "heap"):
+                old = getattr(self, name)
+                arr = (
+                    np.full(new, -1, dtype=old.dtype)
+                    if name == "def_next"
+                    else np.zeros(new, dtype=old.dtype)
+                )
+                arr[:cap] = old
+                setattr(self, name, arr)
+        n_states = self.run.t.shape[0]
+        if self.def_head.shape[0] < n_states:
+            head = np.full(n_states, -1, dtype=np.int64)
+            head[: self.def_head.shape[0]] = self.def_head
+            self.def_head = head
+        if m:
+            _kernels.heap_add(
+                _kernels.as_i64(ids), _kernels.as_f64(keys), _kernels.as_f64(ts), self.heap, self.hs,
+                self.E_key, self.E_negt, self.E_id,
+            )  # fmt: skip
+
+    def push_back(self, e: int) -> None:
+        _kernels.heap_push(e, self.heap, self.hs, self.E_key, self.E_negt, self.E_id)
+
+    def release(self, sid: int) -> None:
+        _kernels.release_deferred(
+            sid, self.def_head, self.def_next, self.heap, self.hs, self.E_key, self.E_negt, self.E_id
+        )
+
+
+def _exhausted(
+    goal: int | None,
+    t_last: float,
+    t_start: float,
+    max_plan_s: float,
+    expanded: int,
+    blocked_from: float | None,
+) -> tuple[None, int, str]:
+    """The result of a search whose open list ran empty."""
+    if goal is not None and t_last < t_start + max_plan_s and not expanded:
+        if t_last < t_start:
+            return None, expanded, "goal blocked by the person for good"
+        return None, expanded, f"goal blocked by the person from t={t_last - t_start:+.2f} s on"
+    what = "goal" if goal is not None else "the emergency horizon"
+    if blocked_from is not None:
+        return (
+            None,
+            expanded,
+            f"goal unreachable: every way into it is blocked once the person holds still "
+            f"(t={blocked_from - t_start:+.2f} s), no safe path arrives before ({expanded} expansions)",
+        )
+    return None, expanded, f"{what} unreachable: no safe path found after {expanded} expansions"
 
 
 _NO_IDS = np.zeros(0, dtype=np.int64)
