@@ -1722,3 +1722,113 @@ def pop_batch(
         if not final and n_popped == 1 and spec:
             return POP_SPECULATE, n_out, e
     return POP_DONE, n_out, -1
+
+
+@_jit
+def speculate_chain(
+    sid: int,
+    max_len: int,
+    nxt: np.ndarray,
+    indices: np.ndarray,
+    ord_flat: np.ndarray,
+    L_flat: np.ndarray,
+    same_flat: np.ndarray,
+    delta0: np.ndarray,
+    ik: np.ndarray,
+    q_lo: np.ndarray,
+    q_hi: np.ndarray,
+    ctx: np.ndarray,
+    h_tab: np.ndarray,
+    h_pred: np.ndarray,
+    AT: np.ndarray,
+    F: np.ndarray,
+    I: np.ndarray,  # noqa: E741
+    B: np.ndarray,
+    alts: np.ndarray,
+    q: np.ndarray,
+    n0: int,
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """:meth:`app.planning.search._Run.speculate`: the lookahead chain of up to ``max_len`` moves from the
+    unchecked state ``sid`` along ``nxt`` (per node branch, the option row of the static shortest path's
+    next move, or -1), recorded from state ``n0`` on (the capacity is the caller's). ``ctx`` as in
+    :func:`children_moves`. Returns (next free state, keys, arrival times)."""
+    goal = int(ctx[0])
+    A = ctx[1]
+    min_edge = ctx[2]
+    w_h = ctx[3]
+    t_last = ctx[5]
+    t_nongoal = ctx[6]
+    f = ctx[7]
+    nb = ik.shape[1]
+    node = I[REC_NODE, sid]
+    b = I[REC_BRANCH, sid]
+    par = I[REC_PARENT, sid]
+    q_prev = np.empty(6)
+    if B[REC_QSET, sid]:
+        for j in range(6):
+            q_prev[j] = q[sid, j]
+    else:
+        for j in range(6):
+            q_prev[j] = _align1(ik[node, b, j], q[par, j], q_lo[j], q_hi[j])
+    for j in range(6):
+        q[sid, j] = q_prev[j]
+    B[REC_QSET, sid] = True
+    t = F[REC_T, sid]
+    u = F[REC_U, sid]
+    keys = np.empty(max_len)
+    tas = np.empty(max_len)
+    n = n0
+    prev = sid
+    while n - n0 < max_len and node != goal:
+        row = nxt[node * nb + b]
+        if row < 0:
+            break
+        v = indices[row // nb]
+        bv = ord_flat[row, 0]
+        L = L_flat[row, 0]
+        end = v == goal
+        u0 = min(u, f)
+        h, u1, peak = _profile3(u0, L, f, A, end)
+        if L > 1e-12:
+            h = max(h, min_edge)
+        ta = t + h
+        hv = h_tab[v, bv]
+        if ta >= AT[v] - _EPS_T or ta + hv > t_last:
+            break
+        if v != goal and ta + (h_pred[v, bv] if h_pred.shape[0] > 0 else 0.0) >= t_nongoal:
+            break
+        inside = True
+        for j in range(6):
+            x = q_prev[j] + delta0[row, j]
+            inside = inside and (x >= q_lo[j]) and (x <= q_hi[j])
+        if inside:
+            for j in range(6):
+                q_prev[j] = q_prev[j] + delta0[row, j]
+        else:
+            for j in range(6):
+                q_prev[j] = _align1(ik[v, bv, j], q_prev[j], q_lo[j], q_hi[j])
+        for j in range(6):
+            q[n, j] = q_prev[j]
+        F[REC_DEP, n] = t
+        F[REC_H, n] = h
+        F[REC_T, n] = t + h
+        F[REC_U, n] = u1
+        F[REC_U0, n] = u0
+        F[REC_FC, n] = f
+        F[REC_L, n] = L
+        F[REC_PEAK, n] = peak
+        I[REC_ROW, n] = row
+        I[REC_NODE, n] = v
+        I[REC_BRANCH, n] = bv
+        I[REC_PARENT, n] = prev
+        I[REC_SPEC_CHILD, prev] = n
+        B[REC_SAME, n] = same_flat[row, 0]
+        B[REC_END, n] = end
+        B[REC_QSET, n] = True
+        alts[n] = 0
+        keys[n - n0] = ta + w_h * hv
+        tas[n - n0] = ta
+        prev = n
+        n += 1
+        node, b, t, u = v, bv, ta, u1
+    return n, keys[: n - n0], tas[: n - n0]

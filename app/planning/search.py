@@ -738,6 +738,7 @@ class Planner:
             np.asarray(hr, dtype=np.float64),
         )
         self._next_cache: dict[int, list[int]] = {}
+        self._next_cache_k: dict[int, np.ndarray] = {}
         self._static_memo: dict[tuple[int, int, int, int], int] = {}
         for node in roadmap.station_nodes.values():
             if self._valid[node].any():
@@ -946,6 +947,7 @@ class Planner:
             tab.setflags(write=False)
             self._h_cache[goal] = tab
             self._next_cache[goal] = self._next_rows(tab)
+            self._next_cache_k[goal] = np.asarray(self._next_cache[goal], dtype=np.int64)
         return tab
 
     def _next_rows(self, h: np.ndarray) -> list[int]:
@@ -1856,7 +1858,8 @@ class Planner:
                 continue
             run.check(np.array(batch, dtype=np.int64))
             if chain_ids.size:
-                passed = float(np.mean(run.status[chain_ids] == 1)) * float(run.status[popped[0]] == 1)
+                n_pass = int(np.count_nonzero(run.status[chain_ids] == 1))
+                passed = n_pass / chain_ids.size * float(run.status[popped[0]] == 1)
                 spec_rate = 0.5 * spec_rate + 0.5 * passed
                 chain_ids = _NO_IDS
             expand: list[int] = []
@@ -2586,6 +2589,16 @@ class _Run:
         if nxt is None or max_len <= 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         p = self.p
+        if self.compiled:
+            self._grow(max_len)
+            ctx, h_pred = self._context()
+            return self._recorded(
+                *_kernels.speculate_chain(
+                    sid, max_len, p._next_cache_k[self.goal], p._k_indices, p._ord_flat, p._L_flat,
+                    p._same_flat, p._delta0, p._k_ik, p._k_q_lo, p._k_q_hi, np.append(ctx, self.f),
+                    self._h_tab_k, h_pred, self.AT, self._F, self._I, self._B, self.alt, self.q, self.n,
+                )
+            )  # fmt: skip
         node, b = int(self.node[sid]), int(self.branch[sid])
         par = int(self.parent[sid])
         q_prev = p._align(p._ik[node, b], self.q[par]) if not self.qset[sid] else self.q[sid]
