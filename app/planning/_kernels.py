@@ -1359,7 +1359,8 @@ def children_moves(
     all roadmap neighbours (nearest branch, cruise speed ``f``; a speculative chain's move is not made
     twice), recorded from state ``n0`` on in the same order. Returns (next free state, keys, arrival
     times) of the recorded states. ``ctx``: ``goal`` (-2: none), path acceleration, shortest move,
-    heuristic weight, stop time (NaN: none), latest arrival, latest arrival at other nodes than the goal."""
+    heuristic weight, stop time (NaN: none), latest arrival, latest arrival at other nodes than the goal,
+    cruise speed."""
     total = 0
     for s in sids:
         u = I[REC_NODE, s]

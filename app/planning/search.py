@@ -798,6 +798,7 @@ class Planner:
         self._indptr = rm.indptr
         self._indices = rm.indices
         self._k_indptr, self._k_indices = _kernels.as_i64(rm.indptr), _kernels.as_i64(rm.indices)
+        self._max_degree = int(np.diff(rm.indptr).max(initial=0))
         self._src_state = (src[:, None] * NUM_BRANCHES + np.arange(NUM_BRANCHES)).reshape(-1)
         # per row, the nearest branch's configuration minus the parent's, shifted by multiples of 2 pi next
         # to it (without the limits: a shifted parent gets the same shift, see _Run.speculate)
@@ -2355,6 +2356,8 @@ class _Run:
         self.compiled = planner._k_align is not None and planner._kernel_geometry is not None
         self._h_tab_k = _kernels.as_f64(h_tab) if h_tab is not None else np.zeros((0, NUM_BRANCHES))
         self._kinds: np.ndarray | None = None
+        self._ctx_key: tuple[float, float, bool] | None = None
+        self._ctx: tuple[np.ndarray, np.ndarray] = (np.zeros(8), np.zeros((0, NUM_BRANCHES)))
         self.wait_ok[:] = np.nan  # per checked state: until when standing still there is safe (NaN: unknown)
         self.q[0] = q_start
         pts, cen, rad = planner._points_and_spheres(q_start[None])
@@ -2524,11 +2527,15 @@ class _Run:
     def _context(self) -> tuple[np.ndarray, np.ndarray]:
         """The compiled generation's scalars (see :func:`app.planning._kernels.children_moves`) and
         ``h_pred`` ((0, 8) where there is none)."""
-        goal = -2 if self.goal is None else self.goal
-        stop = math.nan if self.stop_time is None else self.stop_time
-        ctx = np.array([goal, self.A, self.min_edge, self.w_h, stop, self.t_last, self.t_nongoal])
-        h_pred = self.h_pred if self.h_pred is not None else np.zeros((0, NUM_BRANCHES))
-        return ctx, _kernels.as_f64(h_pred)
+        key = (self.t_last, self.t_nongoal, self.h_pred is None)
+        if self._ctx_key != key:  # the prune's bounds change only after the approach probe
+            goal = -2 if self.goal is None else self.goal
+            stop = math.nan if self.stop_time is None else self.stop_time
+            ctx = np.array([goal, self.A, self.min_edge, self.w_h, stop, self.t_last, self.t_nongoal, self.f])
+            h_pred = self.h_pred if self.h_pred is not None else np.zeros((0, NUM_BRANCHES))
+            self._ctx = (ctx, _kernels.as_f64(h_pred))
+            self._ctx_key = key
+        return self._ctx
 
     def _recorded(
         self, n: int, keys: np.ndarray, ta: np.ndarray
@@ -2541,8 +2548,7 @@ class _Run:
         """Moves from checked states to all their roadmap neighbours (nearest branch, cruise speed)."""
         p = self.p
         if self.compiled:
-            u = self.node[sids]
-            self._grow(int((p._indptr[u + 1] - p._indptr[u]).sum()))
+            self._grow(p._max_degree * sids.size)
             ctx, h_pred = self._context()
             return self._recorded(
                 *_kernels.children_moves(
@@ -2595,7 +2601,7 @@ class _Run:
             return self._recorded(
                 *_kernels.speculate_chain(
                     sid, max_len, p._next_cache_k[self.goal], p._k_indices, p._ord_flat, p._L_flat,
-                    p._same_flat, p._delta0, p._k_ik, p._k_q_lo, p._k_q_hi, np.append(ctx, self.f),
+                    p._same_flat, p._delta0, p._k_ik, p._k_q_lo, p._k_q_hi, ctx,
                     self._h_tab_k, h_pred, self.AT, self._F, self._I, self._B, self.alt, self.q, self.n,
                 )
             )  # fmt: skip
