@@ -7,6 +7,7 @@ instead. The planner with compiled checks must return exactly what it returns wi
 
 from __future__ import annotations
 
+import heapq
 import math
 import subprocess
 import sys
@@ -375,7 +376,97 @@ def test_plans_are_the_same_with_and_without_the_compiled_checks(cell, planners)
                 np.testing.assert_array_equal(a.plan.q, b.plan.q)
         e_a = fast.emergency(q_start=qr.q_start, t_start=qr.t_start, forecast=qr.forecast, horizon_s=0.2)
         e_b = ref.emergency(q_start=qr.q_start, t_start=qr.t_start, forecast=qr.forecast, horizon_s=0.2)
-        assert (e_a.ok, e_a.reason) == (e_b.ok, e_b.reason)
+        assert (e_a.ok, e_a.reason, e_a.expanded) == (e_b.ok, e_b.reason, e_b.expanded)
+        if e_a.ok:
+            np.testing.assert_array_equal(e_a.plan.times, e_b.plan.times)
+            np.testing.assert_array_equal(e_a.plan.q, e_b.plan.q)
+
+
+def _same_search(a, b) -> None:  # type: ignore[no-untyped-def]
+    """The raw searches (waypoints before the fit) are the same, bit for bit."""
+    (wa, na, ra), (wb, nb, rb) = a, b
+    assert (na, ra) == (nb, rb)
+    assert (wa is None) == (wb is None)
+    if wa is not None:
+        np.testing.assert_array_equal(wa.times, wb.times)
+        np.testing.assert_array_equal(wa.q, wb.q)
+        np.testing.assert_array_equal(wa.nodes, wb.nodes)
+
+
+def test_the_compiled_search_bookkeeping_expands_exactly_like_the_numpy_search(cell, planners) -> None:  # type: ignore[no-untyped-def]
+    """The compiled generation, open list, lookahead and batch set-up (:class:`_Run` with ``compiled``)
+    against the NumPy/heapq search: the same waypoints, expansions and reasons for the sequential,
+    batched and static searches and the emergency horizon, person or not."""
+    rm, fast, ref = planners
+    compiled_runs = []
+    search_compiled = fast._search_compiled
+
+    def counting(run, *args, **kwargs):  # type: ignore[no-untyped-def]
+        compiled_runs.append(run.compiled)
+        return search_compiled(run, *args, **kwargs)
+
+    fast._search_compiled = counting
+    ref._search_compiled = counting
+    checked = 0
+    for qr in reference_queries(cell, rm, n=8, seed=11):
+        for forecast in (qr.forecast, None):
+            for workers in (1, 4, 32):
+                goal = rm.resolve(qr.goal)
+                kw = dict(goal=goal, stop_time=None, hold_s=fast.config.goal_hold_s, workers=workers)
+                out = []
+                for pl in (fast, ref):
+                    sep = pl._separation(forecast, extra_m=pl.config.corridor_margin_m)
+                    out.append(pl._search(qr.q_start, qr.t_start, sep, **kw, deadline=None))
+                _same_search(*out)
+                checked += out[0][0] is not None
+        stop = dict(goal=None, stop_time=qr.t_start + 0.3, hold_s=0.2, workers=8, deadline=None)
+        out = []
+        for pl in (fast, ref):
+            sep = pl._separation(qr.forecast, extra_m=pl.config.corridor_margin_m)
+            out.append(pl._search(qr.q_start, qr.t_start, sep, **stop))
+        _same_search(*out)
+    del fast._search_compiled, ref._search_compiled
+    assert checked >= 10  # most of them found a path
+    assert len(compiled_runs) == 8 * 2 * 3 + 8 and all(compiled_runs)  # only the compiled planner's runs
+
+
+def test_the_compiled_open_list_pops_in_heapq_order() -> None:
+    rng = np.random.default_rng(12)
+    n = 3000
+    keys = rng.integers(0, 40, n) * 0.125  # many equal keys, equal times among them: ties go to the id
+    ts = rng.integers(0, 8, n) * 0.25
+    ids = rng.permutation(n).astype(np.int64)
+    heap, hs = np.zeros(n, dtype=np.int64), np.zeros(2, dtype=np.int64)
+    E_key, E_negt, E_id = np.zeros(n), np.zeros(n), np.zeros(n, dtype=np.int64)
+    ref: list[tuple[float, float, int]] = []
+    for lo in range(0, n, 500):  # pushes and pops interleaved
+        hi = lo + 500
+        _kernels.heap_add(ids[lo:hi], keys[lo:hi], ts[lo:hi], heap, hs, E_key, E_negt, E_id)
+        for k in range(lo, hi):
+            heapq.heappush(ref, (float(keys[k]), float(-ts[k]), int(ids[k])))
+        for _ in range(200):
+            e = _kernels._heap_pop(heap, hs, E_key, E_negt, E_id)
+            assert (E_key[e], E_negt[e], E_id[e]) == heapq.heappop(ref)
+    while ref:
+        e = _kernels._heap_pop(heap, hs, E_key, E_negt, E_id)
+        assert (E_key[e], E_negt[e], E_id[e]) == heapq.heappop(ref)
+    assert hs[0] == 0
+
+
+def test_the_record_layout_matches_the_kernels(planners) -> None:  # type: ignore[no-untyped-def]
+    from app.planning.search import _Run
+
+    k = _kernels
+    assert _Run._FLOAT.index("t") == k.REC_T and _Run._FLOAT.index("wait_ok") == k.REC_WAIT_OK
+    assert [_Run._FLOAT.index(x) for x in ("u", "u0", "dep", "fc", "L", "h", "peak")] == [
+        k.REC_U, k.REC_U0, k.REC_DEP, k.REC_FC, k.REC_L, k.REC_H, k.REC_PEAK,
+    ]  # fmt: skip
+    assert [_Run._INT.index(x) for x in ("node", "branch", "parent", "row", "spec_child")] == [
+        k.REC_NODE, k.REC_BRANCH, k.REC_PARENT, k.REC_ROW, k.REC_SPEC_CHILD,
+    ]  # fmt: skip
+    assert [_Run._BOOL.index(x) for x in ("end", "same", "accepted", "qset")] == [
+        k.REC_END, k.REC_SAME, k.REC_ACCEPTED, k.REC_QSET,
+    ]  # fmt: skip
 
 
 def test_compiled_align_equals_the_numpy_align(planners) -> None:  # type: ignore[no-untyped-def]
