@@ -1480,7 +1480,7 @@ def check_prepare(
     start_rad: np.ndarray,
     goal: int,
     hold_default: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, ...]:
     """The per-batch set-up of :meth:`app.planning.search._Run.check` for the states ``batch`` (M,).
 
     Returns ``target`` (M, 6): the state's branch aligned next to its parent's configuration (or its
@@ -1489,7 +1489,8 @@ def check_prepare(
     and capsule points/spheres ``pts_a`` (M, P, 3), ``cen_a`` (M, L, 3), ``rad_a`` (M, L) (the start's where
     the parent is not a roadmap node), the per-move floats (5, M): departure, duration, entry speed, length,
     cruise speed, and whether each move must hold at its end (M,) (at the goal; without one
-    ``hold_default``)."""
+    ``hold_default``), ends at rest (M,), waits before it (departs after its parent's arrival) (M,), the
+    target's row ``node * 8 + branch`` (M,) and the parent state (M,)."""
     M = batch.shape[0]
     NP = pts_tab.shape[1]
     NL = cen_tab.shape[1]
@@ -1502,9 +1503,14 @@ def check_prepare(
     rad_a = np.empty((M, NL))
     fl = np.empty((5, M))
     hold = np.empty(M, dtype=np.bool_)
+    end = np.empty(M, dtype=np.bool_)
+    waits = np.empty(M, dtype=np.bool_)
+    rows = np.empty(M, dtype=np.int64)
+    pars = np.empty(M, dtype=np.int64)
     for k in range(M):
         s = batch[k]
         par = I[REC_PARENT, s]
+        pars[k] = par
         cv = I[REC_NODE, s]
         b = I[REC_BRANCH, s]
         pn = I[REC_NODE, par]
@@ -1548,7 +1554,26 @@ def check_prepare(
         fl[3, k] = F[REC_L, s]
         fl[4, k] = F[REC_FC, s]
         hold[k] = cv == goal if goal != -2 else hold_default
-    return target, same, q_par, pts_a, cen_a, rad_a, fl, hold
+        end[k] = B[REC_END, s]
+        waits[k] = F[REC_DEP, s] > F[REC_T, par] + _EPS_T
+        rows[k] = cv * nb + b
+    return target, same, q_par, pts_a, cen_a, rad_a, fl, hold, end, waits, rows, pars
+
+
+@_jit
+def check_store(
+    batch: np.ndarray, ok: np.ndarray, target: np.ndarray, q: np.ndarray, status: np.ndarray
+) -> None:
+    """The end of :meth:`app.planning.search._Run.check`: the configurations of the moves that passed and
+    every move's status (1 passed, 2 failed)."""
+    for k in range(batch.shape[0]):
+        s = batch[k]
+        if ok[k]:
+            for j in range(6):
+                q[s, j] = target[k, j]
+            status[s] = 1
+        else:
+            status[s] = 2
 
 
 # ---------------------------------------------------------------------------------- the search's open list
@@ -1833,3 +1858,57 @@ def speculate_chain(
         n += 1
         node, b, t, u = v, bv, ta, u1
     return n, keys[: n - n0], tas[: n - n0]
+
+
+@_jit
+def accept_checked(
+    popped: np.ndarray,
+    status: np.ndarray,
+    F: np.ndarray,
+    I: np.ndarray,  # noqa: E741
+    B: np.ndarray,
+    AT: np.ndarray,
+    goal_i: int,
+    stop: float,
+    def_head: np.ndarray,
+    def_next: np.ndarray,
+    heap: np.ndarray,
+    hs: np.ndarray,
+    E_key: np.ndarray,
+    E_negt: np.ndarray,
+    E_id: np.ndarray,
+) -> tuple[int, np.ndarray, np.ndarray, int]:
+    """After a batch's check (:meth:`app.planning.search.Planner._search`): the popped states, in order,
+    that passed and still improve their node are accepted (``AT``, the accepted flag, their deferred
+    entries pushed back); a final state is accepted only when popped first (it then ends the search).
+    Returns ``(accepted, failed states, states to expand, the final state accepted or -1)``."""
+    M = popped.shape[0]
+    failed = np.empty(M, dtype=np.int64)
+    expand = np.empty(M, dtype=np.int64)
+    nf = 0
+    ne = 0
+    n_acc = 0
+    for k in range(M):
+        sid = popped[k]
+        if status[sid] != 1:
+            failed[nf] = sid
+            nf += 1
+            continue
+        node = I[REC_NODE, sid]
+        t = F[REC_T, sid]
+        if t >= AT[node] - _EPS_T:
+            continue
+        if node == goal_i or t >= stop:
+            if k == 0:
+                AT[node] = t
+                B[REC_ACCEPTED, sid] = True
+                return n_acc + 1, failed[:nf], expand[:ne], sid
+            continue
+        AT[node] = t
+        B[REC_ACCEPTED, sid] = True
+        n_acc += 1
+        if def_head[sid] >= 0:
+            release_deferred(sid, def_head, def_next, heap, hs, E_key, E_negt, E_id)
+        expand[ne] = sid
+        ne += 1
+    return n_acc, failed[:nf], expand[:ne], -1

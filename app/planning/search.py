@@ -652,6 +652,8 @@ class Planner:
             the methods of :class:`RobotModel`).
         config: Search settings.
         timer: Monotonic clock for deadlines and ``compute_s`` (seconds); injectable for tests.
+        warm_up: With the compiled checks, load the compiled kernels now with one small query
+            (:meth:`_warm_up`) rather than in the first real one.
 
     Construction precomputes, per roadmap edge and parent branch, the successor branches in order of joint
     distance (and per node and branch the robot's capsule points and bounding box); queries only read them.
@@ -665,6 +667,7 @@ class Planner:
         *,
         config: PlannerConfig | None = None,
         timer: Callable[[], float] = time.perf_counter,
+        warm_up: bool = True,
     ) -> None:
         self.roadmap = roadmap
         self.collision = collision
@@ -728,6 +731,8 @@ class Planner:
             self._k_q_lo, self._k_q_hi = _kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max)
             self._k_moved_by = _kernels.as_i64(self._moved_by)
             self._k_ik = _kernels.as_f64(self._ik)
+            self._k_speed_factor = float(cfg.speed_factor)
+            self._k_sample_dt = float(cfg.sample_dt_s)
         self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
         # which joints each person capsule runs between (joint indices fed in as coordinates) and its radius
         coded = np.repeat(np.arange(NUM_JOINTS, dtype=np.float64)[None, :, None], 3, axis=2)
@@ -743,6 +748,41 @@ class Planner:
         for node in roadmap.station_nodes.values():
             if self._valid[node].any():
                 self._heuristic_table(node)
+        if warm_up and self._kernel_geometry is not None and self._k_align is not None:
+            self._warm_up()
+
+    def _warm_up(self) -> None:
+        """One small batched query between two stations with a person far away, so that the compiled
+        kernels are loaded (numba's cache) here and not in the first real query (about 0.1 s once per
+        process). Its only lasting effect is the static-check memo's entries (pure functions of the
+        roadmap)."""
+        stations = [n for n in self.roadmap.station_nodes.values() if self._valid[n].any()]
+        if len(stations) < 2:
+            return
+        from app.prediction.forecast import HumanForecast
+
+        far = HumanForecast(
+            t0=0.0,
+            times=np.array([0.0, 1.0]),
+            joints=np.full((2, NUM_JOINTS, 3), 50.0),
+            margins=np.array([0.1, 0.1]),
+        )
+        q0 = self._ik[stations[0]][np.flatnonzero(self._valid[stations[0]])[0]]
+        goal = int(stations[1])
+        self.plan(q_start=q0, t_start=0.0, goal=goal, forecast=far, workers=2)
+        # what that query did not need: failed moves, deferred and pushed-back states, the approach probe
+        sep = self._separation(far, extra_m=0.0)
+        run = _Run(
+            self, q0, 0.0, sep, goal=goal, stop_time=None, hold_s=0.0, h_tab=self._heuristic_table(goal),
+            t_last=math.inf,
+        )  # fmt: skip
+        run.alternatives(np.zeros(0, dtype=np.int64))
+        ol = _OpenList(run)
+        ol.push((np.zeros(1, dtype=np.int64), np.zeros(1), np.zeros(1)))
+        ol.push_back(0)
+        ol.release(0)
+        self._align(self._ik[:1, 0], self._ik[:1, 0])
+        self.collision.distance_to_human_paired(q0[None], far.joints[:1])
 
     # ------------------------------------------------------------------------------------------ set-up
     def _points_and_spheres(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -1863,31 +1903,20 @@ class Planner:
                 passed = n_pass / chain_ids.size * float(run.status[popped[0]] == 1)
                 spec_rate = 0.5 * spec_rate + 0.5 * passed
                 chain_ids = _NO_IDS
-            expand: list[int] = []
-            failed: list[int] = []
-            for k, sid in enumerate(popped):
-                if run.status[sid] != 1:
-                    failed.append(sid)
-                    continue
-                node = int(run.node[sid])
-                t = float(run.t[sid])
-                if t >= AT[node] - _EPS_T:
-                    continue
-                if node == goal_i or t >= stop:
-                    if k == 0:
-                        accept(sid, t, node)
-                        return run.reconstruct(sid), expanded, "ok"
-                    continue
-                if accept(sid, t, node):
-                    return run.reconstruct(sid), expanded, "ok"
-                expand.append(sid)
+            n_acc, failed, expand, final_sid = _kernels.accept_checked(
+                np.array(popped, dtype=np.int64), run.status, run._F, run._I, run._B, AT, goal_i, stop,
+                ol.def_head, ol.def_next, ol.heap, ol.hs, ol.E_key, ol.E_negt, ol.E_id,
+            )  # fmt: skip
+            expanded += n_acc
+            if final_sid >= 0:
+                return run.reconstruct(int(final_sid)), expanded, "ok"
             for ek in finals:
                 if run.status[ol.E_id[ek]] == 1 and ol.E_id[ek] != popped[0]:
                     ol.push_back(ek)
-            if failed:
-                ol.push(run.alternatives(np.array(failed, dtype=np.int64)))
-            if expand:
-                ol.push(run.children(np.array(expand, dtype=np.int64)))
+            if failed.size:
+                ol.push(run.alternatives(failed))
+            if expand.size:
+                ol.push(run.children(expand))
             if not probed and expanded >= cfg.probe_after_expansions and goal is not None:
                 probed = True
                 t_probe = max(t_static, t_start)
@@ -2774,7 +2803,7 @@ class _Run:
         compiled move check called directly: the same checks in the same order, the same result."""
         p = self.p
         sep = self.sep
-        target, same, q_par, pts, cen, rad, fl, hold = _kernels.check_prepare(
+        target, same, q_par, pts, cen, rad, fl, hold, end, waits, rows, par = _kernels.check_prepare(
             batch, self._F, self._I, self._B, self.q, p._k_ik, p._k_q_lo, p._k_q_hi, *p._k_tables,
             self._start_k[0], self._start_k[1], self._start_k[2],
             -2 if self.goal is None else self.goal, self.hold_s > 0,
@@ -2782,9 +2811,8 @@ class _Run:
         M = batch.size
         target_all = target
         ok = np.ones(M, dtype=bool)
-        todo = np.flatnonzero(~same)
-        par = self.parent[batch]
-        if todo.size:
+        if not same.all():
+            todo = np.flatnonzero(~same)
             pt, st = par[todo], batch[todo]
             ok[todo] = (
                 p._static_cached(
@@ -2795,36 +2823,35 @@ class _Run:
         if sep.forecast is not None:
             dep = fl[0]
             # waits: the parent must be able to stand still until the departure (checked once per parent)
-            waiting = np.flatnonzero(ok & (dep > self.t[par] + _EPS_T))
-            if waiting.size:
+            waits &= ok
+            if waits.any():
+                waiting = np.flatnonzero(waits)
                 wp = par[waiting]
                 wt = np.unique(wp[np.isnan(self.wait_ok[wp])])
                 if wt.size:
                     self._check_waits(wt)
                 ok[waiting] = dep[waiting] < self.wait_ok[wp] - _EPS_T
-            live = np.flatnonzero(ok)
-            if live.size:
-                end = self.end[batch]
-                if live.size < M:
-                    q_par, target, pts, cen, rad, fl, hold, end = (
-                        q_par[live], target[live], pts[live], cen[live], rad[live], fl[:, live],
-                        hold[live], end[live],
+            live = None if ok.all() else np.flatnonzero(ok)
+            if live is None or live.size:
+                if live is not None:
+                    q_par, target, pts, cen, rad, hold, end, rows = (
+                        q_par[live], target[live], pts[live], cen[live], rad[live], hold[live], end[live],
+                        rows[live],
                     )  # fmt: skip
-                    fl = np.ascontiguousarray(fl)
-                cv, b = self.node[batch[live]], self.branch[batch[live]]
+                    fl = np.ascontiguousarray(fl[:, live])
                 res, n_samples, n_exact = _kernels.moves_separation_ok(
-                    q_par, target, pts, cen, rad, *p._k_tables, cv * NUM_BRANCHES + b,
+                    q_par, target, pts, cen, rad, *p._k_tables, rows,
                     fl[0], fl[1], fl[2], fl[3], fl[4], end, hold,
-                    p._k_lever, p._k_moved_by, float(p.config.speed_factor), p._A,
-                    float(p.config.sample_dt_s), float(self.hold_s),
+                    p._k_lever, p._k_moved_by, p._k_speed_factor, p._A, p._k_sample_dt, float(self.hold_s),
                     sep._k_offsets, sep._k_params, *sep._k_forecast, *sep._k_window, *sep._kernel,
                 )  # fmt: skip
                 sep.samples += n_samples
                 sep.exact_samples += n_exact
-                ok[live] = res
-        good = batch[ok]
-        self.q[good] = target_all[ok]
-        self.status[batch] = np.where(ok, 1, 2)
+                if live is None:
+                    ok = res
+                else:
+                    ok[live] = res
+        _kernels.check_store(batch, ok, target_all, self.q, self.status)
         return ok
 
     def _check_waits(self, todo: np.ndarray) -> None:
