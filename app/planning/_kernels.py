@@ -1912,3 +1912,76 @@ def accept_checked(
         expand[ne] = sid
         ne += 1
     return n_acc, failed[:nf], expand[:ne], -1
+
+
+@_jit
+def wait_samples(
+    todo: np.ndarray,
+    F: np.ndarray,
+    I: np.ndarray,  # noqa: E741
+    q: np.ndarray,
+    cen_tab: np.ndarray,
+    rad_tab: np.ndarray,
+    start_cen: np.ndarray,
+    start_rad: np.ndarray,
+    n_w: int,
+    step: float,
+    offsets: np.ndarray,
+    times: np.ndarray,
+    margins: np.ndarray,
+    prm: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The samples of standing still at each state of ``todo`` for :func:`sample_separation_ok` (as
+    :meth:`app.planning.search._Run._check_waits` builds them): every ``step`` s after its arrival, ``n_w``
+    of them, at rest. Returns ``(q (S, 6), t (n_off, S), req (n_off, S), cen (S, L, 3), rad (S, L), ts
+    (n, n_w))`` with ``S = n * n_w``; ``req`` is :func:`_required` at speed 0 and the margin at each time."""
+    n = todo.shape[0]
+    NL = cen_tab.shape[1]
+    n_off = offsets.shape[0]
+    nb = 8  # branches per node (app.planning.roadmap.NUM_BRANCHES)
+    S = n * n_w
+    qs = np.empty((S, 6))
+    t_all = np.empty((n_off, S))
+    req = np.empty((n_off, S))
+    cen = np.empty((S, NL, 3))
+    rad = np.empty((S, NL))
+    ts = np.empty((n, n_w))
+    growth = prm[0]
+    cap = prm[1]
+    for k in range(n):
+        s = todo[k]
+        node = I[REC_NODE, s]
+        r = node * nb + I[REC_BRANCH, s]
+        t0 = F[REC_T, s]
+        for i in range(n_w):
+            x = k * n_w + i
+            ts[k, i] = t0 + step * (i + 1)
+            for j in range(6):
+                qs[x, j] = q[s, j]
+            for l in range(NL):  # noqa: E741
+                if node >= 0:
+                    for j in range(3):
+                        cen[x, l, j] = cen_tab[r, l, j]
+                    rad[x, l] = rad_tab[r, l]
+                else:
+                    for j in range(3):
+                        cen[x, l, j] = start_cen[l, j]
+                    rad[x, l] = start_rad[l]
+            for o in range(n_off):
+                to = ts[k, i] + offsets[o]
+                t_all[o, x] = to
+                req[o, x] = _required(0.0, _margin_at(to, times, margins, growth, cap), prm)
+    return qs, t_all, req, cen, rad, ts
+
+
+@_jit
+def wait_finish(todo: np.ndarray, ok: np.ndarray, ts: np.ndarray, wait_ok: np.ndarray) -> None:
+    """``wait_ok`` of each state of ``todo``: the time of its first unsafe sample (+inf: none)."""
+    n_w = ts.shape[1]
+    for k in range(todo.shape[0]):
+        w = math.inf
+        for i in range(n_w):
+            if not ok[k * n_w + i]:
+                w = ts[k, i]
+                break
+        wait_ok[todo[k]] = w

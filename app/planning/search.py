@@ -2860,6 +2860,21 @@ class _Run:
         K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
         sub = max(1, math.ceil(cfg.wait_step_s / cfg.sample_dt_s - 1e-9))
         n_w = K * sub
+        sep = self.sep
+        if self.compiled and sep._kernel is not None:  # the samples and their requirement compiled
+            p = self.p
+            qs, t_all, req, cen, rad, ts = _kernels.wait_samples(
+                todo, self._F, self._I, self.q, p._k_tables[1], p._k_tables[2], self._start_k[1],
+                self._start_k[2], n_w, cfg.wait_step_s / sub, sep._k_offsets, sep._k_forecast[0],
+                sep._k_window[0], sep._k_params,
+            )  # fmt: skip
+            ok, exact = _kernels.sample_separation_ok(
+                qs, t_all, req, cen, rad, True, _NO_IDS, 0, *sep._k_forecast, *sep._kernel
+            )
+            sep.samples += t_all.size
+            sep.exact_samples += exact
+            _kernels.wait_finish(todo, ok, ts, self.wait_ok)
+            return
         ts = self.t[todo][:, None] + (cfg.wait_step_s / sub) * np.arange(1, n_w + 1)
         rep = np.repeat(np.arange(todo.size), n_w)
         _, cen_w, rad_w = self._parent_geometry(todo)

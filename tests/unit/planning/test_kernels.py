@@ -478,3 +478,43 @@ def test_compiled_align_equals_the_numpy_align(planners) -> None:  # type: ignor
     q_ref[:4] = 0.0
     np.testing.assert_array_equal(fast._align(q, q_ref), ref._align(q, q_ref))
     assert fast._k_align is not None and ref._k_align is None
+
+
+@pytest.mark.parametrize("offsets", [(0.0,), (-0.05, 0.0, 0.1, 0.2)])
+def test_compiled_wait_checks_equal_the_numpy_wait_checks(cell, planners, offsets) -> None:  # type: ignore[no-untyped-def]
+    from app.planning.search import _Run
+
+    rm, fast, _ = planners
+    rng = np.random.default_rng(13)
+    qr = reference_queries(cell, rm, n=1, seed=3)[0]
+    goal = rm.resolve(qr.goal)
+    sep = fast._separation(qr.forecast, extra_m=0.02, offsets=offsets)
+    run = _Run(
+        fast, qr.q_start, qr.t_start, sep, goal=goal, stop_time=None, hold_s=0.3,
+        h_tab=fast._heuristic_table(goal), t_last=math.inf,
+    )  # fmt: skip
+    m = 60
+    run._grow(m + 1)
+    ids = np.arange(1, m + 1)
+    run.n += m
+    nodes = rng.integers(0, rm.num_nodes, m)
+    nodes = nodes[rm.valid[nodes].any(axis=1)]
+    ids = ids[: nodes.size]
+    branches = np.argmax(rm.valid[nodes], axis=1)
+    run.node[ids], run.branch[ids], run.q[ids] = nodes, branches, rm.ik[nodes, branches]
+    run.t[ids] = qr.t_start + rng.uniform(0.0, 2.5, ids.size)
+    todo = np.r_[0, ids]
+    assert run.compiled
+    run._check_waits(todo)
+    got = run.wait_ok[todo].copy()
+    run.wait_ok[todo] = np.nan
+    run.compiled = False
+    run._check_waits(todo)
+    np.testing.assert_array_equal(got, run.wait_ok[todo])
+    assert np.isinf(got).any() and np.isfinite(got).any()  # both outcomes are exercised
+    # the requirement of each wait sample, compiled, is NumPy's to the bit
+    _, t_all, req, *_ = _kernels.wait_samples(
+        todo, run._F, run._I, run.q, fast._k_tables[1], fast._k_tables[2], run._start_k[1], run._start_k[2],
+        6, 0.05, sep._k_offsets, sep._k_forecast[0], sep._k_window[0], sep._k_params,
+    )  # fmt: skip
+    np.testing.assert_array_equal(req.reshape(-1), sep._required(np.zeros(t_all.size), t_all.reshape(-1)))
