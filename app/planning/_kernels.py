@@ -1696,13 +1696,14 @@ def pop_batch(
     n_popped: int,
     spec: bool,
     out: np.ndarray,
-) -> tuple[int, int, int]:
+) -> tuple[int, int, int, int]:
     """The pop loop of :meth:`app.planning.search.Planner._search` up to the next step that needs Python.
 
     Pops entries while the heap is not empty and the batch (``batch_len`` states) is shorter than ``W_b``:
     skips states that cannot improve their node or are pruned, defers states whose parent is not accepted
     yet (dropped if it failed), pushes back a final state popped after others (and stops), and collects the
-    states to check into ``out``. Returns ``(code, n_out, entry)``: ``POP_DONE``/``POP_BREAK`` (batch
+    states to check into ``out[0]`` (and the entries of the final ones among them into ``out[1]``). Returns
+    ``(code, n_out, entry, n_final)``: ``POP_DONE``/``POP_BREAK`` (batch
     complete), ``POP_ACCEPT`` (``entry``'s state passed its check ahead of time: accept it),
     ``POP_ALTERNATIVES`` (it failed: push its alternatives), ``POP_SPECULATE`` (the last collected state is
     the batch's first: add its lookahead chain). ``ctx``: goal node (-2: none), stop time, pruned after the
@@ -1714,6 +1715,7 @@ def pop_batch(
     t_last = ctx[4]
     w_h = ctx[5]
     n_out = 0
+    n_fin = 0
     while hs[0] > 0 and batch_len < W_b:
         e = _heap_pop(heap, hs, E_key, E_negt, E_id)
         sid = E_id[e]
@@ -1736,18 +1738,21 @@ def pop_batch(
         st = status[sid]
         if final and batch_len > 0 and st != 0:
             heap_push(e, heap, hs, E_key, E_negt, E_id)
-            return POP_BREAK, n_out, -1
+            return POP_BREAK, n_out, -1, n_fin
         if st == 1:
-            return POP_ACCEPT, n_out, e
+            return POP_ACCEPT, n_out, e, n_fin
         if st == 2:
-            return POP_ALTERNATIVES, n_out, e
-        out[n_out] = e
+            return POP_ALTERNATIVES, n_out, e, n_fin
+        out[0, n_out] = sid
         n_out += 1
         batch_len += 1
         n_popped += 1
-        if not final and n_popped == 1 and spec:
-            return POP_SPECULATE, n_out, e
-    return POP_DONE, n_out, -1
+        if final:
+            out[1, n_fin] = e
+            n_fin += 1
+        elif n_popped == 1 and spec:
+            return POP_SPECULATE, n_out, e, n_fin
+    return POP_DONE, n_out, -1, n_fin
 
 
 @_jit

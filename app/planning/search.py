@@ -1843,7 +1843,7 @@ class Planner:
         blocked_from: float | None = None
         ctx = np.array([goal_i, stop, 0.0, run.t_nongoal, run.t_last, cfg.heuristic_weight])
         h_pred = np.zeros((0, NUM_BRANCHES))
-        out = np.empty(W, dtype=np.int64)
+        out = np.empty((2, W), dtype=np.int64)
 
         def accept(sid: int, t: float, node: int) -> bool:
             nonlocal expanded
@@ -1867,19 +1867,17 @@ class Planner:
             n_batches += 1
             W_b = min(W, 8 + 4 * n_batches)
             while True:
-                code, n_out, e = _kernels.pop_batch(
+                code, n_out, e, n_fin = _kernels.pop_batch(
                     ol.heap, ol.hs, ol.E_key, ol.E_negt, ol.E_id, ol.def_head, ol.def_next, AT, run._I,
                     run._B, run.status, ctx, h_pred, len(batch), W_b, len(popped), spec_len > 0, out,
                 )  # fmt: skip
                 E_id = ol.E_id
-                for k in range(n_out):
-                    ek = int(out[k])
-                    sid = int(E_id[ek])
-                    batch.append(sid)
-                    popped.append(sid)
-                    node = int(run.node[sid])
-                    if node == goal_i or -ol.E_negt[ek] >= stop:
-                        finals.append(ek)
+                if n_out:
+                    got = out[0, :n_out].tolist()
+                    batch.extend(got)
+                    popped.extend(got)
+                    if n_fin:
+                        finals.extend(out[1, :n_fin].tolist())
                 if code == _kernels.POP_SPECULATE:
                     length = max(1, round(min(spec_len, W - 1) * spec_rate))
                     chain = run.speculate(popped[0], length)
