@@ -1490,7 +1490,8 @@ def check_prepare(
     the parent is not a roadmap node), the per-move floats (5, M): departure, duration, entry speed, length,
     cruise speed, and whether each move must hold at its end (M,) (at the goal; without one
     ``hold_default``), ends at rest (M,), waits before it (departs after its parent's arrival) (M,), the
-    target's row ``node * 8 + branch`` (M,) and the parent state (M,)."""
+    target's row ``node * 8 + branch`` (M,), the parent state (M,) and whether the move is the one between
+    the stored branch configurations (M,) (the static-check memo's condition)."""
     M = batch.shape[0]
     NP = pts_tab.shape[1]
     NL = cen_tab.shape[1]
@@ -1507,6 +1508,7 @@ def check_prepare(
     waits = np.empty(M, dtype=np.bool_)
     rows = np.empty(M, dtype=np.int64)
     pars = np.empty(M, dtype=np.int64)
+    stored = np.empty(M, dtype=np.bool_)
     for k in range(M):
         s = batch[k]
         par = I[REC_PARENT, s]
@@ -1523,14 +1525,15 @@ def check_prepare(
         else:
             for j in range(6):
                 target[k, j] = _align1(ik[cv, b, j], q_par[k, j], q_lo[j], q_hi[j])
-        sm = B[REC_SAME, s]
-        if sm:
+        mv = pn >= 0  # the move is the one between the stored branch configurations
+        if mv:
             for j in range(6):
                 ref = ik[pn, pb, j]
                 ref_t = _align1(ik[cv, b, j], ref, q_lo[j], q_hi[j])
-                if abs((ref_t - ref) - (target[k, j] - q_par[k, j])) > 1e-9:
-                    sm = False
-        same[k] = sm
+                if not abs((ref_t - ref) - (target[k, j] - q_par[k, j])) <= 1e-9:
+                    mv = False
+        stored[k] = mv
+        same[k] = B[REC_SAME, s] and mv
         if pn >= 0:
             r = pn * nb + pb
             for p in range(NP):
@@ -1557,7 +1560,7 @@ def check_prepare(
         end[k] = B[REC_END, s]
         waits[k] = F[REC_DEP, s] > F[REC_T, par] + _EPS_T
         rows[k] = cv * nb + b
-    return target, same, q_par, pts_a, cen_a, rad_a, fl, hold, end, waits, rows, pars
+    return target, same, q_par, pts_a, cen_a, rad_a, fl, hold, end, waits, rows, pars, stored
 
 
 @_jit

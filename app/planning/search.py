@@ -944,21 +944,29 @@ class Planner:
         b: np.ndarray,
         q_par: np.ndarray,
         target: np.ndarray,
+        *,
+        same_move: np.ndarray | None = None,
     ) -> np.ndarray:
         """Static check (1 free, -1 blocked) of moves q_par -> target that the roadmap did not check, from
         node ``u`` at branch ``bu`` (-1: the start) to node ``cv`` at branch ``b``; memoised per
-        (node, branch, node, branch) when the move is the one between the stored branch configurations.
+        (node, branch, node, branch) when the move is the one between the stored branch configurations
+        (``same_move`` (M,) where the caller knows it).
 
         The memo belongs to the planner (never the roadmap) and only ever gains entries that are pure
         functions of the roadmap, so concurrent queries may share it.
         """
         out = np.zeros(u.shape[0], dtype=np.int8)
         keys: list[tuple[int, int, int, int] | None] = [None] * u.shape[0]
-        on = np.flatnonzero(u >= 0)
+        if same_move is not None:
+            on = np.flatnonzero(same_move)
+            same_move = np.ones(on.size, dtype=bool)
+        else:
+            on = np.flatnonzero(u >= 0)
+            if on.size:
+                ref = self._ik[u[on], bu[on]]
+                ref_t = self._align(self._ik[cv[on], b[on]], ref)
+                same_move = np.abs((ref_t - ref) - (target[on] - q_par[on])).max(axis=1) <= 1e-9
         if on.size:
-            ref = self._ik[u[on], bu[on]]
-            ref_t = self._align(self._ik[cv[on], b[on]], ref)
-            same_move = np.abs((ref_t - ref) - (target[on] - q_par[on])).max(axis=1) <= 1e-9
             for i in on[same_move].tolist():
                 key = (int(u[i]), int(bu[i]), int(cv[i]), int(b[i]))
                 keys[i] = key
@@ -2801,7 +2809,7 @@ class _Run:
         compiled move check called directly: the same checks in the same order, the same result."""
         p = self.p
         sep = self.sep
-        target, same, q_par, pts, cen, rad, fl, hold, end, waits, rows, par = _kernels.check_prepare(
+        target, same, q_par, pts, cen, rad, fl, hold, end, waits, rows, par, stored = _kernels.check_prepare(
             batch, self._F, self._I, self._B, self.q, p._k_ik, p._k_q_lo, p._k_q_hi, *p._k_tables,
             self._start_k[0], self._start_k[1], self._start_k[2],
             -2 if self.goal is None else self.goal, self.hold_s > 0,
@@ -2812,12 +2820,11 @@ class _Run:
         if not same.all():
             todo = np.flatnonzero(~same)
             pt, st = par[todo], batch[todo]
-            ok[todo] = (
-                p._static_cached(
-                    self.node[pt], self.branch[pt], self.node[st], self.branch[st], q_par[todo], target[todo]
-                )
-                == 1
-            )
+            res = p._static_cached(
+                self.node[pt], self.branch[pt], self.node[st], self.branch[st], q_par[todo], target[todo],
+                same_move=stored[todo],
+            )  # fmt: skip
+            ok[todo] = res == 1
         if sep.forecast is not None:
             dep = fl[0]
             # waits: the parent must be able to stand still until the departure (checked once per parent)
@@ -3057,11 +3064,8 @@ class _OpenList:
             head = np.full(n_states, -1, dtype=np.int64)
             head[: self.def_head.shape[0]] = self.def_head
             self.def_head = head
-        if m:
-            _kernels.heap_add(
-                _kernels.as_i64(ids), _kernels.as_f64(keys), _kernels.as_f64(ts), self.heap, self.hs,
-                self.E_key, self.E_negt, self.E_id,
-            )  # fmt: skip
+        if m:  # (the generation kernels' own arrays: int64 / float64, contiguous)
+            _kernels.heap_add(ids, keys, ts, self.heap, self.hs, self.E_key, self.E_negt, self.E_id)
 
     def push_back(self, e: int) -> None:
         _kernels.heap_push(e, self.heap, self.hs, self.E_key, self.E_negt, self.E_id)
