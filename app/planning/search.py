@@ -63,6 +63,13 @@ Paper, section II-A, and where this goes further:
   UR5e capsule model (:meth:`CollisionModel.kernel_geometry`) the move, sample and trajectory checks run
   fused in :mod:`app.planning._kernels` (the same broad phase and distances; a move stops at its first
   failing sample, a verification at its first failing instant); the NumPy checks are their reference.
+- **Compiled bookkeeping.** With the compiled model the search's own bookkeeping runs in
+  :mod:`app.planning._kernels` too: successor generation and timing (children, alternatives, the lookahead
+  chain) writing straight into the packed state records, the open list (a binary heap of entry indices that
+  pops in exactly ``heapq``'s order over the ``(key, -t, id)`` tuples) with the pop loop up to each step that
+  needs Python, the batch's check set-up, the wait samples and the acceptance after a check. The NumPy and
+  ``heapq`` code is its reference (used with a NumPy model): both expand the same states in the same order
+  and return the same waypoints, bit for bit.
 - **Shortcuts.** Roadmap paths follow straight TCP segments between samples, so in joint space they
   zig-zag and a spline through them slows down at every reversal. Before the fit, runs of waypoints are
   replaced greedily by one straight joint move where that move is statically free and keeps the forecast
