@@ -238,7 +238,7 @@ class Settings(BaseSettings):
     )
 
     # planning and supervision (paper section II)
-    deadline_s: float = Field(0.2, gt=0, le=2.0, description="D: backup-plan deadline")
+    deadline_s: float = Field(0.1, gt=0, le=2.0, description="D: backup-plan deadline")
     frame_period_s: float = Field(1 / 30, gt=0, le=1.0, description="F: camera frame period")
     planner_workers: int = Field(
         32, ge=1, le=64, description="states the batched planner search checks per step (1: sequential A*)"
