@@ -347,6 +347,7 @@ class Runtime:
                     quantiles=quantiles,
                 )
             _warm_up(self._predictor, self.cell)
+            _warm_up_compiled(self.settings, self.cell, self._stack, self._predictor)
             self._stop.clear()
             self._started = True
             for name, target in (
@@ -748,6 +749,44 @@ class Runtime:
 
 def _pool_jobs(computer: BackupComputer, cfg: SupervisorConfig, clock: Clock) -> PoolPlanJobs:
     return PoolPlanJobs(computer, max_jobs=cfg.max_jobs, clock=clock)
+
+
+_COMPILED_READY = False
+_COMPILED_LOCK = threading.Lock()
+
+
+def _warm_up_compiled(settings: Settings, cell: WorkCell, stack: Any, predictor: Any) -> None:
+    """Load the compiled inner loops (numba kernels of the speed governor, the simulated arm and operator,
+    the planner's checks, the monitor and the forecast) before the runtime's threads start: a 2-s headless
+    trial on the simulated cell, once per process.
+
+    A kernel's first call in a process loads its machine code from the cache (about 0.1 s) or, on a fresh
+    install, compiles it (seconds); in the servo loop that would be a stall of the robot's command stream.
+    The warm-up drives a simulated arm only (never the configured robot) and keeps nothing of its trial.
+    """
+    global _COMPILED_READY
+    with _COMPILED_LOCK:
+        if _COMPILED_READY:
+            return
+        t0 = time.perf_counter()
+        try:
+            run_headless_trial(
+                settings=settings,
+                cell=cell,
+                method="proactive" if predictor is not None else "reactive",
+                duration_s=2.0,
+                seed=0,
+                source="sim",
+                stack=stack,
+                predictor=predictor,
+            )
+        except Exception:
+            log.exception("warm-up of the compiled loops failed; their first calls may stall the loops")
+        finally:
+            if predictor is not None and hasattr(predictor, "reset"):
+                predictor.reset()
+        _COMPILED_READY = True
+        log.info("compiled control loops ready in %.1f s", time.perf_counter() - t0)
 
 
 def _warm_up(predictor: Any, cell: WorkCell) -> None:
