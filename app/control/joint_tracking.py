@@ -14,7 +14,7 @@ import numpy as np
 
 from app.control._kernels import track_substeps
 
-__all__ = ["JointLimits", "JointTracker", "ServoCommand"]
+__all__ = ["JointLimits", "JointTracker", "ServoCommand", "warm_up_compiled"]
 
 
 def _vec6(x: object, name: str) -> np.ndarray:
@@ -258,3 +258,14 @@ class JointTracker:
     def at_rest(self) -> bool:
         """True when every joint speed is zero."""
         return not np.any(self.qd)
+
+
+def warm_up_compiled(limits: JointLimits | None = None) -> None:
+    """Load (on a fresh install: compile) the tracker's compiled loop by stepping a throwaway tracker, so
+    that the first step of a real control loop does not stall it (call before the loop starts)."""
+    limits = limits if limits is not None else JointLimits.ur5e()
+    q0 = 0.5 * (limits.q_min + limits.q_max)
+    tracker = JointTracker(q0, limits)
+    tracker.set_command(ServoCommand(0.0, q0 + 0.01, np.full(6, 0.1)))
+    tracker.step(0.0, 0.004)
+    tracker.step(0.004, 0.004, stopping=True)

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from app.control.clock import Clock, RateLoop, WallClock
-from app.control.joint_tracking import JointLimits, JointTracker, ServoCommand
+from app.control.joint_tracking import JointLimits, JointTracker, ServoCommand, warm_up_compiled
 from app.control.robot import RobotConnectionError, RobotState, _check_scale
 
 __all__ = [
@@ -467,6 +467,7 @@ class _Worker:
     def main(self) -> None:
         cfg = self.cfg
         attempts_left = cfg.reconnect_attempts
+        warm_up_compiled(self.limits)  # before any connection: the control loop's first step must not stall
         try:
             while True:
                 try:
