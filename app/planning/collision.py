@@ -668,6 +668,20 @@ class CollisionModel:
         self._k_links = np.arange(_NL, dtype=np.int64)
         self._k_self_i = np.array(self._self_i, dtype=np.int64)
         self._k_self_j = np.array(self._self_j, dtype=np.int64)
+        # the robot's arguments of the compiled kernels (T_base, t_tcp, dh_d, dh_a, twist, off_shoulder,
+        # off_forearm), made once: the capsule kernel and kernel_geometry() both take them
+        self._k_robot: tuple[Any, ...] = ()
+        if self.compiled:
+            kin = self.kin
+            self._k_robot = (
+                kin._T_base_k,
+                kin._t_tcp_k,
+                _DH_D,
+                _DH_A,
+                _TWIST,
+                SHOULDER_OFFSET_M,
+                FOREARM_OFFSET_M,
+            )
 
     # ------------------------------------------------------------------ geometry
     def _robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -679,17 +693,7 @@ class CollisionModel:
         """Robot segment starts and directions, component-major, each (L, 3, B)."""
         if not self.compiled:
             return self._robot_segments_cm_numpy(q)
-        kin = self.kin
-        return _kernels.robot_segments(
-            _kernels.as_f64(q),
-            kin._T_base_k,
-            kin._t_tcp_k,
-            _DH_D,
-            _DH_A,
-            _TWIST,
-            SHOULDER_OFFSET_M,
-            FOREARM_OFFSET_M,
-        )
+        return _kernels.robot_segments(_kernels.as_f64(q), *self._k_robot)
 
     def _robot_segments_cm_numpy(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_robot_segments_cm` in NumPy (the reference of the compiled kernel)."""
@@ -867,15 +871,8 @@ class CollisionModel:
         when the model runs in NumPy (``compiled=False``)."""
         if not self.compiled:
             return None
-        kin = self.kin
         return (
-            kin._T_base_k,
-            kin._t_tcp_k,
-            _DH_D,
-            _DH_A,
-            _TWIST,
-            SHOULDER_OFFSET_M,
-            FOREARM_OFFSET_M,
+            *self._k_robot,
             self._k_ra,
             self._k_ia,
             self._k_ib,
