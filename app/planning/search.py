@@ -2917,7 +2917,8 @@ class _Run:
         q_par: np.ndarray,
         target: np.ndarray,
     ) -> np.ndarray:
-        """Moves against the forecast, with the waits before them, in one vectorised check."""
+        """Moves against the forecast, with the waits before them, in one vectorised check (the NumPy
+        reference of :meth:`_check_fast`: a run is compiled whenever its planner's checks are)."""
         p = self.p
         cfg = p.config
         sep = self.sep
@@ -2941,37 +2942,6 @@ class _Run:
         n_wait = parts[0][0].shape[0] if parts else 0
         pts, cen, rad = self._parent_geometry(par)
         hold = cv == self.goal if self.goal is not None else np.full(idx.size, self.hold_s > 0)
-        if sep._kernel is not None:
-            # compiled: the waits (each sample on its own) and the moves in two passes
-            if todo.size:
-                res_w = sep.check(*parts[0]).reshape(todo.size, -1)
-                t_w = parts[0][1].reshape(todo.size, -1)
-                first_bad = t_w[np.arange(todo.size), np.argmin(res_w, axis=1)]
-                self.wait_ok[todo] = np.where(res_w.all(axis=1), np.inf, first_bad)
-            if waiting.size:
-                ok[waiting] = dep[waiting] < self.wait_ok[par[waiting]] - _EPS_T
-            live = np.flatnonzero(ok)  # a move after a wait that fails fails with it
-            if live.size:
-                il = idx[live]
-                ok[live] = p._moves_ok(
-                    sep,
-                    q_par[live],
-                    pts[live],
-                    cen[live],
-                    rad[live],
-                    cv[live],
-                    b[live],
-                    target[live],
-                    dep[live],
-                    self.h[il],
-                    self.u0[il],
-                    self.L[il],
-                    self.end[il],
-                    self.fc[il],
-                    hold[live],
-                    self.hold_s,
-                )
-            return ok
         sel, owner, *samples = p._move_samples(
             sep,
             q_par,
