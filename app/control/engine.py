@@ -594,7 +594,7 @@ class TrialEngine:
             jobs=self.jobs,
             make_trajectory=stack.make_trajectory,
             separation=self.separation,
-            speed_scale=SpeedScaleLaw.from_ssm(ssm),
+            speed_scale=SpeedScaleLaw(ssm),
             config=self.config,
             q0=robot_state.q,
             t0=t0,

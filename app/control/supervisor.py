@@ -545,48 +545,26 @@ class SpeedScaleLaw:
     applies it per servo tick: the smallest scale over the moving parts.
 
     Attributes:
-        human_time_s: ``T_r + T_s`` (s): ``S_h = v_h * human_time_s``.
-        constant_m: ``C + Z_d + Z_r`` (m).
-        robot_time_s: ``T_r + T_s / 2`` (s): ``S_r + S_s = v_r * robot_time_s``.
+        params: :class:`app.planning.safety.SSMParams` (``T_r``, ``T_s``, ``C``, ``Z_d``, ``Z_r``).
+        kernel_params: ``(T_r + T_s, C + Z_d + Z_r, T_r + T_s / 2)`` as the compiled governor reads them.
     """
 
-    human_time_s: float
-    constant_m: float
-    robot_time_s: float
+    params: Any
     kernel_params: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        if not (self.human_time_s >= 0 and self.constant_m >= 0 and self.robot_time_s > 0):
-            raise ValueError(
-                "SpeedScaleLaw needs human_time_s >= 0, constant_m >= 0 and robot_time_s > 0, got "
-                f"{self.human_time_s}, {self.constant_m}, {self.robot_time_s}"
-            )
-        params = np.array([self.human_time_s, self.constant_m, self.robot_time_s], dtype=np.float64)
-        object.__setattr__(self, "kernel_params", params)
-
-    @classmethod
-    def from_ssm(cls, params: Any) -> SpeedScaleLaw:
-        """From :class:`app.planning.safety.SSMParams`."""
-        return cls(
-            human_time_s=float(params.t_reaction_s + params.t_stop_s),
-            constant_m=float(params.constant_m),
-            robot_time_s=float(params.robot_time_s),
-        )
+        p = self.params
+        kernel = np.array([p.t_reaction_s + p.t_stop_s, p.constant_m, p.robot_time_s], dtype=np.float64)
+        object.__setattr__(self, "kernel_params", kernel)
 
     def __call__(self, separation_m: np.ndarray, v_nominal_mps: np.ndarray, v_human_mps: np.ndarray) -> float:
-        """The smallest scale over parts (L,) in NumPy (1 for no part): the compiled governor's reference."""
+        """The smallest scale over parts (L,) (1 for no part), in NumPy: the compiled governor's reference."""
+        from app.planning.safety import speed_scale
+
         d = np.asarray(separation_m, dtype=np.float64)
         if d.size == 0:
             return 1.0
-        v_nom = np.asarray(v_nominal_mps, dtype=np.float64)
-        v_h = np.maximum(np.asarray(v_human_mps, dtype=np.float64), 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            slack = d - v_h * self.human_time_s - self.constant_m
-            v_max = np.maximum(slack, 0.0) / self.robot_time_s
-            ratio = np.minimum(1.0, v_max / np.maximum(v_nom, 1e-300))
-        out = np.where(v_nom <= 1e-9, np.where(v_max > 0.0, 1.0, 0.0), ratio)
-        out = np.where(np.isfinite(d), out, np.where(d > 0, 1.0, 0.0))
-        return float(out.min())
+        return float(np.min(speed_scale(d, v_nominal_mps, self.params, v_human_mps=v_human_mps)))
 
 
 _NO_LAW = np.zeros(0)
