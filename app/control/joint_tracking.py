@@ -166,13 +166,9 @@ class JointTracker:
             stopping: Decelerate to rest within ``qdd_max`` (all joints stop together, so the arm stays
                 on its joint-space path), ignoring the command.
         """
-        if dt_s < 0:
-            raise ValueError(f"dt_s must be >= 0, got {dt_s}")
-        n = max(1, math.ceil(dt_s / self.max_substep_s - 1e-9)) if dt_s > 0 else 0
+        n, h, s = self._substeps(dt_s, speed_scale)
         if n == 0:
             return
-        h = dt_s / n
-        s = min(max(float(speed_scale), 0.0), 1.0)
         c = self.command
         lim = self.limits
         track_substeps(
@@ -197,15 +193,19 @@ class JointTracker:
             self._inv_qd_max,
         )
 
+    def _substeps(self, dt_s: float, speed_scale: float) -> tuple[int, float, float]:
+        """Number and length (s) of the substeps of a step of ``dt_s`` >= 0 seconds, and the speed scale
+        clipped to [0, 1]."""
+        if dt_s < 0:
+            raise ValueError(f"dt_s must be >= 0, got {dt_s}")
+        n = max(1, math.ceil(dt_s / self.max_substep_s - 1e-9)) if dt_s > 0 else 0
+        return n, (dt_s / n if n else 0.0), min(max(float(speed_scale), 0.0), 1.0)
+
     def step_reference(
         self, t: float, dt_s: float, *, speed_scale: float = 1.0, stopping: bool = False
     ) -> None:
         """:meth:`step` in NumPy, one substep at a time (the reference of the compiled loop)."""
-        if dt_s < 0:
-            raise ValueError(f"dt_s must be >= 0, got {dt_s}")
-        n = max(1, math.ceil(dt_s / self.max_substep_s - 1e-9)) if dt_s > 0 else 0
-        h = dt_s / n if n else 0.0
-        s = min(max(float(speed_scale), 0.0), 1.0)
+        n, h, s = self._substeps(dt_s, speed_scale)
         for i in range(n):
             if stopping:
                 self._substep_stop(h)
