@@ -36,9 +36,10 @@ import math
 import threading
 import weakref
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -506,33 +507,6 @@ class MotionPredictor:
         return self._traced if self._traced is not None else self.model
 
 
-_TRACE_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _trace_single(model: GraphMixer, t_in: int):
-    import warnings
-
-    import torch
-
-    with _MODEL_LOCK:
-        if model in _TRACE_CACHE:
-            return _TRACE_CACHE[model]
-    example = torch.zeros(1, t_in, NUM_JOINTS, 3)
-    example[0, :, :, 0] = torch.linspace(0.0, 0.1, t_in)[:, None]
-    try:
-        with warnings.catch_warnings(), torch.inference_mode():
-            warnings.simplefilter("ignore")
-            traced = torch.jit.freeze(torch.jit.trace(model, example))
-            if not torch.allclose(traced(example), model(example), atol=1e-5):
-                raise RuntimeError("traced network differs from the eager one")
-    except Exception as exc:  # tracing is an optimisation only
-        log.warning("could not trace the Graph-Mixer (%s); running it eagerly", exc)
-        traced = None
-    with _MODEL_LOCK:
-        _TRACE_CACHE[model] = traced
-    return traced
-
-
 def _probe_histories(t_in: int) -> np.ndarray:
     """Inputs (2, t_in, J, 3) on which a compiled copy of the network must match torch: a ramp, and a person
     walking at 1 m/s through the cell with seeded joint noise."""
@@ -546,18 +520,51 @@ def _probe_histories(t_in: int) -> np.ndarray:
     return np.stack([ramp, walk])
 
 
-_FAST_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_COPIES: dict[str, weakref.WeakKeyDictionary] = {}
+
+
+def _checked_copy(kind: str, model: GraphMixer, build: Callable[[], Any], fallback: str) -> Any:
+    """A faster copy of ``model`` made once per model and ``kind`` by ``build()``, which checks it against
+    the torch network and raises when it differs; None when it fails (logged with ``fallback``, what runs
+    instead: the copies are an optimisation, torch stays the reference)."""
+    with _MODEL_LOCK:
+        cache = _COPIES.setdefault(kind, weakref.WeakKeyDictionary())
+        if model in cache:
+            return cache[model]
+    try:
+        copy = build()
+    except Exception as exc:
+        log.warning("could not run the Graph-Mixer through %s (%s); %s", kind, exc, fallback)
+        copy = None
+    with _MODEL_LOCK:
+        cache[model] = copy
+    return copy
+
+
+def _trace_single(model: GraphMixer, t_in: int):
+    """The network traced and frozen for one person, checked against the eager one; None if that fails."""
+    import warnings
+
+    import torch
+
+    def build():
+        example = torch.from_numpy(_probe_histories(t_in)[:1].astype(np.float32))
+        with warnings.catch_warnings(), torch.inference_mode():
+            warnings.simplefilter("ignore")
+            traced = torch.jit.freeze(torch.jit.trace(model, example))
+            if not torch.allclose(traced(example), model(example), atol=1e-5):
+                raise RuntimeError("traced network differs from the eager one")
+        return traced
+
+    return _checked_copy("torch tracing", model, build, "running it eagerly")
 
 
 def _fast_single(model: GraphMixer, t_in: int):
     """The compiled one-person forward pass of ``model`` (a :class:`~app.prediction.fastforward.
     FastGraphMixer`), checked against the torch network on probe inputs (1e-5 m); None when numba is missing
     or anything fails."""
-    with _MODEL_LOCK:
-        if model in _FAST_CACHE:
-            return _FAST_CACHE[model]
-    fast = None
-    try:
+
+    def build():
         import torch
 
         from app.prediction.fastforward import FastGraphMixer
@@ -570,67 +577,45 @@ def _fast_single(model: GraphMixer, t_in: int):
         err = float(np.max(np.abs(got - expected)))
         if not err <= 1e-5:
             raise RuntimeError(f"the compiled network differs from the torch one by {err:.2e} m")
-    except Exception as exc:  # an optimisation only: torch stays the reference
-        log.warning(
-            "could not run the Graph-Mixer through its compiled forward pass (%s); using ONNX/torch", exc
-        )
-        fast = None
-    with _MODEL_LOCK:
-        _FAST_CACHE[model] = fast
-    return fast
+        return fast
 
-
-_ONNX_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+    return _checked_copy("its compiled forward pass", model, build, "using ONNX/torch")
 
 
 def _onnx_single(model: GraphMixer, t_in: int):
     """An ONNX Runtime session of ``model`` for one person (input ``x`` (1, t_in, J, 3) float32), checked
     against the torch network on a probe input; None when onnxruntime is missing or anything fails."""
-    import io
-    import warnings
-
-    with _MODEL_LOCK:
-        if model in _ONNX_CACHE:
-            return _ONNX_CACHE[model]
-    session = None
     try:
         import onnxruntime as ort
     except ImportError:
         log.info("onnxruntime is not installed; forecasts run through torch")
-    else:
+        return None
+
+    def build():
+        import io
+        import warnings
+
         import torch
 
-        example = torch.zeros(1, t_in, NUM_JOINTS, 3)
-        example[0, :, :, 0] = torch.linspace(0.0, 0.1, t_in)[:, None]
-        example[0, :, :, 1] = torch.linspace(-0.2, 0.3, NUM_JOINTS)[None, :]
-        try:
-            buf = io.BytesIO()
-            with warnings.catch_warnings(), torch.inference_mode():
-                warnings.simplefilter("ignore")
-                torch.onnx.export(
-                    model,
-                    (example,),
-                    buf,
-                    dynamo=False,
-                    input_names=["x"],
-                    output_names=["y"],
-                    opset_version=17,
-                )
-                expected = model(example).numpy()
-            options = ort.SessionOptions()
-            options.intra_op_num_threads = 1
-            options.inter_op_num_threads = 1
-            options.log_severity_level = 3
-            session = ort.InferenceSession(buf.getvalue(), options, providers=["CPUExecutionProvider"])
-            got = session.run(None, {"x": example.numpy()})[0]
-            if got.shape != expected.shape or not np.allclose(got, expected, atol=1e-5):
-                raise RuntimeError("the ONNX network differs from the torch one")
-        except Exception as exc:  # an optimisation only: torch stays the reference
-            log.warning("could not run the Graph-Mixer through ONNX Runtime (%s); using torch", exc)
-            session = None
-    with _MODEL_LOCK:
-        _ONNX_CACHE[model] = session
-    return session
+        example = torch.from_numpy(_probe_histories(t_in)[:1].astype(np.float32))
+        buf = io.BytesIO()
+        with warnings.catch_warnings(), torch.inference_mode():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(
+                model, (example,), buf, dynamo=False, input_names=["x"], output_names=["y"], opset_version=17
+            )
+            expected = model(example).numpy()
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = 1
+        options.inter_op_num_threads = 1
+        options.log_severity_level = 3
+        session = ort.InferenceSession(buf.getvalue(), options, providers=["CPUExecutionProvider"])
+        got = session.run(None, {"x": example.numpy()})[0]
+        if got.shape != expected.shape or not np.allclose(got, expected, atol=1e-5):
+            raise RuntimeError("the ONNX network differs from the torch one")
+        return session
+
+    return _checked_copy("ONNX Runtime", model, build, "using torch")
 
 
 def load_default_predictor(

@@ -121,7 +121,6 @@ def test_single_person_forecasts_run_through_the_compiled_pass_then_onnx_then_to
     tiny_weights: Path, monkeypatch: pytest.MonkeyPatch, caplog
 ) -> None:
     import builtins
-    import weakref
 
     hist = np.stack([_pose(2.0 + DT * k) for k in range(10)])[None]
     hist = hist + np.random.default_rng(3).normal(0.0, 0.02, size=hist.shape)
@@ -133,7 +132,7 @@ def test_single_person_forecasts_run_through_the_compiled_pass_then_onnx_then_to
     np.testing.assert_allclose(fast.predict_batch(hist), expected, atol=1e-5)
     # a compiled pass that fails its check against torch at build is not used: ONNX Runtime answers
     pytest.importorskip("onnxruntime")
-    monkeypatch.setattr("app.prediction.predictor._FAST_CACHE", weakref.WeakKeyDictionary())
+    monkeypatch.setattr("app.prediction.predictor._COPIES", {})
     real_call = FastGraphMixer.__call__
     monkeypatch.setattr(FastGraphMixer, "__call__", lambda self, x: real_call(self, x) + 1e-3)
     with caplog.at_level(logging.WARNING, logger="app.prediction.predictor"):
@@ -150,8 +149,7 @@ def test_single_person_forecasts_run_through_the_compiled_pass_then_onnx_then_to
         return real_import(name, *args, **kwargs)
 
     monkeypatch.setattr(builtins, "__import__", no_onnxruntime)
-    monkeypatch.setattr("app.prediction.predictor._FAST_CACHE", weakref.WeakKeyDictionary())
-    monkeypatch.setattr("app.prediction.predictor._ONNX_CACHE", weakref.WeakKeyDictionary())
+    monkeypatch.setattr("app.prediction.predictor._COPIES", {})
     slow = MotionPredictor(weights=tiny_weights)
     assert slow.single_person_backend == "torch-traced"
     np.testing.assert_allclose(slow.predict_batch(hist), expected, atol=1e-5)
