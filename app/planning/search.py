@@ -2768,7 +2768,7 @@ class _Run:
             kinds += [(2, 0, fs, 0) for fs in slow]
             if slow:  # stop, then creep (slower than creeping on at the parent's speed)
                 kinds.append((4, 0, min(slow), -1))
-            K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
+            K, _ = _wait_grid(cfg)
             kinds += [(3, 0, self.f, k) for k in range(1, K + 1)]
         return kinds
 
@@ -2869,8 +2869,7 @@ class _Run:
     def _check_waits(self, todo: np.ndarray) -> None:
         """Until when standing still at each of the checked states ``todo`` is safe (``wait_ok``)."""
         cfg = self.p.config
-        K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
-        sub = max(1, math.ceil(cfg.wait_step_s / cfg.sample_dt_s - 1e-9))
+        K, sub = _wait_grid(cfg)
         n_w = K * sub
         sep = self.sep
         if self.compiled and sep._kernel is not None:  # the samples and their requirement compiled
@@ -2932,8 +2931,7 @@ class _Run:
             wp = par[waiting]
             todo = np.unique(wp[np.isnan(self.wait_ok[wp])])
             if todo.size:
-                K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
-                sub = max(1, math.ceil(cfg.wait_step_s / cfg.sample_dt_s - 1e-9))
+                K, sub = _wait_grid(cfg)
                 n_w = K * sub
                 ts = self.t[todo][:, None] + (cfg.wait_step_s / sub) * np.arange(1, n_w + 1)
                 rep = np.repeat(np.arange(todo.size), n_w)
@@ -3086,6 +3084,14 @@ def _per_move(x: np.ndarray | float | bool, m: int, dtype: type = np.float64) ->
     if isinstance(x, np.ndarray) and x.shape == (m,) and x.dtype == dtype and x.flags.c_contiguous:
         return _kernels.as_bool(x) if dtype is np.bool_ else _kernels.as_f64(x)
     return np.array(np.broadcast_to(np.asarray(x, dtype=dtype), (m,)), order="C")
+
+
+def _wait_grid(cfg: PlannerConfig) -> tuple[int, int]:
+    """The waits of a search: how many ``wait_step_s`` steps fit in ``max_wait_s`` (``K``), and into how
+    many samples each step is cut so that none is longer than ``sample_dt_s`` (``sub``)."""
+    K = math.floor(cfg.max_wait_s / cfg.wait_step_s + 1e-9)
+    sub = max(1, math.ceil(cfg.wait_step_s / cfg.sample_dt_s - 1e-9))
+    return K, sub
 
 
 def _profile_arrays(
