@@ -41,7 +41,7 @@ from app.control.supervisor import (
 from app.control.task import TaskExecutive
 from app.control.validation import FrameValidator, StaleWatchdog, ValidatedSource
 from app.prediction.forecast import HumanForecast
-from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+from app.prediction.skeleton import HumanFrame
 
 log = logging.getLogger(__name__)
 
@@ -67,12 +67,9 @@ class CellGeometry:
 
     def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """(P, L, M) surface distance (m) of each robot part at ``q`` (6,) to each capsule of the person in
-        poses (P, J, 3) (:meth:`app.planning.collision.CollisionModel.pair_distances`)."""
-        q = np.asarray(q, dtype=np.float64).reshape(6)
-        joints = np.asarray(joints, dtype=np.float64)
-        if joints.ndim != 3 or joints.shape[1:] != (NUM_JOINTS, 3):
-            raise ValueError(f"joints must have shape (P, {NUM_JOINTS}, 3), got {joints.shape}")
-        return self.collision.pair_distances(q, joints)
+        poses (P, J, 3) (:meth:`app.planning.collision.CollisionModel.pair_distances`, which checks the
+        shapes)."""
+        return self.collision.pair_distances(np.asarray(q, dtype=np.float64).reshape(6), joints)
 
     def part_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """(P, L) surface distance (m) of each robot part at ``q`` (6,) to the person in poses (P, J, 3)."""
