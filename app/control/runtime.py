@@ -346,8 +346,8 @@ class Runtime:
                     weights=weights,
                     quantiles=quantiles,
                 )
-            _warm_up(self._predictor, self.cell)
-            _warm_up_compiled(self.settings, self.cell, self._stack, self._predictor)
+            if not _warm_up_compiled(self.settings, self.cell, self._stack, self._predictor):
+                _warm_up(self._predictor, self.cell)  # the trial of the first start ran this predictor
             self._stop.clear()
             self._started = True
             for name, target in (
@@ -755,7 +755,7 @@ _COMPILED_READY = False
 _COMPILED_LOCK = threading.Lock()
 
 
-def _warm_up_compiled(settings: Settings, cell: WorkCell, stack: Any, predictor: Any) -> None:
+def _warm_up_compiled(settings: Settings, cell: WorkCell, stack: Any, predictor: Any) -> bool:
     """Load the compiled inner loops (numba kernels of the speed governor, the simulated arm and operator,
     the planner's checks, the monitor and the forecast) before the runtime's threads start: a 2-s headless
     trial on the simulated cell, once per process.
@@ -763,12 +763,14 @@ def _warm_up_compiled(settings: Settings, cell: WorkCell, stack: Any, predictor:
     A kernel's first call in a process loads its machine code from the cache (about 0.1 s) or, on a fresh
     install, compiles it (seconds); in the servo loop that would be a stall of the robot's command stream.
     The warm-up drives a simulated arm only (never the configured robot) and keeps nothing of its trial.
+    Returns whether its trial ran (False: an earlier start of this process ran it, or it failed).
     """
     global _COMPILED_READY
     with _COMPILED_LOCK:
         if _COMPILED_READY:
-            return
+            return False
         t0 = time.perf_counter()
+        ran = False
         try:
             run_headless_trial(
                 settings=settings,
@@ -780,6 +782,7 @@ def _warm_up_compiled(settings: Settings, cell: WorkCell, stack: Any, predictor:
                 stack=stack,
                 predictor=predictor,
             )
+            ran = True
         except Exception:
             log.exception("warm-up of the compiled loops failed; their first calls may stall the loops")
         finally:
@@ -787,6 +790,7 @@ def _warm_up_compiled(settings: Settings, cell: WorkCell, stack: Any, predictor:
                 predictor.reset()
         _COMPILED_READY = True
         log.info("compiled control loops ready in %.1f s", time.perf_counter() - t0)
+        return ran
 
 
 def _warm_up(predictor: Any, cell: WorkCell) -> None:
