@@ -52,6 +52,13 @@ def _poses(rng: np.random.Generator, n: int, spread: float = 0.35) -> np.ndarray
     return centre + spread * rng.normal(size=(n, NUM_JOINTS, 3))
 
 
+def _all_close(got: tuple[np.ndarray, ...], ref: tuple[np.ndarray, ...], atol: float = 1e-12) -> None:
+    """Each array of ``got`` equals its counterpart in ``ref`` (as many of them) to ``atol``."""
+    assert len(got) == len(ref)
+    for a, b in zip(got, ref, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=atol)
+
+
 # ------------------------------------------------------------------------------------------ segments
 
 
@@ -120,12 +127,10 @@ def test_compiled_chain_equals_the_numpy_chain(cell, n: int) -> None:  # type: i
     rng = np.random.default_rng(n)
     q = rng.uniform(-2 * np.pi, 2 * np.pi, (n, 6))
     kin, ref = UR5e.from_workcell(cell), UR5e.from_workcell(cell, compiled=False)
-    for a, b in zip(kin._chain(q), ref._chain(q), strict=True):
-        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
+    _all_close(kin._chain(q), ref._chain(q))
     np.testing.assert_allclose(kin.fk(q), ref.fk(q), rtol=0.0, atol=1e-12)
     np.testing.assert_allclose(kin.fk_tcp(q), ref.fk_tcp(q), rtol=0.0, atol=1e-12)
-    for a, b in zip(kin.link_origins_and_axes(q), ref.link_origins_and_axes(q), strict=True):
-        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
+    _all_close(kin.link_origins_and_axes(q), ref.link_origins_and_axes(q))
 
 
 @pytest.mark.parametrize("n", [1, 40])
@@ -133,11 +138,10 @@ def test_compiled_capsules_equal_the_numpy_capsules(models, n: int) -> None:  # 
     fast, ref = models
     rng = np.random.default_rng(10 + n)
     q = rng.uniform(-np.pi, np.pi, (n, 6))
-    for a, b in zip(fast.robot_segments(q), ref.robot_segments(q), strict=True):
-        assert a.shape == (len(ROBOT_LINKS), 3, n)
-        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
-    for a, b in zip(fast.robot_capsules(q), ref.robot_capsules(q), strict=True):
-        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-12)
+    segs = fast.robot_segments(q)
+    assert [a.shape for a in segs] == [(len(ROBOT_LINKS), 3, n)] * 2
+    _all_close(segs, ref.robot_segments(q))
+    _all_close(fast.robot_capsules(q), ref.robot_capsules(q))
 
 
 # ------------------------------------------------------------------------------------------ robot-person
