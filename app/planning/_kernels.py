@@ -850,21 +850,6 @@ def _profile_sample(
 
 
 @_jit
-def _profile(u0: float, L: float, f: float, A: float, end_rest: bool) -> tuple[float, float]:
-    """Duration and peak path speed of one move (:func:`app.planning.search._profile_arrays`)."""
-    u0sq = u0 * u0
-    two_al = 2.0 * A * L
-    if not end_rest:
-        u1 = min(math.sqrt(u0sq + two_al), f)
-        return (u1 - u0) / A + max(L - (u1 * u1 - u0sq) / (2.0 * A), 0.0) / f, u1
-    up = min(f, math.sqrt((two_al + u0sq) / 2.0))
-    if u0sq <= two_al:
-        cruise = max(L - (up * up - u0sq) / (2.0 * A) - up * up / (2.0 * A), 0.0)
-        return (up - u0) / A + cruise / max(up, 1e-12) + up / A, up
-    return 2.0 * L / max(u0, 1e-12), u0
-
-
-@_jit
 def moves_separation_ok(
     q_a: np.ndarray,
     target: np.ndarray,
@@ -987,7 +972,7 @@ def moves_separation_ok(
             d2 = pts_tab[rb, p, 2] - pts_a[k, p, 2]
             chord = max(chord, math.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
         Lk = Lp[k]
-        dur, peak = _profile(u0[k], Lk, f[k], A, end_rest[k])
+        dur, _, peak = _profile3(u0[k], Lk, f[k], A, end_rest[k])
         hk = h[k]
         clock = dur / max(hk, 1e-12) if hk > 0 else 1.0  # profile seconds per real second
         kv = speed_factor * chord * clock / max(Lk, 1e-12) if Lk > 1e-12 else 0.0
