@@ -584,7 +584,7 @@ class _Separation:
         close and skipping the rest of a group once one of its samples failed."""
         S = q.shape[0]
         n_off = len(self.offsets)
-        t_all = np.asarray(t, dtype=np.float64)[None, :] + np.asarray(self.offsets, dtype=np.float64)[:, None]
+        t_all = np.asarray(t, dtype=np.float64)[None, :] + self._k_offsets[:, None]
         v_all = np.broadcast_to(np.asarray(v, dtype=np.float64), (n_off, S)).reshape(-1)
         req = self._required(v_all, t_all.reshape(-1)).reshape(n_off, S)
         use_spheres = cen is not None and rad is not None
@@ -593,7 +593,7 @@ class _Separation:
         else:
             cen_k, rad_k = np.zeros((1, 1, 3)), np.zeros((1, 1))
         if groups is None:
-            groups_k, n_groups = np.zeros(1, dtype=np.int64), 0
+            groups_k, n_groups = _NO_IDS, 0
         else:
             groups_k = _kernels.as_i64(groups)
             n_groups = int(groups_k.max()) + 1
@@ -2225,9 +2225,9 @@ class Planner:
             _per_move(hold, M, np.bool_),
             self._k_lever,
             self._k_moved_by,
-            float(self.config.speed_factor),
+            self._k_speed_factor,
             self._A,
-            float(self.config.sample_dt_s),
+            self._k_sample_dt,
             float(hold_s),
             sep._k_offsets,
             sep._k_params,
