@@ -376,6 +376,8 @@ class TrialResult:
             "min_separation_m": None if not math.isfinite(m.min_separation_m) else m.min_separation_m,
             "violations": m.violations,
             "time_stopped_s": m.time_stopped_s,
+            "time_moving_s": m.time_moving_s,
+            "mean_speed_scale": m.mean_speed_scale,
             "sim_speedup": self.sim_speedup,
         }
 
@@ -803,6 +805,8 @@ class TrialEngine:
             time_stopped_s=st["stopped"] + st["estop"] + st["fault"],
             time_nominal_s=st["nominal"],
             time_collision_avoidance_s=st["collision_avoidance"],
+            time_moving_s=c.moving_time_s,
+            mean_speed_scale=c.scale_time_s / c.moving_time_s if c.moving_time_s > 0 else 0.0,
             stale_stops=c.stale_stops,
             frames_received=int(counters.get("accepted", 0)) + int(counters.get("rejected", 0)),
             frames_rejected=int(counters.get("rejected", 0)),

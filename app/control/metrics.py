@@ -55,7 +55,12 @@ class TrialEvent:
 @dataclass(slots=True)
 class TrialMetrics:
     """Everything measured in one trial. Counts are totals; ``*_per_task`` divide by completed tasks
-    (by 1 when no task was completed, so that a trial without tasks still reports its counts)."""
+    (by 1 when no task was completed, so that a trial without tasks still reports its counts).
+
+    ``time_moving_s`` is the time the robot was under way on a plan (speed scale above zero, brakes
+    included) and ``mean_speed_scale`` the average speed scale over that time (0 when it never moved): 1
+    means that the plans ran at the speed they were planned for, and ``1 - mean_speed_scale`` is what speed
+    and separation monitoring (and braking) took from them."""
 
     method: Method = "proactive"
     duration_s: float = 0.0
@@ -73,6 +78,8 @@ class TrialMetrics:
     time_stopped_s: float = 0.0
     time_nominal_s: float = 0.0
     time_collision_avoidance_s: float = 0.0
+    time_moving_s: float = 0.0
+    mean_speed_scale: float = 0.0
     stale_stops: int = 0
     frames_received: int = 0
     frames_rejected: int = 0

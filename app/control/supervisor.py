@@ -919,6 +919,9 @@ class SupervisorCounters:
     stale_stops: int = 0
     frames: int = 0
     state_time_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(SUPERVISOR_STATES, 0.0))
+    #: time under way on a plan (scale above zero, brakes included) and the integral of the scale over it
+    moving_time_s: float = 0.0
+    scale_time_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -1667,7 +1670,11 @@ class Supervisor:
         st = self._effective_state()
         if st == "nominal" and self._active.kind != "hold" and self._s <= 1e-3 and self._goal is not None:
             st = "stopped"  # held at zero speed by the governor
-        self.counters.state_time_s[st] += dt
+        c = self.counters
+        c.state_time_s[st] += dt
+        if self._s > 1e-3 and self._active.kind != "hold" and self._tau < self._active.traj.t_end:
+            c.moving_time_s += dt
+            c.scale_time_s += self._s * dt
 
     def _emit(self, t: float, kind: str, payload: dict[str, Any]) -> None:
         if self.on_event is not None:

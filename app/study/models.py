@@ -167,6 +167,8 @@ class TrialMetricsRow(Base):
     time_stopped_s: Mapped[float] = mapped_column(Float)
     time_nominal_s: Mapped[float] = mapped_column(Float)
     time_collision_avoidance_s: Mapped[float] = mapped_column(Float)
+    time_moving_s: Mapped[float] = mapped_column(Float, server_default="0")
+    mean_speed_scale: Mapped[float] = mapped_column(Float, server_default="0")
     stale_stops: Mapped[int] = mapped_column(Integer)
     frames_received: Mapped[int] = mapped_column(Integer)
     frames_rejected: Mapped[int] = mapped_column(Integer)
@@ -191,6 +193,8 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "time_stopped_s",
     "time_nominal_s",
     "time_collision_avoidance_s",
+    "time_moving_s",
+    "mean_speed_scale",
     "stale_stops",
     "frames_received",
     "frames_rejected",

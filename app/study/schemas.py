@@ -116,6 +116,8 @@ class TrialMetricsRead(_Out):
     time_stopped_s: float
     time_nominal_s: float
     time_collision_avoidance_s: float
+    time_moving_s: float
+    mean_speed_scale: float
     stale_stops: int
     frames_received: int
     frames_rejected: int

@@ -38,7 +38,13 @@ TABLE_I_METRICS: tuple[str, ...] = (
     "online_replans_per_task",
 )
 #: Every metric of the report: Table I plus safety and efficiency.
-REPORT_METRICS: tuple[str, ...] = (*TABLE_I_METRICS, "min_separation_m", "deadline_misses", "time_stopped_s")
+REPORT_METRICS: tuple[str, ...] = (
+    *TABLE_I_METRICS,
+    "min_separation_m",
+    "deadline_misses",
+    "time_stopped_s",
+    "mean_speed_scale",
+)
 METRIC_LABELS: dict[str, str] = {
     "completed_tasks": "Completed tasks",
     "avg_planning_time_s": "Avg. planning time (s)",
@@ -47,6 +53,7 @@ METRIC_LABELS: dict[str, str] = {
     "min_separation_m": "Min. separation (m)",
     "deadline_misses": "Deadline misses",
     "time_stopped_s": "Time stopped (s)",
+    "mean_speed_scale": "Mean speed scale under way",
 }
 NORMALITY_ALPHA = 0.05
 MIN_PAIRS = 3

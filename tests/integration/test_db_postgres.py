@@ -29,6 +29,8 @@ from app.study.repository import (
 from app.study.schemas import ParticipantCreate, ParticipantUpdate, StudySessionCreate, StudySessionUpdate
 from app.study.stats import summarize
 
+HEAD = "0002"
+
 
 @pytest.fixture
 def repo(db_url: str) -> Iterator[StudyRepository]:
@@ -51,7 +53,7 @@ def test_migrations_match_models(db_url: str) -> None:
                 MigrationContext.configure(conn, opts={"compare_type": True}), Base.metadata
             )
         assert diff == []
-        assert current_revision(engine) == "0001"
+        assert current_revision(engine) == HEAD
         assert set(inspect(engine).get_table_names()) >= set(Base.metadata.tables)
     finally:
         engine.dispose()

@@ -303,6 +303,10 @@ def test_reaches_goal_when_nobody_is_near() -> None:
     # the robot starts moving only after T_0 + D: the first backup is usable from then
     first_move = next(t for t, q, _, _ in h.log if q[0] > 0)
     assert first_move >= h.config.deadline_s - 1e-9
+    # under way from the first move to the arrival, at full speed but for the ramp up
+    last_move = next(t for t, q, _, _ in reversed(h.log) if abs(q[0] - 2.0) > 1e-9)
+    assert c.moving_time_s == pytest.approx(last_move - first_move, abs=0.05)
+    assert 0.9 < c.scale_time_s / c.moving_time_s <= 1.0
 
 
 def test_hold_and_scaled_view() -> None:
@@ -551,13 +555,21 @@ def test_estop_holds_until_reset() -> None:
 
 def test_speed_is_scaled_near_a_person_and_the_monitor_stays_clean() -> None:
     # a person standing beside the path: the robot slows down while passing, and never violates S_p
-    h = Harness(lambda t: person_at(np.array([0.75, 0.75, 0.0])))
+    # (0.6 m from the path: closer and no plan passes; at 0.75 m the robot keeps its full speed)
+    h = Harness(lambda t: person_at(np.array([0.75, 0.6, 0.0])))
     h.sup.set_goal("B")
     h.run(8.0)
-    scales = [s for _, _, s, _ in h.log]
-    assert min(s for s in scales[50:] if s > 0) < 1.0
+    # slowed below full speed after the ramp up (the robot starts at 0.3 s, at full speed by 0.55 s)
+    assert min(s for t, _, s, _ in h.log if t > 0.6 and s > 0) < 0.8
     assert h.sup.take_arrival() == "B"
     assert _monitor_violations(h) == 0
+    # the slowing shows in the mean speed scale under way: lower than with nobody near, the same motion
+    far = Harness(lambda t: person_at(FAR))
+    far.sup.set_goal("B")
+    far.run(8.0)
+    c, c_far = h.sup.counters, far.sup.counters
+    assert c.moving_time_s > c_far.moving_time_s
+    assert c.scale_time_s / c.moving_time_s < c_far.scale_time_s / c_far.moving_time_s - 0.01
 
 
 def test_person_rushing_at_the_robot_never_breaks_the_separation() -> None:

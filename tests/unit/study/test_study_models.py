@@ -13,6 +13,8 @@ from app.control.metrics import TrialMetrics
 from app.study.db import DatabaseError, alembic_config, current_revision, make_engine, upgrade_to_head
 from app.study.models import METRIC_COLUMNS, Base, TrialMetricsRow, UTCDateTime
 
+HEAD = "0002"
+
 
 def test_one_metrics_column_per_trial_metrics_field() -> None:
     # A new TrialMetrics field needs a column and a migration: this test names it.
@@ -42,14 +44,50 @@ def test_upgrade_downgrade_upgrade(tmp_path: Path) -> None:
     upgrade_to_head(url)
     engine = make_engine(url)
     try:
-        assert current_revision(engine) == "0001"
+        assert current_revision(engine) == HEAD
         assert set(inspect(engine).get_table_names()) >= set(Base.metadata.tables)
         command.downgrade(alembic_config(url), "base")
         assert current_revision(engine) is None
         engine.dispose()
         assert set(inspect(engine).get_table_names()) == {"alembic_version"}
         upgrade_to_head(url)
-        assert current_revision(engine) == "0001"
+        assert current_revision(engine) == HEAD
+    finally:
+        engine.dispose()
+
+
+def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
+    """A database made by the first schema gains the motion metrics as 0 and keeps every trial."""
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    command.upgrade(alembic_config(url), "0001")
+    engine = make_engine(url)
+    try:
+        with engine.begin() as conn:
+            conn.execute(
+                text(
+                    "INSERT INTO participants (id, code, notes, created) VALUES (1, 'P01', '', '2026-01-01')"
+                )
+            )
+            conn.execute(
+                text(
+                    "INSERT INTO trials (id, participant_id, method, order_index, seed, settings, started_at,"
+                    " status) VALUES (1, 1, 'proactive', 0, 7, '{}', '2026-01-01', 'completed')"
+                )
+            )
+            cols = [c for c in METRIC_COLUMNS if c not in ("time_moving_s", "mean_speed_scale")]
+            conn.execute(
+                text(
+                    f"INSERT INTO trial_metrics (trial_id, {', '.join(cols)}) "
+                    f"VALUES (1, {', '.join('3' for _ in cols)})"
+                )
+            )
+        upgrade_to_head(url)
+        assert current_revision(engine) == HEAD
+        with engine.connect() as conn:
+            row = conn.execute(
+                text("SELECT completed_tasks, time_moving_s, mean_speed_scale FROM trial_metrics")
+            )
+            assert [tuple(r) for r in row] == [(3, 0.0, 0.0)]
     finally:
         engine.dispose()
 
