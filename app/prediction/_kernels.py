@@ -20,9 +20,10 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["forward", "vexp"]
+__all__ = ["cap_speed", "forward", "vexp"]
 
 _OPTS = {"cache": True, "error_model": "numpy", "fastmath": {"reassoc", "contract"}}
+_EXACT = {"cache": True, "error_model": "numpy"}  # no fastmath: the NumPy reference's numbers
 
 _F = np.float32
 _ZERO, _HALF, _ONE, _TWO = _F(0.0), _F(0.5), _F(1.0), _F(2.0)
@@ -288,3 +289,25 @@ def forward(x, p, ints, fps):
             for a in range(3):
                 res[t, j, a] += disp[t, j, 0] * R[0, a] + disp[t, j, 1] * R[1, a] + disp[t, j, 2] * R[2, a]
     return res
+
+
+@njit(**_EXACT)
+def cap_speed(last: np.ndarray, future: np.ndarray, dt: float, vmax: float) -> np.ndarray:
+    """The forecast's joints (H + 1, J, 3): ``last`` (J, 3) then ``future`` (H, J, 3) with each joint's
+    displacement from ``last`` capped at ``vmax * dt * (h + 1)`` (m) at step ``h``. The numbers of
+    :meth:`app.prediction.predictor.MotionPredictor._cap_speed_reference` (same operations, same order)."""
+    H, J = future.shape[0], future.shape[1]
+    out = np.empty((H + 1, J, 3))
+    out[0] = last
+    for h in range(H):
+        limit = vmax * (dt * (h + 1.0))
+        for j in range(J):
+            d0 = future[h, j, 0] - last[j, 0]
+            d1 = future[h, j, 1] - last[j, 1]
+            d2 = future[h, j, 2] - last[j, 2]
+            dist = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+            s = limit / max(dist, 1e-12) if dist > limit else 1.0
+            out[h + 1, j, 0] = last[j, 0] + d0 * s
+            out[h + 1, j, 1] = last[j, 1] + d1 * s
+            out[h + 1, j, 2] = last[j, 2] + d2 * s
+    return out

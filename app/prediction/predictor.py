@@ -30,6 +30,7 @@ the runtime should also call ``torch.set_num_threads(1)`` once.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -52,6 +53,9 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+#: Frames this close to the grid (s) are taken as they are by :meth:`MotionPredictor.window`.
+_GRID_TOL_S = 1e-6
+
 Kind = Literal["graphmixer", "constant_velocity", "zero_velocity"]
 KINDS: tuple[str, ...] = ("graphmixer", "constant_velocity", "zero_velocity")
 
@@ -66,6 +70,17 @@ class WeightsError(RuntimeError):
 
 class PredictorInputError(ValueError):
     """A frame cannot be used at all (no valid joint and nothing to repair it from)."""
+
+
+@functools.cache
+def _cap_speed_kernel() -> Callable[..., np.ndarray] | None:
+    """The compiled speed cap (imported on first use: numba loads in about a second), None without numba."""
+    try:
+        from app.prediction._kernels import cap_speed
+    except ImportError as exc:
+        log.info("numba not available (%s): forecasts are capped in NumPy", exc)
+        return None
+    return cap_speed
 
 
 def quantiles_path(weights: str | Path) -> Path:
@@ -203,6 +218,7 @@ class MotionPredictor:
         self.min_confidence = min_confidence
         self.max_gap_s = 4.0 * self.dt_s if max_gap_s is None else max_gap_s
         self.max_speed_mps = max_speed_mps
+        self._steps_s = self.dt_s * np.arange(horizon + 1)
         self.margin_quantile = margin_quantile
         self._frames: deque[tuple[float, np.ndarray]] = deque(maxlen=4 * history)
         self.counters: dict[str, int] = {
@@ -359,6 +375,11 @@ class MotionPredictor:
         """
         if not self._frames:
             return None
+        n, H = len(self._frames), self.history
+        if n >= H:  # a tracker at its nominal rate: the newest frames lie on the grid, nothing to resample
+            recent = [self._frames[i] for i in range(n - H, n)]
+            if all(abs(recent[i + 1][0] - recent[i][0] - self.dt_s) <= _GRID_TOL_S for i in range(H - 1)):
+                return np.stack([f[1] for f in recent])
         times = np.fromiter((f[0] for f in self._frames), dtype=np.float64, count=len(self._frames))
         t_grid = times[-1] - self.dt_s * np.arange(self.history - 1, -1, -1)
         if times[0] > t_grid[0] + 0.25 * self.dt_s:
@@ -410,10 +431,9 @@ class MotionPredictor:
                 source = "zero_velocity"
             if source != self.kind:
                 self.counters["fallback_forecasts"] += 1
-        future = self._cap_speed(last, future)
+        joints = self._cap_speed(last, future)
         self.last_source = source
-        joints = np.concatenate([last[None], future], axis=0)
-        times = t_last + self.dt_s * np.arange(self.horizon + 1)
+        times = t_last + self._steps_s
         return HumanForecast(
             t0=t_last,
             times=times,
@@ -424,12 +444,26 @@ class MotionPredictor:
         )
 
     def _cap_speed(self, last: np.ndarray, future: np.ndarray) -> np.ndarray:
+        """The forecast's joints (H + 1, J, 3): ``last``, then ``future`` with every joint's displacement
+        from ``last`` capped at ``max_speed_mps`` times the step's time (compiled where numba is)."""
+        kernel = _cap_speed_kernel()
+        if kernel is not None:
+            return kernel(
+                np.ascontiguousarray(last, dtype=np.float64),
+                np.ascontiguousarray(future, dtype=np.float64),
+                float(self.dt_s),
+                float(self.max_speed_mps),
+            )
+        return self._cap_speed_reference(last, future)
+
+    def _cap_speed_reference(self, last: np.ndarray, future: np.ndarray) -> np.ndarray:
+        """:meth:`_cap_speed` in NumPy (the reference of the tests)."""
         t = self.dt_s * np.arange(1, future.shape[0] + 1)[:, None, None]
         disp = future - last[None]
         dist = np.linalg.norm(disp, axis=-1, keepdims=True)
         limit = self.max_speed_mps * t
         scale = np.where(dist > limit, limit / np.maximum(dist, 1e-12), 1.0)
-        return last[None] + disp * scale
+        return np.concatenate([last[None], last[None] + disp * scale], axis=0)
 
     def predict_batch(self, history: np.ndarray, *, kind: str | None = None) -> np.ndarray:
         """Forecasts for several people at once: uniform histories (P, T, J, 3) -> futures (P, H, J, 3).

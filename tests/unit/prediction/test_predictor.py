@@ -278,6 +278,35 @@ def test_predicted_speed_is_capped() -> None:
     assert travel.max() <= 2.0 + 1e-9
 
 
+def test_compiled_speed_cap_equals_the_numpy_reference() -> None:
+    p = MotionPredictor(kind="constant_velocity", max_speed_mps=2.0)
+    rng = np.random.default_rng(3)
+    for scale in (0.01, 0.1, 1.0, 10.0):  # none, some and all of the joints capped
+        last = rng.normal(size=(NUM_JOINTS, 3))
+        future = last[None] + rng.normal(scale=scale, size=(30, NUM_JOINTS, 3))
+        future[3, 4] = last[4]  # a joint that does not move
+        got, want = p._cap_speed(last, future), p._cap_speed_reference(last, future)
+        assert got.shape == (31, NUM_JOINTS, 3)
+        np.testing.assert_array_equal(got, want)
+
+
+def test_frames_on_the_grid_are_taken_as_they_are(tiny_weights: Path) -> None:
+    """The window of frames at the nominal rate is the frames themselves; a frame off the grid by more than
+    the tolerance is resampled."""
+    p = MotionPredictor(weights=tiny_weights)
+    times = 2.0 + DT * np.arange(12)
+    _feed(p, times)
+    want = np.stack([_pose(t) for t in times[-10:]])
+    np.testing.assert_array_equal(p.window(), want)
+    p.reset()
+    jittered = times.copy()
+    jittered[-3] += 0.25 * DT
+    _feed(p, jittered)
+    w = p.window()
+    np.testing.assert_allclose(w[..., 0], want[..., 0], atol=1e-9)  # x is linear in time: resampled exactly
+    assert not np.array_equal(w[-3], _pose(jittered[-3]))
+
+
 def test_unknown_kind_is_rejected() -> None:
     with pytest.raises(ValueError, match="unknown predictor kind"):
         MotionPredictor(kind="oracle")  # type: ignore[arg-type]
