@@ -232,8 +232,8 @@ def summarize_rows(
     Returns:
         ``{"proactive": {metric: {"mean", "sd", "n"}}, "reactive": {...}, "p_values": {metric: p | None},
         "tests": {metric: PairedTest.to_json()}, "n_participants": participants with both methods,
-        "n_trials": {method: count}, "metrics": [...]}``. Means and sds are over participants (sd with
-        ddof=1; None when n < 2); every number is finite or None.
+        "n_trials": {method: count}, "metrics": [...], "labels": {metric: its name for people}}``. Means
+        and sds are over participants (sd with ddof=1; None when n < 2); every number is finite or None.
     """
     out: dict[str, Any] = {m: {} for m in METHODS}
     out["p_values"] = {}
@@ -260,6 +260,7 @@ def summarize_rows(
     out["n_participants"] = len(paired)
     out["n_trials"] = {m: sum(1 for r in rows if r["method"] == m) for m in METHODS}
     out["metrics"] = list(metrics)
+    out["labels"] = {m: METRIC_LABELS.get(m, m) for m in metrics}
     return out
 
 

@@ -9,15 +9,6 @@
 (function () {
   const TOKEN_KEY = "hrc.operatorToken";
   const PLAN_HISTORY = 240; // planning times kept for the plot
-  const METRIC_LABELS = {
-    completed_tasks: "Completed tasks",
-    avg_planning_time_s: "Avg. planning time (s)",
-    stop_replans_per_task: "Avg. stop & replan (per task)",
-    online_replans_per_task: "Avg. online replan (per task)",
-    min_separation_m: "Min. separation (m)",
-    deadline_misses: "Deadline misses",
-    time_stopped_s: "Time stopped (s)",
-  };
 
   const $ = (id) => document.getElementById(id);
   const state = {
@@ -715,7 +706,7 @@
       const t = (summary.tests || {})[metric] || {};
       const p = (summary.p_values || {})[metric];
       const ms = (x) => `${fmtNum(x.mean)} ± ${fmtNum(x.sd)} (n=${x.n ?? 0})`;
-      tr.append(cell(METRIC_LABELS[metric] || metric), cell(ms(a)), cell(ms(b)));
+      tr.append(cell((summary.labels || {})[metric] || metric), cell(ms(a)), cell(ms(b)));
       const test = cell(t.test || "–");
       if (t.why) test.title = t.why;
       tr.append(test);

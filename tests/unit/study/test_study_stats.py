@@ -109,6 +109,8 @@ def test_summary_object_has_the_report_shape() -> None:
     s = summarize(_rows())
     json.dumps(s, allow_nan=False)
     assert s["n_participants"] == 8
+    # every metric has a name for people (the operator page shows them)
+    assert list(s["labels"]) == list(REPORT_METRICS) and s["labels"]["completed_tasks"] == "Completed tasks"
     for method in ("proactive", "reactive"):
         assert set(s[method]) == set(REPORT_METRICS)
         for m in TABLE_I_METRICS:
