@@ -297,6 +297,13 @@ def simulate(
     clip: Annotated[
         Path | None, typer.Option(help="Clip for --source replay (default HRC_REPLAY_CLIP).")
     ] = None,
+    forecast: Annotated[
+        str,
+        typer.Option(
+            help="model (the motion predictor) or oracle (the simulated operator's own future: the bound of "
+            "what proactive planning can gain; --method proactive --source sim only; about 3x slower)."
+        ),
+    ] = "model",
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
 ) -> None:
     """Run one headless trial on the simulated clock and print its metrics."""
@@ -309,6 +316,10 @@ def simulate(
         raise typer.BadParameter(f"--method must be proactive or reactive, not {method!r}")
     if source not in ("sim", "replay"):
         raise typer.BadParameter(f"--source must be sim or replay, not {source!r}")
+    if forecast not in ("model", "oracle"):
+        raise typer.BadParameter(f"--forecast must be model or oracle, not {forecast!r}")
+    if forecast == "oracle" and (method != "proactive" or source != "sim"):
+        raise typer.BadParameter("--forecast oracle needs --method proactive and --source sim")
     logging.basicConfig(level=logging.ERROR if as_json else logging.WARNING)
     try:
         import torch
@@ -319,12 +330,21 @@ def simulate(
     settings = Settings()
     try:
         result = run_headless_trial(
-            settings=settings, method=method, duration_s=duration, seed=seed, source=source, clip=clip
+            settings=settings,
+            method=method,
+            duration_s=duration,
+            seed=seed,
+            source=source,
+            clip=clip,
+            forecast=forecast,  # type: ignore[arg-type]
         )
     except ValueError as exc:
         typer.echo(str(exc), err=True)
         raise typer.Exit(2) from exc
-    typer.echo(json.dumps(result.summary(), indent=None if as_json else 2))
+    out = result.summary()
+    if forecast == "oracle":
+        out["forecast"] = "oracle"
+    typer.echo(json.dumps(out, indent=None if as_json else 2))
 
 
 def main() -> None:

@@ -137,6 +137,7 @@ def run_headless_trial(
     fixed_compute_s: float | None = None,
     observer: Observer | None = None,
     robot_factory: Callable[[SimClock, np.ndarray], Any] | None = None,
+    forecast: Literal["model", "oracle"] = "model",
 ) -> TrialResult:
     """Run one trial on the simulated clock and return its metrics, events and frames.
 
@@ -157,6 +158,9 @@ def run_headless_trial(
         fixed_compute_s: Charge this compute time for every backup plan instead of the measured one.
         observer: Called as ``observer(t, engine)`` after each servo tick.
         robot_factory: ``(clock, q0) -> RobotBackend`` instead of a :class:`SimRobot` (tests).
+        forecast: The proactive method's forecast: ``model`` (the motion predictor) or ``oracle`` (the
+            simulated operator's own future, :class:`~app.control.operator_sim.OracleForecaster`: the bound
+            of what proactive planning can gain; ``source="sim"`` only).
     """
     from app.control.robot import RobotConnectionError, SimRobot
 
@@ -175,6 +179,21 @@ def run_headless_trial(
             seed=seed,
             participant_seed=p_seed,
             clip=clip if clip is not None else settings.replay_clip,
+        )
+    if forecast not in ("model", "oracle"):
+        raise ValueError(f"forecast must be 'model' or 'oracle', got {forecast!r}")
+    if forecast == "oracle":
+        from app.control.operator_sim import OracleForecaster, SimulatedOperator
+
+        if method != "proactive" or predictor is not None:
+            raise ValueError("the oracle forecast is for the proactive method, instead of its predictor")
+        if not isinstance(human, SimulatedOperator):
+            raise ValueError("the oracle forecast needs the simulated operator (source 'sim')")
+        predictor = OracleForecaster(
+            human,
+            margin_m=options.tracking_margin_m,
+            growth_mps=BEYOND_HORIZON_GROWTH_MPS,
+            max_margin_m=BEYOND_HORIZON_MAX_MARGIN_M,
         )
     if method == "proactive" and predictor is None:
         weights, quantiles = forecast_model(settings, source)

@@ -22,6 +22,7 @@ world = ``R_z(yaw) @ p_B + origin``. Metres, seconds.
 from __future__ import annotations
 
 import bisect
+import copy
 import logging
 import math
 from collections import deque
@@ -31,12 +32,13 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from app.control._kernels import body_pose
+from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
 
 if TYPE_CHECKING:
     from app.config import WorkCell
 
-__all__ = ["OperatorParams", "SimulatedOperator", "min_jerk"]
+__all__ = ["OperatorParams", "OracleForecaster", "SimulatedOperator", "min_jerk"]
 
 log = logging.getLogger(__name__)
 
@@ -654,3 +656,69 @@ class SimulatedOperator:
     def pending_blocks(self) -> list[str]:
         """Stations whose blocks the person knows about and has not fetched yet."""
         return [s for _, s in self._pending]
+
+
+class OracleForecaster:
+    """The simulated operator's own future as the forecast: the bound of what proactive planning can gain
+    in a cell, whatever the predictor (an analysis tool; there is no such thing for a real person).
+
+    At each frame a copy of ``operator`` is run ahead over the horizon: the forecast holds the frames the
+    tracker *will* report (tracking noise included), exactly, unless the robot places a block within the
+    horizon (the copy does not know of it yet; the person fetches a block at least their reaction time
+    after it is placed). The real operator is left as it was. Margins: ``margin_m`` at every step (the
+    tracking error); beyond the horizon the last pose is held and the margin grows at ``growth_mps`` up to
+    ``max_margin_m``, as with the predictor (the oracle does not see further either; a headless trial passes
+    the predictor's values).
+
+    It has the interface of :class:`app.prediction.predictor.MotionPredictor` that the trial engine uses
+    (``update``, ``reset``). A copy costs a few milliseconds: an oracle trial runs about three times slower
+    than one with the predictor.
+
+    Args:
+        operator: The simulated person of the trial (the same object the trial's source reads).
+        horizon: Forecast steps after the newest frame.
+        margin_m: Margin of every step (m).
+        growth_mps, max_margin_m: Margin growth beyond the horizon (m/s) and its cap (m).
+    """
+
+    def __init__(
+        self,
+        operator: SimulatedOperator,
+        *,
+        horizon: int = 30,
+        margin_m: float = 0.02,
+        growth_mps: float = 1.6,
+        max_margin_m: float = 1.0,
+    ) -> None:
+        if horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        for name, v in (("margin_m", margin_m), ("growth_mps", growth_mps), ("max_margin_m", max_margin_m)):
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v}")
+        self.operator = operator
+        self.horizon = int(horizon)
+        self.margin_m = float(margin_m)
+        self.growth_mps = float(growth_mps)
+        self.max_margin_m = max(float(max_margin_m), self.margin_m)
+        self.last_source = "oracle"
+
+    def reset(self) -> None:
+        """Nothing to forget: the forecast comes from the operator itself."""
+
+    def update(self, frame: HumanFrame) -> HumanForecast:
+        """The operator's next ``horizon`` frames after ``frame`` (index 0: ``frame`` itself)."""
+        dt = 1.0 / self.operator.fps
+        twin = copy.deepcopy(self.operator)
+        joints = np.empty((self.horizon + 1, NUM_JOINTS, 3))
+        joints[0] = frame.joints
+        for k in range(1, self.horizon + 1):
+            f = twin.frame_at(frame.t + k * dt)
+            joints[k] = joints[k - 1] if f is None else f.joints
+        return HumanForecast(
+            t0=frame.t,
+            times=frame.t + dt * np.arange(self.horizon + 1),
+            joints=joints,
+            margins=np.full(self.horizon + 1, self.margin_m),
+            growth_mps=self.growth_mps,
+            max_margin_m=self.max_margin_m,
+        )

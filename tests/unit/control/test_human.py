@@ -22,7 +22,7 @@ from app.control.human import (
     place_clip,
     save_clip,
 )
-from app.control.operator_sim import min_jerk
+from app.control.operator_sim import OracleForecaster, min_jerk
 from app.control.stream_protocol import make_message, message_from_zed_body, parse_message, send_messages
 from app.control.validation import CellVolume, FrameRejected, FrameValidator
 from app.prediction import adapters
@@ -85,6 +85,36 @@ def test_simulated_operator_is_deterministic_under_a_seed_however_it_is_queried(
     # another seed is another person
     c = SimulatedOperator(CELL, OperatorParams.draw(4), seed=4)
     assert not np.allclose(_run_operator(c, 15.0, notify), frames_a)
+
+
+def test_the_oracle_forecast_is_the_operators_own_future_and_leaves_it_as_it_was() -> None:
+    notify = {30: "B", 200: "C"}
+    op = SimulatedOperator(CELL, OperatorParams.draw(5), seed=5)
+    oracle = OracleForecaster(op, horizon=30, margin_m=0.02)
+    forecasts = {}
+    for k in range(round(10.0 * FPS)):
+        if k in notify:
+            op.notify_block_placed(notify[k], k / FPS)
+        f = op.frame_at(k / FPS)
+        if k % 7 == 0:
+            forecasts[k] = oracle.update(f)
+    # the operator, asked for its future ahead of time, still gives the frames of one that never was
+    reference = _run_operator(SimulatedOperator(CELL, OperatorParams.draw(5), seed=5), 10.0, notify)
+    np.testing.assert_array_equal(_run_operator(op, 10.0, {}), reference)
+    exact = 0
+    for k, fc in forecasts.items():
+        assert fc.t0 == k / FPS and fc.joints.shape == (31, NUM_JOINTS, 3)
+        np.testing.assert_allclose(fc.times - fc.t0, np.arange(31) / FPS, atol=1e-12)
+        assert np.all(fc.margins == 0.02) and fc.growth_mps == 1.6
+        upto = min(k + 31, len(reference))
+        if not any(k < n <= upto for n in notify):  # no block placed within the horizon: exact
+            np.testing.assert_array_equal(fc.joints[: upto - k], reference[k:upto])
+            exact += 1
+    assert exact == 34  # all but the 9 forecasts made less than a horizon before a placement
+    with pytest.raises(ValueError, match="horizon"):
+        OracleForecaster(op, horizon=0)
+    with pytest.raises(ValueError, match="margin_m"):
+        OracleForecaster(op, margin_m=math.nan)
 
 
 def test_the_compiled_body_pose_equals_the_numpy_reference() -> None:

@@ -226,6 +226,35 @@ def test_headless_trial_is_reproducible_with_fixed_compute_times(stack: Planning
     assert not np.allclose(a.frames.q[-1], a.frames.q[0], atol=1e-3)
 
 
+def test_headless_trial_with_the_oracle_forecast(stack: PlanningStack) -> None:
+    """The proactive method on the simulated operator's own future: a trial that runs, plans and is safe; the
+    oracle is for that method and that source only."""
+    res = run_headless_trial(
+        settings=Settings(), method="proactive", duration_s=4.0, seed=5, stack=stack, forecast="oracle"
+    )
+    assert res.status == "completed" and res.metrics.violations == 0
+    assert res.metrics.plans_computed > 0 and res.metrics.time_moving_s > 0
+    for kw, match in (
+        ({"method": "reactive"}, "proactive method"),
+        ({"method": "proactive", "forecast": "perfect"}, "forecast must be"),
+        ({"method": "proactive", "human": object()}, "simulated operator"),
+    ):
+        args = {"settings": Settings(), "duration_s": 1.0, "seed": 0, "stack": stack, "forecast": "oracle"}
+        with pytest.raises(ValueError, match=match):
+            run_headless_trial(**{**args, **kw})
+
+
+def test_simulate_cli_explains_a_misplaced_oracle() -> None:
+    from typer.testing import CliRunner
+
+    from app.cli import app as cli_app
+
+    for args in (["--method", "reactive"], ["--source", "replay"], ["--forecast", "crystal-ball"]):
+        res = CliRunner().invoke(cli_app, ["simulate", "--duration", "1", "--forecast", "oracle", *args])
+        assert res.exit_code == 2
+        assert "--forecast" in res.output
+
+
 def test_headless_replay_needs_a_clip(stack: PlanningStack, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="clip"):
         run_headless_trial(
