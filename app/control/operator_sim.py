@@ -700,7 +700,6 @@ class OracleForecaster:
         self.margin_m = float(margin_m)
         self.growth_mps = float(growth_mps)
         self.max_margin_m = max(float(max_margin_m), self.margin_m)
-        self.last_source = "oracle"
 
     def reset(self) -> None:
         """Nothing to forget: the forecast comes from the operator itself."""
