@@ -877,6 +877,10 @@ class _Active:
     goal: Goal | None
     checked_seq: int
 
+    def under_way(self, tau: float) -> bool:
+        """A plan (not a hold) with path left after path time ``tau``."""
+        return self.kind != "hold" and tau < self.traj.t_end
+
 
 @dataclass
 class _Pending:
@@ -1186,7 +1190,7 @@ class Supervisor:
             req = self._branch_request(seq, T, goal, forecast, active, tau, s)
 
         # 2. check the plan in execution against the latest forecast (outside the lock: it takes a while)
-        moving_plan = active.kind != "hold" and tau < active.traj.t_end
+        moving_plan = active.under_way(tau)
         t_v: float | None = None
         if moving_plan:
             view = ScaledView(active.traj, t_ref=T, tau_ref=tau, scale=max(s, cfg.check_min_scale))
@@ -1452,7 +1456,7 @@ class Supervisor:
             tau = min(self._tau, active.traj.t_end) if active.kind != "hold" else active.traj.t_end
             q, qd = _state(active.traj, tau)
             qd = qd * self._s
-            if active.kind == "hold" or self._tau >= active.traj.t_end:
+            if not active.under_way(self._tau):
                 qd = np.zeros(6)
             self._travel_m += self._v_cmd * dt
             self._q_cmd = q
@@ -1672,7 +1676,7 @@ class Supervisor:
             st = "stopped"  # held at zero speed by the governor
         c = self.counters
         c.state_time_s[st] += dt
-        if self._s > 1e-3 and self._active.kind != "hold" and self._tau < self._active.traj.t_end:
+        if self._s > 1e-3 and self._active.under_way(self._tau):
             c.moving_time_s += dt
             c.scale_time_s += self._s * dt
 
