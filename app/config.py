@@ -244,6 +244,11 @@ class Settings(BaseSettings):
         32, ge=1, le=64, description="states the batched planner search checks per step (1: sequential A*)"
     )
     method: Literal["proactive", "reactive"] = "proactive"
+    anticipate_fetch: bool = Field(
+        True,
+        description="proactive method: the forecast expects the person to fetch the block the robot has just "
+        "placed (app.control.anticipation); false: the motion predictor's forecast alone, as in the paper",
+    )
 
     def resolved_database_url(self) -> str:
         if self.database_url:

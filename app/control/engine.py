@@ -1,5 +1,7 @@
 """One trial's wiring, shared by the live runtime and the headless runner:
 source -> validation -> predictor -> supervisor -> trajectory -> robot, plus the task, metrics and events.
+The proactive method's forecast also expects the person to fetch each block the robot places
+(:mod:`app.control.anticipation`, ``Settings.anticipate_fetch``).
 
 :class:`TrialEngine` has no threads and no clock of its own: the caller invokes
 :meth:`TrialEngine.frame_tick` at the camera rate and :meth:`TrialEngine.servo_tick` at the robot
@@ -27,6 +29,7 @@ from typing import Any, Literal
 import numpy as np
 
 from app.config import Settings, WorkCell
+from app.control.anticipation import FetchAnticipation
 from app.control.metrics import Method, TrialEvent, TrialMetrics
 from app.control.robot import RobotBackend, RobotConnectionError, RobotState
 from app.control.supervisor import (
@@ -607,6 +610,11 @@ class TrialEngine:
             place_dwell_s=self.options.place_dwell_s,
             goals=stack.goal_names(),
         )
+        self.anticipation: FetchAnticipation | None = None
+        if method == "proactive" and settings.anticipate_fetch:
+            self.anticipation = FetchAnticipation(
+                {st.name: np.asarray(st.xyz, dtype=np.float64) for st in stack.cell.drop_stations}
+            )
         self.monitor = SafetyMonitor(stack.collision, ssm) if self.options.monitor != "off" else None
         self.completed_tasks = 0
         self.min_separation_m = math.inf
@@ -663,6 +671,8 @@ class TrialEngine:
             return None
         if self.method == "proactive":
             forecast = self.predictor.update(frame)
+            if self.anticipation is not None:
+                forecast = self.anticipation.apply(frame, forecast)
             if self.options.plan_margin_m > 0:
                 extra = self.options.plan_margin_m
                 forecast = dataclasses.replace(forecast, margins=forecast.margins + extra)
@@ -751,6 +761,8 @@ class TrialEngine:
             done = self.task.arrived(t)
             if done.placed is not None:
                 self._releases.append((done.leave_at, done.placed))
+                if self.anticipation is not None:
+                    self.anticipation.expect(done.placed, done.leave_at)
             self.supervisor.set_goal(done.next_leg.goal, not_before=done.leave_at)
         while self._releases and self._releases[0][0] <= t:
             _, station = self._releases.pop(0)

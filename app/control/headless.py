@@ -189,6 +189,8 @@ def run_headless_trial(
             raise ValueError("the oracle forecast is for the proactive method, instead of its predictor")
         if not isinstance(human, SimulatedOperator):
             raise ValueError("the oracle forecast needs the simulated operator (source 'sim')")
+        # the operator's own future, nothing added (it knows of a fetch as soon as the block is placed)
+        settings = settings.model_copy(update={"anticipate_fetch": False})
         predictor = OracleForecaster(
             human,
             margin_m=options.tracking_margin_m,

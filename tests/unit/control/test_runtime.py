@@ -26,7 +26,7 @@ from app.control.runtime import (
     run_headless_trial,
 )
 from app.control.validation import FrameRejected
-from app.prediction.skeleton import NUM_JOINTS
+from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS
 
 
 @pytest.fixture(scope="module")
@@ -242,6 +242,44 @@ def test_headless_trial_with_the_oracle_forecast(stack: PlanningStack) -> None:
         args = {"settings": Settings(), "duration_s": 1.0, "seed": 0, "stack": stack, "forecast": "oracle"}
         with pytest.raises(ValueError, match=match):
             run_headless_trial(**{**args, **kw})
+
+
+def test_the_proactive_forecast_expects_the_fetch_of_each_placed_block(stack: PlanningStack) -> None:
+    """From the robot's arrival at a drop station on, the proactive method's forecast has the person's hand
+    reach for the block placed there; the reactive method, the oracle and ``anticipate_fetch=False`` never
+    add it."""
+    seen: list[tuple[str, float]] = []
+
+    def observer(t: float, engine) -> None:
+        ant = engine.anticipation
+        expected = ant.expected()
+        fc, frame = engine.last_forecast, engine.last_frame
+        if not expected or fc is None or frame is None or fc.t0 != frame.t:
+            return
+        station = next(np.asarray(s.xyz) for s in stack.cell.drop_stations if s.name == expected[0])
+        hands = [JOINT_INDEX["l_hand"], JOINT_INDEX["r_hand"]]
+        now = np.linalg.norm(frame.joints[hands] - station, axis=1).min()
+        end = np.linalg.norm(fc.joints[-1][hands] - station, axis=1).min()
+        seen.append((expected[0], end - now))
+
+    res = run_headless_trial(
+        settings=Settings(), method="proactive", duration_s=20.0, seed=5, stack=stack, observer=observer
+    )
+    assert res.status == "completed" and res.metrics.completed_tasks >= 1 and res.metrics.violations == 0
+    placed = [e.payload["station"] for e in res.events if e.kind == "task_completed"]
+    assert [s for s, _ in seen][:1] == placed[:1]
+    # while the fetch is expected the forecast brings the hand closer to the station than it is now
+    assert min(d for _, d in seen) < -0.2
+
+    for kw in (
+        {"method": "reactive"},
+        {"method": "proactive", "settings": Settings(anticipate_fetch=False)},
+        {"method": "proactive", "forecast": "oracle"},
+    ):
+        engines: list = []
+        args = {"settings": Settings(), "duration_s": 0.2, "seed": 5, "stack": stack}
+        run_headless_trial(**{**args, **kw}, observer=lambda t, e, into=engines: into.append(e))
+        assert engines and engines[0].anticipation is None, kw
 
 
 def test_simulate_cli_explains_a_misplaced_oracle() -> None:

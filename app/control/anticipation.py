@@ -1,0 +1,172 @@
+"""Task-aware anticipation: the person comes for the block the robot has just placed.
+
+The motion predictor forecasts from the person's past motion alone, so it sees a fetch only once the hand
+is on its way: a few tenths of a second before the hand reaches the station, while the robot is still
+rising from that station at the speed the speed monitoring allows near the person. The task knows more:
+the robot placed the block there, and the person will come for it. :class:`FetchAnticipation` adds that
+to the proactive method's forecast:
+
+- When the robot arrives at a drop station to release a block at ``t_release``, the station is *expected*
+  (:meth:`FetchAnticipation.expect`).
+- While a station is expected, the forecast's nearer hand reaches for it: on a minimum-jerk profile ``s``
+  from 0 to 1 the predicted hand moves to ``(1 - s) * predicted + s * station`` (the wrist with it, the
+  elbow by half as much). The reach starts at the earliest at ``t_release + reaction_s`` and lasts as long
+  as one from where the hand is now at the peak hand speed ``hand_speed_mps`` (a minimum-jerk reach of
+  length ``L`` and duration ``T`` peaks at ``1.875 L / T``). The rest of the body keeps the predictor's
+  forecast, and so do the margins.
+- Once a hand has come within ``reached_radius_m`` of the station, the forecast holds it there until the
+  hands have withdrawn by another ``withdraw_m``: then the fetch is over and the next expected station (if
+  the robot has placed another block meanwhile) takes its turn. An expected fetch that has not happened
+  ``timeout_s`` after the release is forgotten.
+
+A plan that would leave the station through the hand's way then fails its check against the forecast, and
+the robot waits at rest for the fetch instead of setting off into the arriving hand (where the speed
+monitoring would stop it). The reactive baseline never sees this: it is fed the current pose held still.
+
+This is a forecast, not a safety function: the speed governor, the stop distance and the safety monitor
+work on the measured person, whatever the forecast says.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from app.control.operator_sim import min_jerk
+from app.prediction.forecast import HumanForecast
+from app.prediction.skeleton import JOINT_INDEX, HumanFrame
+
+_ARM = {
+    side: (JOINT_INDEX[f"{side}_wrist"], JOINT_INDEX[f"{side}_hand"], JOINT_INDEX[f"{side}_elbow"])
+    for side in ("l", "r")
+}
+_HANDS = np.array([JOINT_INDEX["l_hand"], JOINT_INDEX["r_hand"]])
+#: A minimum-jerk reach of length L and duration T peaks at this many times L / T.
+_MIN_JERK_PEAK = 1.875
+
+
+@dataclass(frozen=True, slots=True)
+class FetchAnticipationParams:
+    """How :class:`FetchAnticipation` expects a person to fetch a block.
+
+    Attributes:
+        reaction_s: Earliest start of the reach after the release (s).
+        hand_speed_mps: Peak hand speed of the reach (m/s).
+        min_reach_s: Shortest reach (s).
+        reached_radius_m: A hand this close to the station has reached it (m).
+        withdraw_m: ... and has withdrawn when both hands are this much farther (m).
+        timeout_s: An expected fetch that has not happened this long after the release is forgotten (s).
+    """
+
+    reaction_s: float = 0.3
+    hand_speed_mps: float = 1.2
+    min_reach_s: float = 0.35
+    reached_radius_m: float = 0.12
+    withdraw_m: float = 0.1
+    timeout_s: float = 4.0
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"FetchAnticipationParams.{f.name} must be finite and >= 0, got {v!r}")
+        for name in ("hand_speed_mps", "reached_radius_m", "timeout_s"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"FetchAnticipationParams.{name} must be > 0")
+
+
+class FetchAnticipation:
+    """Adds the expected fetch of a placed block to a forecast (see the module docstring).
+
+    Thread-safe: the live runtime's servo thread expects fetches while its frame thread applies them.
+
+    Args:
+        stations: Drop station name -> where the robot releases the block (3,), world frame (m).
+        params: How a fetch is expected.
+    """
+
+    def __init__(
+        self, stations: Mapping[str, np.ndarray], params: FetchAnticipationParams | None = None
+    ) -> None:
+        self.params = params or FetchAnticipationParams()
+        self.stations: dict[str, np.ndarray] = {}
+        for name, xyz in stations.items():
+            p = np.asarray(xyz, dtype=np.float64)
+            if p.shape != (3,) or not np.all(np.isfinite(p)):
+                raise ValueError(f"station {name!r}: expected a finite (3,) position, got {xyz!r}")
+            self.stations[name] = p
+        self._expected: deque[tuple[float, str]] = deque()
+        self._reached = False
+        self._lock = threading.Lock()
+
+    def reset(self) -> None:
+        """Forget every expected fetch (a new trial)."""
+        with self._lock:
+            self._expected.clear()
+            self._reached = False
+
+    def expect(self, station: str, t_release: float) -> None:
+        """The robot releases a block at ``station`` at ``t_release`` (s); the person will come for it.
+
+        Raises:
+            ValueError: ``station`` is not a drop station, or ``t_release`` is not finite.
+        """
+        if station not in self.stations:
+            raise ValueError(f"unknown drop station {station!r}; the cell has {sorted(self.stations)}")
+        if not math.isfinite(t_release):
+            raise ValueError(f"t_release must be finite, got {t_release!r}")
+        with self._lock:
+            self._expected.append((float(t_release), station))
+
+    def expected(self) -> list[str]:
+        """The stations whose fetch is expected, the next one first."""
+        with self._lock:
+            return [s for _, s in self._expected]
+
+    def _advance(self, frame: HumanFrame) -> None:
+        """Drop the fetches that are over (the hand came and withdrew) or overdue. Caller holds the lock."""
+        p = self.params
+        while self._expected:
+            t_release, station = self._expected[0]
+            d = float(np.min(np.linalg.norm(frame.joints[_HANDS] - self.stations[station], axis=1)))
+            if d <= p.reached_radius_m:
+                self._reached = True
+            done = self._reached and d > p.reached_radius_m + p.withdraw_m
+            if done or frame.t > t_release + p.timeout_s:
+                self._expected.popleft()
+                self._reached = False
+                continue
+            return
+
+    def apply(self, frame: HumanFrame, forecast: HumanForecast) -> HumanForecast:
+        """``forecast`` (made from ``frame``) with the nearer hand reaching for the next expected station;
+        ``forecast`` itself when no fetch is expected."""
+        with self._lock:
+            self._advance(frame)
+            if not self._expected:
+                return forecast
+            t_release, station = self._expected[0]
+            reached = self._reached
+        p = self.params
+        target = self.stations[station]
+        d_hands = np.linalg.norm(frame.joints[_HANDS] - target, axis=1)
+        wrist, hand, elbow = _ARM["l" if d_hands[0] <= d_hands[1] else "r"]
+        if reached:
+            progress = np.ones_like(forecast.times)
+        else:
+            length = float(np.linalg.norm(target - frame.joints[hand]))
+            duration = max(p.min_reach_s, _MIN_JERK_PEAK * length / p.hand_speed_mps)
+            t_on = max(frame.t, t_release + p.reaction_s)
+            progress = min_jerk((forecast.times - t_on) / duration)
+        joints = np.array(forecast.joints, dtype=np.float64, copy=True)
+        # the predicted hand is drawn to the station: (1 - s) * predicted + s * station
+        disp = progress[:, None] * (target[None, :] - joints[:, hand])  # (H, 3)
+        joints[:, hand] += disp
+        joints[:, wrist] += disp
+        joints[:, elbow] += 0.5 * disp
+        return replace(forecast, joints=joints)

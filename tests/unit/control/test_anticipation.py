@@ -1,0 +1,160 @@
+"""The expected fetch of a placed block in the proactive method's forecast (app.control.anticipation)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.config import load_workcell
+from app.control.anticipation import FetchAnticipation, FetchAnticipationParams
+from app.control.operator_sim import OperatorParams, SimulatedOperator
+from app.prediction.forecast import HumanForecast
+from app.prediction.skeleton import JOINT_INDEX, HumanFrame
+
+CELL = load_workcell()
+STATIONS = {s.name: np.asarray(s.xyz, dtype=np.float64) for s in CELL.drop_stations}
+FPS = 30.0
+H = 30
+ARM = {side: [JOINT_INDEX[f"{side}_{j}"] for j in ("elbow", "wrist", "hand")] for side in ("l", "r")}
+
+
+def _frame(t: float = 0.0) -> HumanFrame:
+    """A person standing at their work spot (the simulated operator's first frame), at time ``t``."""
+    op = SimulatedOperator(CELL, OperatorParams(), seed=1)
+    return HumanFrame(t, op.frame_at(0.0).joints)
+
+
+def _forecast(frame: HumanFrame, drift: float = 0.0) -> HumanForecast:
+    """A predictor's forecast from ``frame``: the pose drifting along +y at ``drift`` m/s."""
+    times = frame.t + np.arange(H + 1) / FPS
+    joints = frame.joints[None] + (times - frame.t)[:, None, None] * np.array([0.0, drift, 0.0])
+    return HumanForecast(
+        t0=frame.t, times=times, joints=joints, margins=np.linspace(0.02, 0.05, H + 1), growth_mps=0.1
+    )
+
+
+def _moved(frame: HumanFrame, side: str, station: np.ndarray, fraction: float, t: float) -> HumanFrame:
+    """``frame`` with the ``side`` arm's hand (and wrist, elbow by half) moved ``fraction`` of the way to
+    ``station``, at time ``t``."""
+    j = np.array(frame.joints, copy=True)
+    elbow, wrist, hand = ARM[side]
+    d = fraction * (station - j[hand])
+    j[hand] += d
+    j[wrist] += d
+    j[elbow] += 0.5 * d
+    return HumanFrame(t, j)
+
+
+def test_nothing_expected_leaves_the_forecast_as_it_is() -> None:
+    ant = FetchAnticipation(STATIONS)
+    frame = _frame()
+    fc = _forecast(frame)
+    assert ant.apply(frame, fc) is fc
+    assert ant.expected() == []
+
+
+def test_the_nearer_hand_reaches_the_station_on_a_minimum_jerk_profile() -> None:
+    p = FetchAnticipationParams(hand_speed_mps=2.0)  # a fast reach: over within the horizon
+    ant = FetchAnticipation(STATIONS, p)
+    frame = _frame(10.0)
+    fc = _forecast(frame, drift=0.05)
+    ant.expect("D", t_release=9.5)  # D (+y) is on the person's right: they face -x
+    out = ant.apply(frame, fc)
+    station = STATIONS["D"]
+    elbow, wrist, hand = ARM["r"]
+    # the reach could have started at the release + the reaction time: it starts now
+    t_on = max(frame.t, 9.5 + p.reaction_s)
+    length = float(np.linalg.norm(station - frame.joints[hand]))
+    duration = max(p.min_reach_s, 1.875 * length / p.hand_speed_mps)
+    before = out.times <= t_on + 1e-9
+    np.testing.assert_allclose(out.joints[before], fc.joints[before])
+    # then the hand heads for the station, never moving away from it, and is there once the reach is over
+    d = np.linalg.norm(out.joints[:, hand] - station, axis=1)
+    assert np.all(np.diff(d) <= 1e-9)
+    after = out.times >= t_on + duration - 1e-9
+    assert after.any()
+    np.testing.assert_allclose(out.joints[after, hand], np.broadcast_to(station, (after.sum(), 3)))
+    # the wrist moves with the hand, the elbow half as much; every other joint keeps the predictor's forecast
+    np.testing.assert_allclose(
+        out.joints[:, wrist] - fc.joints[:, wrist], out.joints[:, hand] - fc.joints[:, hand]
+    )
+    np.testing.assert_allclose(
+        out.joints[:, elbow] - fc.joints[:, elbow], 0.5 * (out.joints[:, hand] - fc.joints[:, hand])
+    )
+    others = [j for j in range(fc.joints.shape[1]) if j not in ARM["r"]]
+    np.testing.assert_array_equal(out.joints[:, others], fc.joints[:, others])
+    # times, margins and the growth beyond the horizon are the predictor's
+    np.testing.assert_array_equal(out.times, fc.times)
+    np.testing.assert_array_equal(out.margins, fc.margins)
+    assert out.growth_mps == fc.growth_mps and out.max_margin_m == fc.max_margin_m
+    # the station on the person's left is reached with the left hand
+    ant2 = FetchAnticipation(STATIONS, p)
+    ant2.expect("A", t_release=9.5)
+    out2 = ant2.apply(frame, fc)
+    changed = np.any(out2.joints != fc.joints, axis=(0, 2))
+    assert set(np.flatnonzero(changed)) == set(ARM["l"])
+
+
+def test_a_reach_expected_later_starts_later() -> None:
+    ant = FetchAnticipation(STATIONS)
+    frame = _frame(10.0)
+    fc = _forecast(frame)
+    ant.expect("C", t_release=10.5)  # the robot is still releasing: the hand cannot come before 10.8 s
+    out = ant.apply(frame, fc)
+    moved = np.any(out.joints != fc.joints, axis=(1, 2))
+    assert not moved[out.times <= 10.8 + 1e-9].any()
+    assert moved[-1]
+
+
+def test_a_fetch_is_over_once_the_hand_came_and_withdrew_then_the_next_one_counts() -> None:
+    p = FetchAnticipationParams()
+    ant = FetchAnticipation(STATIONS, p)
+    f0 = _frame(10.0)
+    ant.expect("D", 9.0)
+    ant.expect("B", 9.5)
+    # the hand at the station: the fetch is under way, the forecast holds the hand there
+    at = _moved(f0, "r", STATIONS["D"], 0.97, 11.0)
+    assert np.linalg.norm(at.joints[ARM["r"][2]] - STATIONS["D"]) <= p.reached_radius_m
+    out = ant.apply(at, _forecast(at, drift=-0.3))
+    np.testing.assert_allclose(out.joints[:, ARM["r"][2]], np.broadcast_to(STATIONS["D"], (H + 1, 3)))
+    assert ant.expected() == ["D", "B"]
+    # on its way back but still near: still the fetch of D
+    near = _moved(f0, "r", STATIONS["D"], 0.85, 11.3)
+    assert np.linalg.norm(near.joints[ARM["r"][2]] - STATIONS["D"]) < p.reached_radius_m + p.withdraw_m
+    ant.apply(near, _forecast(near))
+    assert ant.expected() == ["D", "B"]
+    # withdrawn: D is over, the next forecast reaches for B
+    back = _frame(11.6)
+    out = ant.apply(back, _forecast(back))
+    assert ant.expected() == ["B"]
+    d_end = np.linalg.norm(out.joints[-1][[ARM["l"][2], ARM["r"][2]]] - STATIONS["B"], axis=1).min()
+    d_now = np.linalg.norm(back.joints[[ARM["l"][2], ARM["r"][2]]] - STATIONS["B"], axis=1).min()
+    assert d_end < d_now - 0.1
+
+
+def test_an_overdue_fetch_is_forgotten_and_reset_forgets_all() -> None:
+    p = FetchAnticipationParams(timeout_s=2.0)
+    ant = FetchAnticipation(STATIONS, p)
+    ant.expect("A", 10.0)
+    f = _frame(11.9)
+    assert ant.apply(f, _forecast(f)) is not None and ant.expected() == ["A"]
+    late = _frame(12.1)
+    fc = _forecast(late)
+    assert ant.apply(late, fc) is fc and ant.expected() == []
+    ant.expect("B", 12.0)
+    ant.reset()
+    assert ant.expected() == []
+
+
+def test_bad_input_is_refused_with_a_message() -> None:
+    ant = FetchAnticipation(STATIONS)
+    with pytest.raises(ValueError, match="unknown drop station 'E'"):
+        ant.expect("E", 1.0)
+    with pytest.raises(ValueError, match="t_release must be finite"):
+        ant.expect("A", float("nan"))
+    with pytest.raises(ValueError, match=r"station 'X': expected a finite \(3,\) position"):
+        FetchAnticipation({"X": [0.0, np.inf, 0.0]})
+    with pytest.raises(ValueError, match="hand_speed_mps must be > 0"):
+        FetchAnticipationParams(hand_speed_mps=0.0)
+    with pytest.raises(ValueError, match="reaction_s must be finite and >= 0"):
+        FetchAnticipationParams(reaction_s=-0.1)
