@@ -63,6 +63,9 @@ class InfoRead(BaseModel):
     ingest_max_bytes: int
     ingest_rate_hz: float
     deadline_s: float = Field(description="D, the backup-plan deadline (the planning chart's red line)")
+    anticipate_fetch: bool = Field(
+        description="the proactive forecast expects the person to fetch each block the robot places"
+    )
 
 
 class TrialStart(BaseModel):

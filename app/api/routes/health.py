@@ -94,4 +94,5 @@ def info(ctx: ContextDep) -> InfoRead:
         ingest_max_bytes=limits.ingest_max_bytes,
         ingest_rate_hz=limits.ingest_rate_hz,
         deadline_s=s.deadline_s,
+        anticipate_fetch=s.anticipate_fetch,
     )

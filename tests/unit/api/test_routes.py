@@ -69,6 +69,7 @@ def test_health_and_info(client: TestClient, auth: dict[str, str], settings: Set
     assert info["methods"] == ["proactive", "reactive"]
     assert info["ingest_rate_hz"] == 120.0
     assert info["deadline_s"] == settings.deadline_s
+    assert info["anticipate_fetch"] is settings.anticipate_fetch
 
 
 def test_docs_and_openapi(client: TestClient) -> None:
