@@ -249,6 +249,12 @@ class Settings(BaseSettings):
         description="proactive method: the forecast expects the person to fetch the block the robot has just "
         "placed (app.control.anticipation); false: the motion predictor's forecast alone, as in the paper",
     )
+    fetch_reaction_s: float = Field(
+        0.6,
+        ge=0.0,
+        le=10.0,
+        description="when the person is expected to start reaching for a placed block, after its release (s)",
+    )
 
     def resolved_database_url(self) -> str:
         if self.database_url:

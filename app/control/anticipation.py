@@ -10,18 +10,20 @@ to the proactive method's forecast:
   (:meth:`FetchAnticipation.expect`).
 - While a station is expected, the forecast's nearer hand reaches for it: on a minimum-jerk profile ``s``
   from 0 to 1 the predicted hand moves to ``(1 - s) * predicted + s * station`` (the wrist with it, the
-  elbow by half as much). The reach starts at the earliest at ``t_release + reaction_s`` and lasts as long
-  as one from where the hand is now at the peak hand speed ``hand_speed_mps`` (a minimum-jerk reach of
-  length ``L`` and duration ``T`` peaks at ``1.875 L / T``). The rest of the body keeps the predictor's
-  forecast, and so do the margins.
+  elbow by half as much). The reach starts at ``t_release + reaction_s`` (or now, if that has passed) and
+  lasts as long as one from where the hand is now at the peak hand speed ``hand_speed_mps`` (a minimum-jerk
+  reach of length ``L`` and duration ``T`` peaks at ``1.875 L / T``). The rest of the body keeps the
+  predictor's forecast, and so do the margins.
 - Once a hand has come within ``reached_radius_m`` of the station, the forecast holds it there until the
   hands have withdrawn by another ``withdraw_m``: then the fetch is over and the next expected station (if
   the robot has placed another block meanwhile) takes its turn. An expected fetch that has not happened
   ``timeout_s`` after the release is forgotten.
 
 A plan that would leave the station through the hand's way then fails its check against the forecast, and
-the robot waits at rest for the fetch instead of setting off into the arriving hand (where the speed
-monitoring would stop it). The reactive baseline never sees this: it is fed the current pose held still.
+the robot waits at rest for the fetch (the supervisor starts a robot at rest only on a plan the forecast
+leaves clear, :attr:`app.control.supervisor.SupervisorConfig.clear_start`) instead of setting off into the
+arriving hand, where the speed monitoring would stop it. The reactive baseline never sees this: it is fed
+the current pose held still.
 
 This is a forecast, not a safety function: the speed governor, the stop distance and the safety monitor
 work on the measured person, whatever the forecast says.
@@ -55,7 +57,9 @@ class FetchAnticipationParams:
     """How :class:`FetchAnticipation` expects a person to fetch a block.
 
     Attributes:
-        reaction_s: Earliest start of the reach after the release (s).
+        reaction_s: When the reach is expected to start after the release (s): the person's reaction time
+            (``Settings.fetch_reaction_s``). Earlier makes the robot wait for more fetches that come later;
+            later lets it set off into more of the early ones.
         hand_speed_mps: Peak hand speed of the reach (m/s).
         min_reach_s: Shortest reach (s).
         reached_radius_m: A hand this close to the station has reached it (m).
@@ -63,7 +67,7 @@ class FetchAnticipationParams:
         timeout_s: An expected fetch that has not happened this long after the release is forgotten (s).
     """
 
-    reaction_s: float = 0.3
+    reaction_s: float = 0.6
     hand_speed_mps: float = 1.2
     min_reach_s: float = 0.35
     reached_radius_m: float = 0.12

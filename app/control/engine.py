@@ -29,7 +29,7 @@ from typing import Any, Literal
 import numpy as np
 
 from app.config import Settings, WorkCell
-from app.control.anticipation import FetchAnticipation
+from app.control.anticipation import FetchAnticipation, FetchAnticipationParams
 from app.control.metrics import Method, TrialEvent, TrialMetrics
 from app.control.robot import RobotBackend, RobotConnectionError, RobotState
 from app.control.supervisor import (
@@ -613,7 +613,8 @@ class TrialEngine:
         self.anticipation: FetchAnticipation | None = None
         if method == "proactive" and settings.anticipate_fetch:
             self.anticipation = FetchAnticipation(
-                {st.name: np.asarray(st.xyz, dtype=np.float64) for st in stack.cell.drop_stations}
+                {st.name: np.asarray(st.xyz, dtype=np.float64) for st in stack.cell.drop_stations},
+                FetchAnticipationParams(reaction_s=settings.fetch_reaction_s),
             )
         self.monitor = SafetyMonitor(stack.collision, ssm) if self.options.monitor != "off" else None
         self.completed_tasks = 0

@@ -6,7 +6,9 @@ For every new frame at ``T_i`` the :class:`Supervisor`
 1. prepares the *backup plan* request from ``s = pi_curr(T_i + D)`` toward the current goal against the
    latest forecast, under the deadline ``D``; its result is usable from ``T_i + D``. Where the robot must
    start moving (at rest, or after an emergency plan) the plan starts from its current position (a plan from
-   rest may take ``start_deadline_s``, 3 D by default: the robot stands still meanwhile);
+   rest may take ``start_deadline_s``, 3 D by default: the robot stands still meanwhile), and it is executed
+   only if the latest forecast predicts no violation anywhere along it (``clear_start``): a robot at rest
+   need not set off toward where the person is about to be, it waits and plans again;
 2. checks the plan in execution against the *latest* forecast (:meth:`PlannerLike.first_violation`) and the
    robot's parts against the stop distance S_p(0) (ISO/TS 15066, the person's measured speed);
 3. decides: *Nominal Execution* (continue; speed scaled by separation), or *Collision Avoidance*: a violation
@@ -780,6 +782,10 @@ class SupervisorConfig:
         near_band_m: The person's parts within this much of being the nearest to a robot part count for
             the speed of the person near that part (m).
         retry_after_s: After a failed plan to start (or resume) moving, the next attempt waits this long (s).
+        clear_start: A plan that starts the robot from rest (or resumes it) is executed only if the latest
+            forecast predicts no violation anywhere along it (timed at ``check_min_scale``); else the robot
+            stays at rest and plans again after ``retry_after_s``. False: only a violation before
+            ``T_i + D`` forbids it, as for a backup that replaces a plan in execution.
         resume_travel_m: After a stop & replan, the robot counts as under way again (a new encounter can
             stop it again) once it has moved this far (m).
         check_dt_s: Time step of the checks of a plan against a forecast (s).
@@ -801,6 +807,7 @@ class SupervisorConfig:
     human_speed_window_s: float = 0.1
     near_band_m: float = 0.25
     retry_after_s: float = 0.2
+    clear_start: bool = True
     resume_travel_m: float = 0.03
     check_dt_s: float = 0.04
     check_min_scale: float = 0.5
@@ -1344,14 +1351,17 @@ class Supervisor:
         self, pend: _Pending, out: PlanOutcome, t_now: float, tau: float, s: float, forecast: HumanForecast
     ) -> float | None:
         """Re-check a backup against ``forecast`` as it would run from the switch; returns the violation time
-        that forbids the switch, or None when it may be executed."""
+        that forbids the switch, or None when it may be executed: a violation after ``t_now + D`` is left to
+        the next frames' backups, except on a plan that starts the robot moving (``clear_start``)."""
         assert out.traj is not None
         cfg = self.config
         tau_new = out.traj.t_start + max(tau - pend.tau_branch, 0.0)
         t_ref = max(t_now, pend.t_switch) if tau < pend.tau_branch else t_now
         view = ScaledView(out.traj, t_ref=t_ref, tau_ref=tau_new, scale=max(s, cfg.check_min_scale))
         t_v = self._first_violation(view, forecast, t_ref, view.t_end)
-        if t_v is None or t_v > t_now + cfg.deadline_s:
+        if t_v is None:
+            return None
+        if t_v > t_now + cfg.deadline_s and not (cfg.clear_start and pend.reason in ("start", "resume")):
             return None
         return t_v
 
@@ -1596,6 +1606,8 @@ class Supervisor:
             if t_v is not None:
                 self._emit(t, "plan_failed", {"reason": f"backup violates the latest forecast at {t_v:.3f}"})
                 self.counters.plan_failures += 1
+                if self.config.clear_start and pend.reason in ("start", "resume"):
+                    self._retry_after = t + self.config.retry_after_s
                 if moving and pend.reason == "online_replan":
                     self._emergency_path(t, reason="backup_invalid", violation_t=t_v)
                 return

@@ -96,10 +96,10 @@ def test_the_nearer_hand_reaches_the_station_on_a_minimum_jerk_profile() -> None
 
 
 def test_a_reach_expected_later_starts_later() -> None:
-    ant = FetchAnticipation(STATIONS)
+    ant = FetchAnticipation(STATIONS, FetchAnticipationParams(reaction_s=0.3))
     frame = _frame(10.0)
     fc = _forecast(frame)
-    ant.expect("C", t_release=10.5)  # the robot is still releasing: the hand cannot come before 10.8 s
+    ant.expect("C", t_release=10.5)  # the robot is still releasing: the hand is expected from 10.8 s on
     out = ant.apply(frame, fc)
     moved = np.any(out.joints != fc.joints, axis=(1, 2))
     assert not moved[out.times <= 10.8 + 1e-9].any()

@@ -493,6 +493,43 @@ def test_backup_is_rechecked_against_the_latest_forecast_before_the_switch() -> 
     assert max(abs(q[1]) for _, q, _, _ in h.log) < 1e-9  # never on the detour
 
 
+@pytest.mark.parametrize("clear_start", [True, False])
+def test_a_robot_at_rest_sets_off_only_on_a_plan_the_latest_forecast_leaves_clear(clear_start: bool) -> None:
+    """The start plan is made against a forecast with nobody near; by its switch the forecast has someone
+    standing on its path, met well after T + D. With ``clear_start`` the robot stays at rest and its next
+    plan goes around; without, it sets off on the straight plan (the paper's rule for backups: only a
+    violation before T + D forbids the switch) and leaves it later by an online replan."""
+    on_path = person_at(np.array([1.0, 0.0, 0.0]))
+
+    def fc(t: float) -> HumanForecast:
+        if t < 0.02:
+            return HumanForecast.hold(HumanFrame(t, person_at(FAR)))
+        return HumanForecast(
+            t0=t, times=np.array([t, t + 3.0]), joints=np.stack([on_path] * 2), margins=np.zeros(2)
+        )
+
+    config = SupervisorConfig(deadline_s=0.1, frame_period_s=1 / 30, clear_start=clear_start)
+    h = Harness(lambda t: person_at(FAR), forecast_fn=fc, config=config)
+    h.sup.set_goal("B")
+    h.run(12.0)
+    moving = [q for _, q, _, v in h.log if v > 1e-6]
+    first = moving[0]
+    rejected = [
+        t for t, k, p in h.events if k == "plan_failed" and "violates the latest forecast" in p["reason"]
+    ]
+    if clear_start:
+        assert rejected and rejected[0] < 0.5
+        assert abs(first[0]) < 1e-9 and first[1] > 0  # first motion: sideways, onto the detour
+        assert h.sup.counters.online_replans == 0
+    else:
+        assert not rejected
+        assert first[0] > 0 and abs(first[1]) < 1e-9  # first motion: straight at the person
+        assert h.sup.counters.online_replans >= 1
+    assert h.sup.counters.stop_replans == 0
+    assert h.sup.take_arrival() == "B"
+    assert _monitor_violations(h) == 0
+
+
 def test_missed_deadline_takes_the_emergency_path() -> None:
     h = Harness(WALK_IN, forecast_fn=perfect_forecast(WALK_IN, 0.5))
     h.sup.set_goal("B")
