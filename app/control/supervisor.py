@@ -901,6 +901,11 @@ class _Pending:
     outcome: PlanOutcome | None = None
     checked_seq: int = -1
 
+    @property
+    def from_rest(self) -> bool:
+        """The switch sets a robot at rest moving (a start, or a resume after a stop)."""
+        return self.reason in ("start", "resume")
+
 
 @dataclass
 class _Brake:
@@ -1361,7 +1366,7 @@ class Supervisor:
         t_v = self._first_violation(view, forecast, t_ref, view.t_end)
         if t_v is None:
             return None
-        if t_v > t_now + cfg.deadline_s and not (cfg.clear_start and pend.reason in ("start", "resume")):
+        if t_v > t_now + cfg.deadline_s and not (cfg.clear_start and pend.from_rest):
             return None
         return t_v
 
@@ -1585,7 +1590,7 @@ class Supervisor:
         self._record_plan(out, t)
         active = self._active
         moving = active.kind != "hold" and active.complete
-        if out.status != "ok" and pend.reason in ("start", "resume"):
+        if out.status != "ok" and pend.from_rest:
             self._retry_after = t + self.config.retry_after_s
         if out.status != "ok":
             if out.status == "deadline_miss":
@@ -1606,7 +1611,7 @@ class Supervisor:
             if t_v is not None:
                 self._emit(t, "plan_failed", {"reason": f"backup violates the latest forecast at {t_v:.3f}"})
                 self.counters.plan_failures += 1
-                if self.config.clear_start and pend.reason in ("start", "resume"):
+                if self.config.clear_start and pend.from_rest:
                     self._retry_after = t + self.config.retry_after_s
                 if moving and pend.reason == "online_replan":
                     self._emergency_path(t, reason="backup_invalid", violation_t=t_v)
