@@ -137,7 +137,8 @@ def test_an_overdue_fetch_is_forgotten_and_reset_forgets_all() -> None:
     ant = FetchAnticipation(STATIONS, p)
     ant.expect("A", 10.0)
     f = _frame(11.9)
-    assert ant.apply(f, _forecast(f)) is not None and ant.expected() == ["A"]
+    fc0 = _forecast(f)
+    assert ant.apply(f, fc0) is not fc0 and ant.expected() == ["A"]  # still expected: the hand reaches
     late = _frame(12.1)
     fc = _forecast(late)
     assert ant.apply(late, fc) is fc and ant.expected() == []
