@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from app.control.cli import cell_app
+from app.cell.cli import cell_app
 from app.prediction.cli import hmp_app
 
 if TYPE_CHECKING:

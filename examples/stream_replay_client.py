@@ -25,9 +25,9 @@ from typing import Any
 
 def messages(clip: Path, *, loops: int, place: bool) -> tuple[Iterator[dict[str, Any]], float, int]:
     """The clip's frames as messages, its frame rate (Hz) and the number of messages."""
+    from app.cell.human import ReplaySource
+    from app.cell.stream_protocol import make_message
     from app.config import load_workcell
-    from app.control.human import ReplaySource
-    from app.control.stream_protocol import make_message
 
     source = ReplaySource(clip, load_workcell(), place=place)
     times = source.clip.times
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.token:
         parser.error("no token: pass --token or set HRC_API_TOKEN")
 
-    from app.control.stream_protocol import send_messages
+    from app.cell.stream_protocol import send_messages
 
     msgs, fps, total = messages(args.clip, loops=args.loops, place=not args.no_place)
     rate = args.rate or fps

@@ -8,7 +8,7 @@ yaw]'``, metres/radians, in the coordinate system below: x forward, y left, z up
         --format zed34
 
 This script is deliberately thin: everything it shares with the app (building the messages, sending them)
-is ``app.control.stream_protocol`` and is tested there. The message format is ``docs/stream-protocol.md``.
+is ``app.cell.stream_protocol`` and is tested there. The message format is ``docs/stream-protocol.md``.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def open_camera(sl: Any, body_format: str) -> Any:
 
 async def body_messages(sl: Any, zed: Any, body_format: str) -> AsyncIterator[dict[str, Any]]:
     """One message per grabbed frame with a person: the tracked body nearest the camera."""
-    from app.control.stream_protocol import message_from_zed_body
+    from app.cell.stream_protocol import message_from_zed_body
 
     bodies = sl.Bodies()
     runtime = sl.BodyTrackingRuntimeParameters()
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         logging.error("pyzed is not installed: install the ZED SDK and its Python API (get_python_api.py)")
         return 2
 
-    from app.control.stream_protocol import send_messages
+    from app.cell.stream_protocol import send_messages
 
     zed = open_camera(sl, args.format)
     try:

@@ -26,7 +26,7 @@ def _types(*dotted: str) -> tuple[type[BaseException], ...]:
 @cache
 def frame_rejected_types() -> tuple[type[BaseException], ...]:
     """A pushed skeleton frame was invalid (``FrameRejected`` of the cell's validation)."""
-    return _types("app.control.validation.FrameRejected", "app.control.human.FrameRejected")
+    return _types("app.cell.validation.FrameRejected", "app.cell.human.FrameRejected")
 
 
 @cache

@@ -32,13 +32,13 @@ def _time(fn: Callable[[], object], n: int) -> list[float]:
 
 def run(*, quick: bool = False, progress: bool = False) -> dict[str, Any]:
     """Measure; returns medians and p95 (JSON-ready)."""
+    from app.cell.clock import RateLoop, SimClock, WallClock
+    from app.cell.human import StreamSource
+    from app.cell.operator_sim import SimulatedOperator
+    from app.cell.robot import SimRobot
+    from app.cell.stream_protocol import make_message
+    from app.cell.validation import FrameValidator
     from app.config import load_workcell
-    from app.control.clock import RateLoop, SimClock, WallClock
-    from app.control.human import StreamSource
-    from app.control.operator_sim import SimulatedOperator
-    from app.control.robot import SimRobot
-    from app.control.stream_protocol import make_message
-    from app.control.validation import FrameValidator
 
     cell = load_workcell()
     reps = 5 if quick else 30

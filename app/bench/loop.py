@@ -8,7 +8,7 @@ simulated operator, the default roadmap and the shipped predictor) and runs a pr
   the emergency plan when the decision is to stop); the backup plan's own search runs on the planner pool and
   is not included;
 - ``servo_jitter_ms``: how late each tick of the robot command loop woke up after its deadline
-  (:class:`~app.control.clock.RateLoop`, ``servo_rate_hz``), with its overruns.
+  (:class:`~app.cell.clock.RateLoop`, ``servo_rate_hz``), with its overruns.
 
 Prints one JSON object (percentiles over every frame and tick of the run).
 """

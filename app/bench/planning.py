@@ -17,7 +17,7 @@ Measured in one run, on the default work cell and its default roadmap (built and
 * ``violations``: returned trajectories (sequential, parallel and emergency) that break the requirement in
   an independent check: sampled at 100 Hz, joint limits, and the surface distance (from
   :meth:`CollisionModel.distance_to_human_paired`) against
-  :func:`app.planning.safety.forecast_clearance` for the robot speed obtained by differentiating the
+  :func:`app.safety.ssm.forecast_clearance` for the robot speed obtained by differentiating the
   trajectory's capsule points numerically. It must be 0.
 * ``scaling``: p50 of the parallel plan time on roadmaps of about 1k, 4k and 16k nodes (built and cached on
   first use, which takes minutes; ``--quick`` reports only those already cached and ``null`` for the rest).
@@ -62,7 +62,7 @@ def _stats(values: list[float]) -> dict[str, float | None]:
 def count_violations(traj: Any, forecast: Any, model: Any, ssm: Any, *, hold_s: float) -> int:
     """1 if the trajectory breaks the limits or the separation anywhere on a 100 Hz grid, else 0."""
     from app.planning.kinematics import Q_MAX, Q_MIN
-    from app.planning.safety import forecast_clearance
+    from app.safety.ssm import forecast_clearance
 
     t = np.arange(traj.t_start, traj.t_end + hold_s + 1e-9, 0.01)
     q = traj.q(t)
@@ -202,7 +202,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                 max_margin_m=qr.forecast.max_margin_m,
             )
             d_start = float(model.distance_to_human_paired(qr.q_start[None], joints[None])[0])
-            from app.planning.safety import forecast_clearance
+            from app.safety.ssm import forecast_clearance
 
             # an escape (the start already too close) follows its own rule: never closer than at the start
             if d_start >= float(forecast_clearance(0.0, margin, ssm)):

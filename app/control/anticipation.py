@@ -39,7 +39,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from app.control.operator_sim import min_jerk
+from app.cell.operator_sim import min_jerk
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import JOINT_INDEX, HumanFrame
 

@@ -28,10 +28,11 @@ from typing import Any, Literal
 
 import numpy as np
 
+from app.cell.robot import RobotBackend, RobotConnectionError, RobotState
+from app.cell.validation import FrameValidator, StaleWatchdog, ValidatedSource
 from app.config import Settings, WorkCell
 from app.control.anticipation import FetchAnticipation, FetchAnticipationParams
 from app.control.metrics import Method, TrialEvent, TrialMetrics
-from app.control.robot import RobotBackend, RobotConnectionError, RobotState
 from app.control.supervisor import (
     BackupComputer,
     FrameDecision,
@@ -42,7 +43,6 @@ from app.control.supervisor import (
     SupervisorConfig,
 )
 from app.control.task import TaskExecutive
-from app.control.validation import FrameValidator, StaleWatchdog, ValidatedSource
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import HumanFrame
 
@@ -229,7 +229,7 @@ class MonitorSample:
 class SafetyMonitor:
     """Checks the *executed* motion: at each call, the separation between the robot (its measured state) and
     a pose of the person, against ISO/TS 15066's S_p for the robot's actual speed and the person's directed
-    speed toward it (:func:`app.planning.safety.protective_separation`, with the stopping time ``T_s`` of
+    speed toward it (:func:`app.safety.ssm.protective_separation`, with the stopping time ``T_s`` of
     the robot's current speed: ``v_top / stop_decel_mps2``). It shares nothing with the
     supervisor: its own distance and speed computations, the robot's reported state, the poses it is given.
 
@@ -242,7 +242,7 @@ class SafetyMonitor:
 
     Args:
         collision: The collision model (``distance_to_human``, ``robot_capsules``).
-        ssm: :class:`app.planning.safety.SSMParams`.
+        ssm: :class:`app.safety.ssm.SSMParams`.
         moving_mps: A robot part slower than this counts as standing still.
         stop_decel_mps2: The robot's stopping deceleration (``T_s = v / stop_decel_mps2``).
     """
@@ -250,7 +250,7 @@ class SafetyMonitor:
     def __init__(
         self, collision: Any, ssm: Any, *, moving_mps: float = 0.01, stop_decel_mps2: float = 2.0
     ) -> None:
-        from app.planning.safety import protective_separation
+        from app.safety.ssm import protective_separation
 
         self._sp = protective_separation
         self.stop_decel_mps2 = float(stop_decel_mps2)

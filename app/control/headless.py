@@ -1,6 +1,6 @@
 """Headless trials: the runtime's engine on the simulated clock, single-threaded and deterministic.
 
-One loop advances a :class:`~app.control.clock.SimClock` in servo ticks; a frame is read at every camera
+One loop advances a :class:`~app.cell.clock.SimClock` in servo ticks; a frame is read at every camera
 period. Backup plans run lazily (:class:`~app.control.supervisor.InlinePlanJobs`): a plan is computed when the
 switch that its own frame's decision scheduled is due, and its *measured* compute time decides, as in live
 mode, whether it met the deadline ``D`` (the decisions are the same as with eager computation; see there).
@@ -18,8 +18,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from app.cell.clock import SimClock
 from app.config import Settings, WorkCell
-from app.control.clock import SimClock
 from app.control.engine import (
     EngineOptions,
     PlanningStack,
@@ -107,8 +107,8 @@ def make_operator(
 ) -> Any:
     """The person of a headless trial: a simulated participant (``participant_seed`` draws their body and
     habits, ``seed`` their moment-to-moment behaviour and noise) or a recorded clip, looped."""
-    from app.control.human import ReplaySource
-    from app.control.operator_sim import OperatorParams, SimulatedOperator
+    from app.cell.human import ReplaySource
+    from app.cell.operator_sim import OperatorParams, SimulatedOperator
 
     if source == "sim":
         return SimulatedOperator(cell, OperatorParams.draw(participant_seed), seed=seed)
@@ -159,10 +159,10 @@ def run_headless_trial(
         observer: Called as ``observer(t, engine)`` after each servo tick.
         robot_factory: ``(clock, q0) -> RobotBackend`` instead of a :class:`SimRobot` (tests).
         forecast: The proactive method's forecast: ``model`` (the motion predictor) or ``oracle`` (the
-            simulated operator's own future, :class:`~app.control.operator_sim.OracleForecaster`: the bound
+            simulated operator's own future, :class:`~app.cell.operator_sim.OracleForecaster`: the bound
             of what proactive planning can gain; ``source="sim"`` only).
     """
-    from app.control.robot import RobotConnectionError, SimRobot
+    from app.cell.robot import RobotConnectionError, SimRobot
 
     if not duration_s > 0:
         raise ValueError(f"duration_s must be > 0, got {duration_s}")
@@ -183,7 +183,7 @@ def run_headless_trial(
     if forecast not in ("model", "oracle"):
         raise ValueError(f"forecast must be 'model' or 'oracle', got {forecast!r}")
     if forecast == "oracle":
-        from app.control.operator_sim import OracleForecaster, SimulatedOperator
+        from app.cell.operator_sim import OracleForecaster, SimulatedOperator
 
         if method != "proactive" or predictor is not None:
             raise ValueError("the oracle forecast is for the proactive method, instead of its predictor")

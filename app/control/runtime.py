@@ -3,7 +3,7 @@
 Threads (started by :meth:`Runtime.start`, joined with timeouts by :meth:`Runtime.stop`, none at import or
 construction):
 
-- *frame* thread, at the camera rate (:class:`~app.control.clock.RateLoop`): reads the human source, runs
+- *frame* thread, at the camera rate (:class:`~app.cell.clock.RateLoop`): reads the human source, runs
   validation -> predictor -> supervisor decision, publishes a :class:`Snapshot` to the subscribers;
 - *servo* thread, at the robot rate: advances the supervisor (path time, speed governor, switches) and
   commands the robot;
@@ -35,8 +35,10 @@ from typing import Any
 
 import numpy as np
 
+from app.cell.clock import Clock, RateLoop, WallClock
+from app.cell.robot import RobotBackend, RobotConnectionError
+from app.cell.validation import ValidatedSource
 from app.config import Settings, WorkCell
-from app.control.clock import Clock, RateLoop, WallClock
 from app.control.engine import (
     EngineOptions,
     PlanningStack,
@@ -48,9 +50,7 @@ from app.control.engine import (
 )
 from app.control.headless import forecast_model, make_predictor, run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
-from app.control.robot import RobotBackend, RobotConnectionError
 from app.control.supervisor import BackupComputer, BackupRequest, PlanOutcome, SupervisorConfig
-from app.control.validation import ValidatedSource
 
 log = logging.getLogger(__name__)
 
@@ -258,9 +258,9 @@ class Runtime:
     Args:
         settings: Application settings (robot and human source, D, F, workers).
         cell: The work cell (default: ``settings.load_workcell()``).
-        robot: A robot backend (default: :func:`app.control.robot.make_robot` at :meth:`start`).
+        robot: A robot backend (default: :func:`app.cell.robot.make_robot` at :meth:`start`).
         source: A human source (default by ``settings.human_source``: a simulated operator, re-seeded for
-            every trial; a replayed clip; or a :class:`~app.control.human.StreamSource` fed by
+            every trial; a replayed clip; or a :class:`~app.cell.human.StreamSource` fed by
             :meth:`ingest`).
         predictor: The proactive method's predictor (default: the shipped one, loaded at :meth:`start`).
         clock: The clock (default :class:`WallClock`).
@@ -334,7 +334,7 @@ class Runtime:
             if self._stack is None:
                 self._stack = PlanningStack.for_cell(self.cell)
             if self._robot is None:
-                from app.control.robot import make_robot
+                from app.cell.robot import make_robot
 
                 self._robot = make_robot(self.settings, self.clock, q0=np.asarray(self.cell.robot.home_q))
             self._open_source(seed=0)
@@ -421,7 +421,7 @@ class Runtime:
             return
         kind = self.settings.human_source
         if kind == "sim" or self._source is None:
-            from app.control.human import make_human_source
+            from app.cell.human import make_human_source
 
             src = make_human_source(self.settings, self.cell, seed=seed, t0=self.clock.now())
             self._sim_source = kind == "sim"
@@ -579,7 +579,7 @@ class Runtime:
 
         Raises:
             IngestUnavailable: the runtime reads no stream.
-            app.control.validation.FrameRejected: the frame is invalid (the reason says why).
+            app.cell.validation.FrameRejected: the frame is invalid (the reason says why).
         """
         stream = self._stream
         if stream is None:

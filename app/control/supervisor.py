@@ -57,11 +57,11 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 
-from app.control._kernels import governed_scale as _kernel_governed_scale
-from app.control._kernels import max_scale as _kernel_max_scale
 from app.control.metrics import Method
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+from app.safety._kernels import governed_scale as _kernel_governed_scale
+from app.safety._kernels import max_scale as _kernel_max_scale
 
 log = logging.getLogger(__name__)
 
@@ -364,7 +364,7 @@ class SeparationModel:
     (ISO/TS 15066 5.5.4.2.3: the measured speed where the system monitors it, as here) and ``T_s`` the
     robot's stopping time *from its current speed*: ``T_s = v_top / stop_decel_mps2`` with ``v_top`` the
     speed of the robot's fastest part (a robot creeping at 1 cm/s stops in milliseconds, not in the 0.2 s
-    it needs at 1 m/s). With :class:`app.planning.safety.SSMParams` (:meth:`from_ssm`):
+    it needs at 1 m/s). With :class:`app.safety.ssm.SSMParams` (:meth:`from_ssm`):
     ``s0 = C + Z_d + Z_r``, ``T_r = t_reaction_s``.
 
     The *envelope* answers: how fast may the robot move at separation ``d`` so that, braking now, the
@@ -406,7 +406,7 @@ class SeparationModel:
         human_accel_mps2: float = 8.0,
         stop_decel_mps2: float = 2.0,
     ) -> SeparationModel:
-        """From :class:`app.planning.safety.SSMParams` (``C``, ``Z_d``, ``Z_r``, ``T_r``)."""
+        """From :class:`app.safety.ssm.SSMParams` (``C``, ``Z_d``, ``Z_r``, ``T_r``)."""
         return cls(
             s0_m=float(params.intrusion_m + params.z_human_m + params.z_robot_m),
             t_reaction_s=float(params.t_reaction_s),
@@ -484,7 +484,7 @@ class SeparationModel:
 
         Only scales in ``[lo, hi]`` are examined (the grid's and both ends; the servo passes the range it
         can reach within one tick): the answer is the largest of them up to which every one is safe, ``hi``
-        at most, and 0 when ``lo`` is not safe. Compiled (:func:`app.control._kernels.max_scale`); the same
+        at most, and 0 when ``lo`` is not safe. Compiled (:func:`app.safety._kernels.max_scale`); the same
         numbers as :meth:`max_scale_reference`."""
         return float(
             _kernel_max_scale(
@@ -543,11 +543,11 @@ class SeparationModel:
 
 @dataclass(frozen=True, slots=True)
 class SpeedScaleLaw:
-    """The ISO/TS 15066 speed-scaling law (:func:`app.planning.safety.speed_scale`) as the speed governor
+    """The ISO/TS 15066 speed-scaling law (:func:`app.safety.ssm.speed_scale`) as the speed governor
     applies it per servo tick: the smallest scale over the moving parts.
 
     Attributes:
-        params: :class:`app.planning.safety.SSMParams` (``T_r``, ``T_s``, ``C``, ``Z_d``, ``Z_r``).
+        params: :class:`app.safety.ssm.SSMParams` (``T_r``, ``T_s``, ``C``, ``Z_d``, ``Z_r``).
         kernel_params: ``(T_r + T_s, C + Z_d + Z_r, T_r + T_s / 2)`` as the compiled governor reads them.
     """
 
@@ -561,7 +561,7 @@ class SpeedScaleLaw:
 
     def __call__(self, separation_m: np.ndarray, v_nominal_mps: np.ndarray, v_human_mps: np.ndarray) -> float:
         """The smallest scale over parts (L,) (1 for no part), in NumPy: the compiled governor's reference."""
-        from app.planning.safety import speed_scale
+        from app.safety.ssm import speed_scale
 
         d = np.asarray(separation_m, dtype=np.float64)
         if d.size == 0:
@@ -1758,7 +1758,7 @@ class Supervisor:
         self, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
     ) -> float:
         """The governor's target scale for the tick from ``t`` to ``t + dt`` (compiled:
-        :func:`app.control._kernels.governed_scale`; :meth:`_governed_scale_reference` in NumPy). Caller
+        :func:`app.safety._kernels.governed_scale`; :meth:`_governed_scale_reference` in NumPy). Caller
         holds the lock."""
         law = self.speed_scale_law
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan

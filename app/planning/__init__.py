@@ -3,8 +3,6 @@
 The public surface (everything else lives in the modules and may change):
 
 - kinematics and collision: :class:`UR5e`, :class:`CollisionModel`;
-- ISO/TS 15066 speed and separation monitoring: :class:`SSMParams`, :func:`protective_separation`,
-  :func:`max_safe_speed`, :func:`speed_scale`, :func:`forecast_clearance`;
 - the roadmap: :class:`Roadmap`, :class:`RoadmapConfig`, :func:`load_or_build_roadmap`;
 - the time-variant search: :class:`Planner`, :class:`PlannerConfig`, :class:`PlanResult`;
 - plans and trajectories: :class:`Plan`, :class:`Trajectory`.
@@ -27,13 +25,6 @@ from __future__ import annotations
 from app.planning.collision import CollisionModel
 from app.planning.kinematics import UR5e
 from app.planning.roadmap import Roadmap, RoadmapConfig, RoadmapError, load_or_build_roadmap
-from app.planning.safety import (
-    SSMParams,
-    forecast_clearance,
-    max_safe_speed,
-    protective_separation,
-    speed_scale,
-)
 from app.planning.search import Planner, PlannerConfig, PlanResult
 from app.planning.trajectory import Plan, Trajectory, TrajectoryError
 
@@ -46,13 +37,8 @@ __all__ = [
     "Roadmap",
     "RoadmapConfig",
     "RoadmapError",
-    "SSMParams",
     "Trajectory",
     "TrajectoryError",
     "UR5e",
-    "forecast_clearance",
     "load_or_build_roadmap",
-    "max_safe_speed",
-    "protective_separation",
-    "speed_scale",
 ]

@@ -811,7 +811,7 @@ def _margin_at(t: float, times: np.ndarray, margins: np.ndarray, growth: float, 
 
 @_jit
 def _required(v: float, margin: float, prm: np.ndarray) -> float:
-    """:func:`app.planning.safety.forecast_clearance` + the extra distance, capped at the floor (m); ``prm``
+    """:func:`app.safety.ssm.forecast_clearance` + the extra distance, capped at the floor (m); ``prm``
     as in :func:`moves_separation_ok`."""
     req = max(v, 0.0) * prm[2] + prm[3] + prm[4] + max(prm[5], margin)
     return min(req + prm[6], prm[7])
@@ -1126,7 +1126,7 @@ def trajectory_first_violation(
     ``tq0[k]`` and ``tq1[k]`` (the path time of ``ts[k] + eps``), over ``eps``. Person: the forecast
     ``fc_times`` (H,), ``fc_joints`` (H, J, 3), ``fc_margins`` (H,) interpolated as
     :meth:`HumanForecast.poses_at` does (the last pose held, the margin growing at ``growth`` m/s up to
-    ``cap``); requirement :func:`app.planning.safety.forecast_clearance` (SSM constants), capped at
+    ``cap``); requirement :func:`app.safety.ssm.forecast_clearance` (SSM constants), capped at
     ``floor_m``. Samples are checked in order and the check stops at the first failure; a NaN counts as a
     failure.
     """

@@ -26,7 +26,7 @@ Paper, section II-A, and where this goes further:
   joint acceleration/velocity ratio up to the cruise speed and brakes to rest on the edge into the goal
   (and moves from rest after a wait or a stop).
 - **Validity against the forecast.** A move is valid if at every sampled instant (every ``sample_dt_s`` and
-  at its end) the surface distance robot-person is at least :func:`app.planning.safety.forecast_clearance`
+  at its end) the surface distance robot-person is at least :func:`app.safety.ssm.forecast_clearance`
   for the robot's speed there and the forecast's margin at that instant (``S_r + S_s + C + Z_r +
   max(Z_d, margin)``; the margin grows with the horizon; beyond the horizon the last pose is held and the
   margin grows at ``growth_mps`` up to a cap) plus ``corridor_margin_m`` (room for the fitted spline's
@@ -104,9 +104,9 @@ import numpy as np
 
 from app.planning import _kernels
 from app.planning.roadmap import NUM_BRANCHES, Roadmap
-from app.planning.safety import SSMParams, forecast_clearance
 from app.planning.trajectory import Plan, Trajectory, TrajectoryError, fit_knots
 from app.prediction.skeleton import NUM_JOINTS
+from app.safety.ssm import SSMParams, forecast_clearance
 
 if TYPE_CHECKING:
     from scipy.sparse import csr_matrix
@@ -1267,7 +1267,7 @@ class Planner:
         """The earliest time in ``[t_from, t_to]`` at which ``traj`` breaks the required separation.
 
         The requirement at time t: surface distance robot-person >=
-        :func:`app.planning.safety.forecast_clearance` (``S_r + S_s + C + Z_r + max(Z_d, margin)``) for the
+        :func:`app.safety.ssm.forecast_clearance` (``S_r + S_s + C + Z_r + max(Z_d, margin)``) for the
         robot's speed at t (the largest speed of any capsule end point) and the forecast's margin at t; a
         configuration outside the joint limits counts as a violation too. Sampled every ``dt_s`` (default
         ``verify_dt_s``), both ends included. Returns None when there is no violation.

@@ -118,7 +118,7 @@ def simulated_operator_sequences(
     """Frames (T, J, 3) of simulated operators (participant seeds ``seed``, ``seed + 1``, ...) at work: a
     block is placed at a random drop station every ``block_every_s`` seconds (the robot's cadence), so the
     motion includes their fetches as well as assembling and spontaneous reaches."""
-    from app.control.operator_sim import OperatorParams, SimulatedOperator
+    from app.cell.operator_sim import OperatorParams, SimulatedOperator
 
     if participants < 1 or not duration_s > 0:
         raise ValueError("need at least one participant and a positive duration")

@@ -106,9 +106,9 @@ def test_stop_estop_and_reset_with_the_real_runtime(sim_client: TestClient) -> N
 
 def _person_messages(times: list[float]) -> list[dict[str, Any]]:
     """Canonical-format messages of the simulated operator's pose at ``times`` (world frame)."""
+    from app.cell.operator_sim import SimulatedOperator
+    from app.cell.stream_protocol import make_message
     from app.config import load_workcell
-    from app.control.operator_sim import SimulatedOperator
-    from app.control.stream_protocol import make_message
 
     op = SimulatedOperator(load_workcell(), seed=0)
     out = []

@@ -10,10 +10,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from app.cell.robot import RobotConnectionError, RobotState, SimRobot
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions, PlanningStack, TrialEngine
 from app.control.headless import make_operator, run_headless_trial
-from app.control.robot import RobotConnectionError, RobotState, SimRobot
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS
 

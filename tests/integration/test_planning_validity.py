@@ -3,7 +3,7 @@ scene and keeps the required separation from the forecast it was planned against
 
 The check below is independent of the planner's code path: it evaluates the trajectory itself, takes the robot
 speed from numerical derivatives of the capsule points, the distances from the collision model's exact
-capsule distance, and the requirement from :func:`app.planning.safety.forecast_clearance`.
+capsule distance, and the requirement from :func:`app.safety.ssm.forecast_clearance`.
 """
 
 from __future__ import annotations
@@ -18,12 +18,12 @@ from app.config import load_workcell
 from app.planning.collision import CollisionModel
 from app.planning.kinematics import Q_MAX, Q_MIN
 from app.planning.roadmap import RoadmapConfig, load_or_build_roadmap
-from app.planning.safety import SSMParams, forecast_clearance
 from app.planning.scenarios import reference_queries, synthetic_forecast
 from app.planning.search import Planner
 from app.planning.trajectory import Trajectory
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS
+from app.safety.ssm import SSMParams, forecast_clearance
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ person's *true* pose (a noise-free twin of the simulated operator: same particip
 notifications; the runtime sees the noisy frames), and, for every robot part (capsule) that moves faster
 than 1 cm/s, requires ISO/TS 15066's protective separation distance for that part's speed and the person's
 directed speed toward it: ``S_p = v_h (T_r + T_s) + v_r (T_r + T_s / 2) + C + Z_d + Z_r``
-(:func:`app.planning.safety.protective_separation`), with ``T_s`` the robot's stopping time from its current
+(:func:`app.safety.ssm.protective_separation`), with ``T_s`` the robot's stopping time from its current
 speed (its fastest part's, at 2 m/s^2). Every tick that breaks it is a violation; there must be none, for
 either method.
 """
@@ -18,12 +18,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from app.cell.operator_sim import OperatorParams, SimulatedOperator
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions, PlanningStack
 from app.control.headless import run_headless_trial
-from app.control.operator_sim import OperatorParams, SimulatedOperator
 from app.planning.collision import capsule_distance
-from app.planning.safety import protective_separation
+from app.safety.ssm import protective_separation
 
 pytestmark = pytest.mark.slow
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from app.cell.operator_sim import OperatorParams, SimulatedOperator
 from app.config import load_workcell
 from app.control.anticipation import FetchAnticipation, FetchAnticipationParams
-from app.control.operator_sim import OperatorParams, SimulatedOperator
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import JOINT_INDEX, HumanFrame
 

@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app.cell.human import StreamSource
+from app.cell.validation import FrameRejected
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions, PlanningStack, Snapshot
-from app.control.human import StreamSource
 from app.control.metrics import TrialMetrics
 from app.control.runtime import (
     IngestUnavailable,
@@ -25,7 +26,6 @@ from app.control.runtime import (
     TrialAlreadyRunning,
     run_headless_trial,
 )
-from app.control.validation import FrameRejected
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS
 
 

@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.control import _kernels
 from app.control.supervisor import (
     BackupComputer,
     HoldTrajectory,
@@ -28,9 +27,10 @@ from app.control.supervisor import (
     SupervisorConfig,
     _ramp_distance,
 )
-from app.planning.safety import SSMParams
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+from app.safety import _kernels
+from app.safety.ssm import SSMParams
 
 R_HUMAN = 0.1  # radius of the point person (m)
 CLEAR = 0.5  # clearance the fake planner requires (m)
@@ -747,8 +747,8 @@ def test_the_compiled_governor_equals_the_numpy_reference() -> None:
 
 
 def test_the_compiled_speed_scale_law_agrees_with_the_safety_module() -> None:
-    """The compiled governor's law is :func:`app.planning.safety.speed_scale` (the smallest over parts)."""
-    from app.planning.safety import speed_scale
+    """The compiled governor's law is :func:`app.safety.ssm.speed_scale` (the smallest over parts)."""
+    from app.safety.ssm import speed_scale
 
     params = SSMParams()
     law = SpeedScaleLaw(params)

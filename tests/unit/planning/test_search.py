@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from app.planning.roadmap import Roadmap
-from app.planning.safety import SSMParams, forecast_clearance
 from app.planning.search import Planner, PlannerConfig
 from app.planning.trajectory import Plan, Trajectory
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import BONES, NUM_JOINTS
+from app.safety.ssm import SSMParams, forecast_clearance
 
 R_ROBOT = 0.05
 R_HUMAN = 0.05

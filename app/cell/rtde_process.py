@@ -13,18 +13,18 @@ Layers:
 - :func:`worker_main`: the worker process. It connects (probe, then ``RTDEReceiveInterface`` and
   ``RTDEControlInterface``), then runs a fixed-rate loop at the controller's rate (500 Hz on e-Series):
   read the state, run the watchdog, apply commands, shape the set-point with the shared
-  :class:`~app.control.joint_tracking.JointTracker` (limits, speed scale, stop ramps) and send ``servoJ``.
+  :class:`~app.cell.joint_tracking.JointTracker` (limits, speed scale, stop ramps) and send ``servoJ``.
   No new state within ``watchdog_s`` means the connection is lost: the arm is stopped, the error reported,
   the software protective stop latched, and it reconnects up to ``reconnect_attempts`` times. Every exit
   path (close, loss, SIGTERM, parent death, exception) goes through ``servoStop`` / ``stopScript`` /
   ``disconnect`` in a ``finally``.
-- :class:`RtdeRobot`: the parent-side :class:`~app.control.robot.RobotBackend`. It talks to the worker
+- :class:`RtdeRobot`: the parent-side :class:`~app.cell.robot.RobotBackend`. It talks to the worker
   through shared memory (latest state, latest servo set-point: newest wins, nothing queues up) and two
   bounded queues (commands in, events out), detects a hung worker by its heartbeat, and raises
-  :class:`~app.control.robot.RobotConnectionError` with a message that says what to check.
+  :class:`~app.cell.robot.RobotConnectionError` with a message that says what to check.
 
 Times in the worker are ``time.monotonic`` (system-wide, so comparable with
-:class:`~app.control.clock.WallClock`).
+:class:`~app.cell.clock.WallClock`).
 """
 
 from __future__ import annotations
@@ -44,9 +44,9 @@ from typing import Any
 
 import numpy as np
 
-from app.control.clock import Clock, RateLoop, WallClock
-from app.control.joint_tracking import JointLimits, JointTracker, ServoCommand, warm_up_compiled
-from app.control.robot import RobotConnectionError, RobotState, _check_scale
+from app.cell.clock import Clock, RateLoop, WallClock
+from app.cell.joint_tracking import JointLimits, JointTracker, ServoCommand, warm_up_compiled
+from app.cell.robot import RobotConnectionError, RobotState, _check_scale
 
 __all__ = [
     "RTDE_PORT",
@@ -555,13 +555,13 @@ def _finalize(proc: Any, cmd_q: Any, timeout_s: float) -> None:
 
 
 class RtdeRobot:
-    """A UR arm over RTDE as a :class:`~app.control.robot.RobotBackend`; the work runs in a worker process.
+    """A UR arm over RTDE as a :class:`~app.cell.robot.RobotBackend`; the work runs in a worker process.
 
     Construction does nothing; :meth:`connect` (or ``with RtdeRobot(...) as robot:``) starts the worker and
     waits for the connection. The worker streams ``servoJ`` at ``rate_hz`` while a set-point is active:
     :meth:`servo` only publishes the newest set-point. :meth:`state` reports ``connected=False`` and a
     ``fault`` after a loss (the worker's watchdog) or when the worker stops answering (the heartbeat,
-    ``hung_timeout_s``); :meth:`servo` then raises :class:`~app.control.robot.RobotConnectionError`.
+    ``hung_timeout_s``); :meth:`servo` then raises :class:`~app.cell.robot.RobotConnectionError`.
 
     Speed scale and protective stop are applied in the worker (the set-point is ramped within the
     acceleration limits; the software protective stop does not trigger the controller's own one). A

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from app.cell.clock import SimClock
+from app.cell.demo import JointMove, run_demo, task_configurations
+from app.cell.human import save_clip
+from app.cell.operator_sim import SimulatedOperator
 from app.cli import app as cli_app
 from app.config import load_workcell
-from app.control.clock import SimClock
-from app.control.demo import JointMove, run_demo, task_configurations
-from app.control.human import save_clip
-from app.control.operator_sim import SimulatedOperator
 from app.planning.kinematics import QD_MAX, QDD_MAX, UR5e
 
 

@@ -40,10 +40,10 @@ from fake_rtde import (
     free_loopback_address,
 )
 
-from app.control.clock import WallClock
-from app.control.joint_tracking import JointLimits
-from app.control.robot import RobotBackend, RobotConnectionError
-from app.control.rtde_process import RTDE_PORT, RtdeRobot, probe_rtde
+from app.cell.clock import WallClock
+from app.cell.joint_tracking import JointLimits
+from app.cell.robot import RobotBackend, RobotConnectionError
+from app.cell.rtde_process import RTDE_PORT, RtdeRobot, probe_rtde
 
 Q0 = [0.1, -1.4, 1.3, -1.5, -1.6, 0.2]
 RATE_HZ = 125.0

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from app.cell.clock import SimClock
+from app.cell.joint_tracking import JointLimits, JointTracker, ServoCommand
+from app.cell.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot, make_robot
 from app.config import Settings
-from app.control.clock import SimClock
-from app.control.joint_tracking import JointLimits, JointTracker, ServoCommand
-from app.control.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot, make_robot
 
 HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 DT = 0.002
@@ -220,7 +220,7 @@ def test_tracker_reference_extrapolates_then_holds() -> None:
 
 
 def test_sim_robot_steps_on_the_wall_clock_without_a_thread() -> None:
-    from app.control.clock import WallClock
+    from app.cell.clock import WallClock
 
     clock = WallClock()
     robot = SimRobot(clock, q0=HOME)

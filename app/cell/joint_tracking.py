@@ -1,6 +1,6 @@
 """Joint-space servo tracking within position, velocity and acceleration limits (no I/O).
 
-Shared by :class:`~app.control.robot.SimRobot` (the tracker *is* the simulated arm) and the RTDE worker
+Shared by :class:`~app.cell.robot.SimRobot` (the tracker *is* the simulated arm) and the RTDE worker
 (the tracker shapes the set-points sent with ``servoJ``), so the real and the simulated arm obey the same
 limits, speed scale and stopping behaviour.
 """
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.control._kernels import track_substeps
+from app.cell._kernels import track_substeps
 
 __all__ = ["JointLimits", "JointTracker", "ServoCommand", "warm_up_compiled"]
 

@@ -1,13 +1,13 @@
 """Human sources: where the person's skeleton comes from, as canonical :class:`HumanFrame` at 30 Hz.
 
-- :class:`~app.control.operator_sim.SimulatedOperator`: a simulated participant (re-exported here).
+- :class:`~app.cell.operator_sim.SimulatedOperator`: a simulated participant (re-exported here).
 - :class:`ReplaySource`: a recorded clip (the shared CMU npz format or the app's own canonical recordings),
   placed and turned into the operator's area, looped.
 - :class:`StreamSource`: frames pushed by an external tracker as JSON (``docs/stream-protocol.md``), e.g. a
   ZED body-tracking client over ``/api/ingest``.
 
 Every source answers ``frame_at(t)`` with the newest frame at or before ``t`` (``None`` when there is none
-yet). Put :class:`~app.control.validation.ValidatedSource` in front of the simulated and replayed sources;
+yet). Put :class:`~app.cell.validation.ValidatedSource` in front of the simulated and replayed sources;
 the stream source validates every pushed message itself (it must answer the sender).
 """
 
@@ -24,8 +24,8 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from app.control.operator_sim import OperatorParams, SimulatedOperator
-from app.control.validation import FrameRejected, FrameValidator
+from app.cell.operator_sim import OperatorParams, SimulatedOperator
+from app.cell.validation import FrameRejected, FrameValidator
 from app.prediction.skeleton import JOINT_INDEX, JOINTS, NUM_JOINTS, PARENTS, HumanFrame
 
 if TYPE_CHECKING:
@@ -263,7 +263,7 @@ class StreamSource:
     from the runtime).
 
     Each message is parsed, converted to canonical world coordinates, completed, timed and validated before it
-    is queued; a rejected message raises :class:`~app.control.validation.FrameRejected` (counted).
+    is queued; a rejected message raises :class:`~app.cell.validation.FrameRejected` (counted).
 
     - Missing keypoints (``null``): the canonical joints they feed are filled from the previous valid frame
       (confidence 0); more than ``max_missing_joints`` missing, or none to fill from: rejected
@@ -281,7 +281,7 @@ class StreamSource:
         offset_window: Messages over which the clock offset is estimated.
     """
 
-    #: Frames are validated on push (see :class:`~app.control.validation.ValidatedSource`).
+    #: Frames are validated on push (see :class:`~app.cell.validation.ValidatedSource`).
     validates_frames = True
 
     def __init__(
@@ -312,7 +312,7 @@ class StreamSource:
         Raises:
             FrameRejected: the message is malformed or the frame invalid (the reason is counted).
         """
-        from app.control.stream_protocol import parse_message, to_canonical
+        from app.cell.stream_protocol import parse_message, to_canonical
 
         with self._lock:
             self.received += 1

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from app.planning.safety import (
+from app.safety.ssm import (
     SSMParams,
     forecast_clearance,
     max_safe_speed,

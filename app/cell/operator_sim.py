@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from app.control._kernels import body_pose
+from app.cell._kernels import body_pose
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
 
@@ -269,7 +269,7 @@ class _Body:
         return hand - self.l_hand * u, u
 
     def kernel_dims(self) -> np.ndarray:
-        """The segment lengths (m) in the order :func:`app.control._kernels.body_pose` reads them."""
+        """The segment lengths (m) in the order :func:`app.cell._kernels.body_pose` reads them."""
         return np.array(
             [
                 self.k,
@@ -297,7 +297,7 @@ class _Body:
 
     def pose(self, posture: np.ndarray, lh: np.ndarray, rh: np.ndarray, sway: np.ndarray) -> np.ndarray:
         """Joints (J, 3) in the body frame for a posture (lean, twist, dx, dy) and hand targets (compiled:
-        :func:`app.control._kernels.body_pose`; the same numbers as :meth:`pose_reference`)."""
+        :func:`app.cell._kernels.body_pose`; the same numbers as :meth:`pose_reference`)."""
         out = np.empty((NUM_JOINTS, 3))
         body_pose(
             np.asarray(posture, dtype=np.float64),
@@ -408,7 +408,7 @@ class OperatorAction:
 
 
 class SimulatedOperator:
-    """A simulated person working across the table (a :class:`~app.control.human.HumanSource`).
+    """A simulated person working across the table (a :class:`~app.cell.human.HumanSource`).
 
     Args:
         cell: The work cell (operator area, work spot, drop stations, table).

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from app.control.clock import Clock, RateLoop, SimClock, WallClock
+from app.cell.clock import Clock, RateLoop, SimClock, WallClock
 
 
 def test_sim_clock_moves_only_when_told() -> None:

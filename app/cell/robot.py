@@ -2,9 +2,9 @@
 
 - :class:`SimRobot` is a kinematic UR5e: it tracks servo set-points within the joint position, velocity
   and acceleration limits, applies a speed scale and a latched protective stop, and steps on any
-  :class:`~app.control.clock.Clock` (lazily, up to ``clock.now()``, or explicitly with :meth:`SimRobot.step`).
+  :class:`~app.cell.clock.Clock` (lazily, up to ``clock.now()``, or explicitly with :meth:`SimRobot.step`).
 - :class:`RtdeRobot` drives a real UR over ``ur_rtde`` from a worker process (see
-  :mod:`app.control.rtde_process` for why a process and not a thread).
+  :mod:`app.cell.rtde_process` for why a process and not a thread).
 
 Joint positions in rad, velocities in rad/s, times in seconds on the runtime's clock.
 """
@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
-from app.control.clock import Clock
-from app.control.joint_tracking import JointLimits, JointTracker, ServoCommand
+from app.cell.clock import Clock
+from app.cell.joint_tracking import JointLimits, JointTracker, ServoCommand
 
 if TYPE_CHECKING:
     from app.config import Settings
@@ -115,7 +115,7 @@ class SimRobot:
     """A kinematic UR5e that tracks servo commands within its limits.
 
     Time: the arm integrates lazily up to ``clock.now()`` whenever it is read or commanded, so it runs on a
-    :class:`~app.control.clock.WallClock` without a thread and on a :class:`~app.control.clock.SimClock`
+    :class:`~app.cell.clock.WallClock` without a thread and on a :class:`~app.cell.clock.SimClock`
     in step with the simulation. :meth:`step` integrates explicitly (the arm's own time then runs ahead of
     the clock until the clock catches up).
 
@@ -246,7 +246,7 @@ class SimRobot:
 def make_robot(settings: Settings, clock: Clock, *, q0: np.ndarray) -> RobotBackend:
     """The robot backend that ``settings.robot`` selects.
 
-    ``"sim"``: a :class:`SimRobot` at ``q0``. ``"rtde"``: an :class:`~app.control.rtde_process.RtdeRobot`
+    ``"sim"``: a :class:`SimRobot` at ``q0``. ``"rtde"``: an :class:`~app.cell.rtde_process.RtdeRobot`
     at ``settings.robot_host``, connected before it is returned (``q0`` is ignored: the real arm is where it
     is).
 
@@ -256,7 +256,7 @@ def make_robot(settings: Settings, clock: Clock, *, q0: np.ndarray) -> RobotBack
     if settings.robot == "sim":
         return SimRobot(clock, q0=q0)
     if settings.robot == "rtde":
-        from app.control.rtde_process import RtdeRobot
+        from app.cell.rtde_process import RtdeRobot
 
         robot = RtdeRobot(settings.robot_host, clock=clock)
         robot.connect()
@@ -265,9 +265,9 @@ def make_robot(settings: Settings, clock: Clock, *, q0: np.ndarray) -> RobotBack
 
 
 def __getattr__(name: str) -> object:
-    # ``from app.control.robot import RtdeRobot`` works without importing the RTDE module eagerly.
+    # ``from app.cell.robot import RtdeRobot`` works without importing the RTDE module eagerly.
     if name == "RtdeRobot":
-        from app.control.rtde_process import RtdeRobot
+        from app.cell.rtde_process import RtdeRobot
 
         return RtdeRobot
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -31,7 +31,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from app.control.validation import FrameRejected
+from app.cell.validation import FrameRejected
 from app.prediction.skeleton import NUM_JOINTS
 
 __all__ = [

@@ -10,8 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.config import Settings, load_workcell
-from app.control.human import (
+from app.cell.human import (
     HumanSource,
     OperatorParams,
     ReplaySource,
@@ -22,9 +21,10 @@ from app.control.human import (
     place_clip,
     save_clip,
 )
-from app.control.operator_sim import OracleForecaster, min_jerk
-from app.control.stream_protocol import make_message, message_from_zed_body, parse_message, send_messages
-from app.control.validation import CellVolume, FrameRejected, FrameValidator
+from app.cell.operator_sim import OracleForecaster, min_jerk
+from app.cell.stream_protocol import make_message, message_from_zed_body, parse_message, send_messages
+from app.cell.validation import CellVolume, FrameRejected, FrameValidator
+from app.config import Settings, load_workcell
 from app.prediction import adapters
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, bone_lengths
 
@@ -121,7 +121,7 @@ def test_the_compiled_body_pose_equals_the_numpy_reference() -> None:
     """The operator's compiled pose function gives the NumPy reference's joints, for bodies of several
     heights, postures from upright to a deep twisted lean, and hands near and out of reach (protraction and
     the clamped two-link chains)."""
-    from app.control.operator_sim import _Body
+    from app.cell.operator_sim import _Body
 
     rng = np.random.default_rng(6)
     for i in range(400):
@@ -459,7 +459,7 @@ def test_replay_client_example_builds_placed_timed_messages(tmp_path: Path) -> N
 
 
 def test_a_validated_stream_is_not_checked_twice() -> None:
-    from app.control.validation import StaleWatchdog, ValidatedSource
+    from app.cell.validation import StaleWatchdog, ValidatedSource
 
     stream = StreamSource(validator=FrameValidator.for_workcell(CELL))
     wrapped = ValidatedSource(stream, validator=FrameValidator.for_workcell(CELL), watchdog=StaleWatchdog())

@@ -24,7 +24,7 @@ def demo(
 ) -> None:
     """Run the simulated robot and a human source together on the wall clock; print the frame rate and the
     validation counters."""
-    from app.control.demo import run_demo
+    from app.cell.demo import run_demo
 
     if source not in ("sim", "replay"):
         raise typer.BadParameter(f"--source must be 'sim' or 'replay', got {source!r}")

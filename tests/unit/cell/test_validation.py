@@ -7,9 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from app.config import load_workcell
-from app.control.clock import SimClock
-from app.control.validation import (
+from app.cell.clock import SimClock
+from app.cell.validation import (
     REJECT_REASONS,
     CellVolume,
     FrameRejected,
@@ -17,6 +16,7 @@ from app.control.validation import (
     StaleWatchdog,
     ValidatedSource,
 )
+from app.config import load_workcell
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 
 CELL = load_workcell()

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
-from app.control.clock import Clock, RateLoop, WallClock
+from app.cell.clock import Clock, RateLoop, WallClock
 
 if TYPE_CHECKING:
     from app.config import Settings, WorkCell
@@ -101,14 +101,14 @@ def run_demo(
         seed: Participant seed of the simulated operator.
         rate_hz: Servo rate of the control loop (Hz).
         settings: Settings (work cell); default from the environment.
-        clock: The clock (default the wall clock; a :class:`~app.control.clock.SimClock` runs it instantly).
+        clock: The clock (default the wall clock; a :class:`~app.cell.clock.SimClock` runs it instantly).
         progress: Called with a one-line status about once a second.
     """
+    from app.cell.human import ReplaySource, SimulatedOperator
+    from app.cell.operator_sim import OperatorParams
+    from app.cell.robot import SimRobot
+    from app.cell.validation import FrameValidator, StaleWatchdog, ValidatedSource
     from app.config import Settings
-    from app.control.human import ReplaySource, SimulatedOperator
-    from app.control.operator_sim import OperatorParams
-    from app.control.robot import SimRobot
-    from app.control.validation import FrameValidator, StaleWatchdog, ValidatedSource
 
     settings = settings if settings is not None else Settings()
     cell = settings.load_workcell()

@@ -1,0 +1,198 @@
+"""Compiled inner loops of the speed governor (numba): run per servo tick on the robot's parts.
+
+:func:`max_scale` is the loop form of :meth:`app.control.supervisor.SeparationModel.max_scale_reference`
+and :func:`governed_scale` of :meth:`app.control.supervisor.Supervisor._governed_scale_reference`; the tests
+compare each kernel with its reference. They run per servo tick on arrays of seven robot parts, where NumPy's
+per-call cost (about a microsecond per operation, dozens to hundreds per call) is most of the time.
+
+The arithmetic is written in the references' order of operations and compiled without ``fastmath``, so the
+results agree to rounding. ``cache=True`` keeps the machine code next to this file (numba compiles in
+memory with a warning where that folder is read-only).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+__all__ = ["governed_scale", "law_scale", "max_scale"]
+
+
+@njit(cache=True, inline="always")
+def _approach(v0: float, dt: float, v_max_h: float, accel: float) -> tuple[float, float]:
+    """Worst-case approach distance (m) and speed (m/s) of a person ``dt`` (s) after moving at ``v0``."""
+    if dt < 0.0:
+        dt = 0.0
+    vmax = max(v_max_h, v0)
+    if accel <= 0.0:
+        return v0 * dt, v0
+    t1 = (vmax - v0) / accel
+    acc = min(dt, t1)
+    dist = v0 * acc + 0.5 * accel * acc * acc + vmax * max(dt - t1, 0.0)
+    return dist, min(v0 + accel * dt, vmax)
+
+
+@njit(cache=True, inline="always")
+def _sp(v_part: float, v_top: float, v_human: float, s0: float, t_r: float, decel: float) -> float:
+    """``S_p`` (m) of a part at ``v_part`` on a robot whose fastest part moves at ``v_top``."""
+    v_part = max(v_part, 0.0)
+    t_s = max(v_top, 0.0) / decel
+    return s0 + max(v_human, 0.0) * (t_r + t_s) + v_part * (t_r + 0.5 * t_s)
+
+
+@njit(cache=True)
+def _scale_ok(
+    sc: float,
+    d: np.ndarray,
+    vh: np.ndarray,
+    vp: np.ndarray,
+    vtop: float,
+    rate: float,
+    env_u: np.ndarray,
+    params: np.ndarray,
+) -> bool:
+    s0, t_r, decel, v_max_h, accel = params[0], params[1], params[2], params[3], params[4]
+    r = max(rate, 1e-6)
+    for i in range(d.shape[0]):
+        a = rate * vp[i]
+        v = sc * vp[i]
+        for k in range(env_u.shape[0]):
+            t = env_u[k] * sc / r
+            x_h, v_h = _approach(vh[i], t, v_max_h, accel)
+            travel = v * t - 0.5 * a * t * t
+            s_t = sc - rate * t
+            need = _sp(s_t * vp[i], s_t * vtop, v_h, s0, t_r, decel)
+            if not (d[i] - x_h - travel - need >= 0.0):
+                return False
+    return True
+
+
+@njit(cache=True)
+def max_scale(
+    d: np.ndarray,
+    vh: np.ndarray,
+    vp: np.ndarray,
+    rate: float,
+    lo: float,
+    hi: float,
+    scales: np.ndarray,
+    env_u: np.ndarray,
+    params: np.ndarray,
+) -> float:
+    """Largest safe path-speed scale in ``[lo, hi]`` for parts at separations ``d`` (L,) (m), the person
+    approaching each at ``vh`` (L,) (m/s), the parts moving at ``s * vp`` (L,) (m/s), a brake lowering the
+    scale at ``rate`` (1/s). ``scales``: the grid; ``env_u``: the instants of a brake (fractions of it);
+    ``params``: ``(s0_m, t_reaction_s, stop_decel_mps2, human_speed_max_mps, human_accel_mps2)``."""
+    n = d.shape[0]
+    if n == 0:
+        return 1.0
+    s0, t_r, decel, v_max_h, accel = params[0], params[1], params[2], params[3], params[4]
+    vtop = vp[0]
+    for i in range(1, n):
+        vtop = max(vtop, vp[i])
+    lo = max(lo, 0.0)
+    hi = min(hi, 1.0)
+    # quick accept (most ticks): every term at its largest over a brake from the highest scale asked for
+    t_b = hi / max(rate, 1e-6)
+    quick = True
+    for i in range(n):
+        x_b, v_b = _approach(vh[i], t_b, v_max_h, accel)
+        worst = _sp(hi * vp[i], hi * vtop, v_b, s0, t_r, decel) + x_b + hi * vp[i] * t_b
+        if not (d[i] >= worst):
+            quick = False
+            break
+    if quick:
+        return hi
+    # the candidates in increasing order: lo, the grid strictly inside (lo, hi), hi; the answer is the
+    # last one of the leading run of safe ones
+    if not _scale_ok(lo, d, vh, vp, vtop, rate, env_u, params):
+        return 0.0
+    if not hi > lo:
+        return lo
+    best = lo
+    for j in range(scales.shape[0]):
+        sc = scales[j]
+        if sc - lo > 0.0 and sc - hi < 0.0:
+            if not _scale_ok(sc, d, vh, vp, vtop, rate, env_u, params):
+                return best
+            best = sc
+    if _scale_ok(hi, d, vh, vp, vtop, rate, env_u, params):
+        return hi
+    return best
+
+
+@njit(cache=True, inline="always")
+def _law_one(d: float, v_nom: float, v_h: float, law: np.ndarray) -> float:
+    """ISO/TS 15066 speed-scaling law of one part (:func:`app.safety.ssm.speed_scale`); ``law``:
+    ``(T_r + T_s, C + Z_d + Z_r, T_r + T_s / 2)``."""
+    v_h = max(v_h, 0.0)
+    slack = d - v_h * law[0] - law[1]
+    v_max = max(slack, 0.0) / law[2]
+    if not math.isfinite(d):
+        return 1.0 if d > 0 else 0.0
+    if v_nom <= 1e-9:
+        return 1.0 if v_max > 0.0 else 0.0
+    return min(1.0, v_max / max(v_nom, 1e-300))
+
+
+@njit(cache=True)
+def law_scale(d: np.ndarray, v_nom: np.ndarray, v_h: np.ndarray, law: np.ndarray) -> float:
+    """The smallest scale of the speed-scaling law over parts (L,) (1 for none)."""
+    out = 1.0
+    for i in range(d.shape[0]):
+        out = min(out, _law_one(d[i], v_nom[i], v_h[i], law))
+    return out
+
+
+@njit(cache=True)
+def governed_scale(
+    sep_m: np.ndarray,
+    x_h0: np.ndarray,
+    v_h0: np.ndarray,
+    travel_m: np.ndarray,
+    vmax: np.ndarray,
+    dt_h: float,
+    s: float,
+    dt: float,
+    rate: float,
+    lo: float,
+    hi: float,
+    scales: np.ndarray,
+    env_u: np.ndarray,
+    params: np.ndarray,
+    law: np.ndarray,
+) -> float:
+    """The speed governor's target scale for the next tick (parts (L,)).
+
+    The separation of each part at the next tick is bounded below from the last measurement ``sep_m``
+    (m), the person's worst-case approach since (from ``v_h0`` (m/s), ``dt_h`` (s) after the measurement,
+    less the ``x_h0`` (m) already counted; NaN ``dt_h``: no measurement, the fastest approach), the part's
+    travel since ``travel_m`` and its travel this tick (``s * vmax * dt``). The target is the braking
+    envelope's largest safe scale in ``[lo, hi]`` (:func:`max_scale`) over the parts that move
+    (``vmax > 1e-4`` m/s), limited by the speed-scaling law at the measured ``v_h0`` when ``law`` is not
+    empty (:func:`law_scale`)."""
+    n = sep_m.shape[0]
+    v_max_h, accel = params[3], params[4]
+    d = np.empty(n)
+    vh = np.empty(n)
+    vp = np.empty(n)
+    vm = np.empty(n)
+    k = 0
+    for i in range(n):
+        if vmax[i] > 1e-4:
+            if math.isnan(dt_h):
+                sep_lb, v_h = sep_m[i], v_max_h
+            else:
+                x1, v_h = _approach(v_h0[i], dt_h, v_max_h, accel)
+                sep_lb = sep_m[i] - (x1 - x_h0[i]) - travel_m[i]
+            d[k] = sep_lb - s * vmax[i] * dt
+            vh[k] = v_h
+            vp[k] = vmax[i]
+            vm[k] = max(v_h0[i], 0.0)
+            k += 1
+    target = max_scale(d[:k], vh[:k], vp[:k], rate, lo, hi, scales, env_u, params)
+    if law.shape[0] > 0 and k > 0:
+        target = min(target, max(law_scale(d[:k], vp[:k], vm[:k], law), 0.0))
+    return target
