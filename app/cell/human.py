@@ -193,13 +193,20 @@ def place_clip(joints: np.ndarray, cell: WorkCell, *, yaw_offset: float = 0.0) -
 
 
 class ReplaySource:
-    """Replays a clip as the operator, looped (or held on its last frame).
+    """Replays a clip as the operator, played forth and back (or held on its last frame).
+
+    A looped clip that jumped back to its first frame would make the person teleport every pass (a real
+    person never does; the monitor would count the jump as the robot's violation). So the clip plays
+    through, then plays backwards from its last frame to its first, then forwards again: the person's
+    motion stays continuous (it reverses at each end) and every frame keeps a later timestamp than the one
+    before.
 
     Args:
         path: The clip (see :func:`load_clip`).
         cell: The work cell (for the placement).
         t0: Time of the clip's first frame (s, runtime clock).
-        loop: Start again after the end; otherwise hold the last frame (the stream then goes stale).
+        loop: Go on after the end, backwards then forwards (ping-pong); otherwise hold the last frame (the
+            stream then goes stale).
         place: Place and turn the clip into the operator area (see :func:`place_clip`); off for recordings
             already in this cell's world frame.
         yaw_offset: Extra turn (rad) on top of facing the robot.
@@ -226,25 +233,32 @@ class ReplaySource:
 
     @property
     def duration_s(self) -> float:
-        """Length of one pass (s)."""
-        return self.clip.period_s
+        """Length of one pass (s): first to last frame."""
+        return float(self.clip.times[-1])
 
     def frame_at(self, t: float) -> HumanFrame | None:
         u = t - self.t0
         if u < 0:
             return None
         times, n = self.clip.times, len(self.clip.times)
-        if self.loop:
-            cycle = math.floor(u / self.clip.period_s)
-            within = u - cycle * self.clip.period_s
+        span = float(times[-1])
+        if n == 1 or not self.loop:
+            cycle, k = 0, max(int(np.searchsorted(times, min(u, span) + 1e-9, side="right")) - 1, 0)
+            t_frame = float(times[k])
         else:
-            cycle, within = 0, min(u, float(times[-1]))
-        k = max(int(np.searchsorted(times, within + 1e-9, side="right")) - 1, 0)
+            cycle = math.floor(u / span)
+            within = u - cycle * span
+            if cycle % 2 == 0:  # forwards: the newest frame at or before ``within``
+                k = max(int(np.searchsorted(times, within + 1e-9, side="right")) - 1, 0)
+                t_frame = float(times[k])
+            else:  # backwards: frame k is shown at span - times[k]
+                k = min(int(np.searchsorted(times, span - within - 1e-9, side="left")), n - 1)
+                t_frame = span - float(times[k])
         key = cycle * n + k
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1]
         frame = HumanFrame(
-            t=self.t0 + cycle * self.clip.period_s + float(times[k]),
+            t=self.t0 + cycle * span + t_frame,
             joints=self.joints[k],
             confidence=self.clip.confidence[k],
         )

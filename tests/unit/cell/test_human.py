@@ -220,21 +220,30 @@ def _sim_clip(tmp_path: Path, seconds: float = 2.0) -> Path:
     return save_clip(tmp_path / "rec.npz", frames)
 
 
-def test_recordings_round_trip_and_replay_in_a_loop(tmp_path: Path) -> None:
+def test_recordings_round_trip_and_replay_forth_and_back_without_a_jump(tmp_path: Path) -> None:
     path = _sim_clip(tmp_path)
     clip = load_clip(path)
     assert clip.source == "canonical" and clip.joints.shape == (60, NUM_JOINTS, 3)
     assert clip.period_s == pytest.approx(2.0)
     src = ReplaySource(path, CELL, t0=10.0, place=False)
+    span = 59 / 30  # first to last frame
+    assert src.duration_s == pytest.approx(span)
     assert src.frame_at(9.9) is None
     f0 = src.frame_at(10.0)
     np.testing.assert_allclose(f0.joints, clip.joints[0], atol=1e-6)
-    again = src.frame_at(12.0 + 1 / 60)  # second pass, frame 0
-    assert again.t == pytest.approx(12.0)
-    np.testing.assert_allclose(again.joints, f0.joints)
-    # timestamps keep increasing across loops
-    ts = [src.frame_at(10.0 + k / 45).t for k in range(300)]
-    assert np.all(np.diff(ts) >= 0) and ts[-1] > 16.0
+    # after the last frame the clip plays backwards: the frame just after the turn is the one before the last
+    back = src.frame_at(10.0 + span + 1 / 30 + 1e-6)
+    assert back.t == pytest.approx(10.0 + span + 1 / 30)
+    np.testing.assert_allclose(back.joints, clip.joints[-2])
+    # and forwards again from the first frame after the second pass
+    fwd = src.frame_at(10.0 + 2 * span + 1e-6)
+    np.testing.assert_allclose(fwd.joints, clip.joints[0])
+    # over many passes: timestamps increase and no frame-to-frame jump exceeds the clip's own largest step
+    frames = [src.frame_at(10.0 + k / 30 + 1e-6) for k in range(400)]
+    ts = np.array([f.t for f in frames])
+    assert np.all(np.diff(ts) > 0) and ts[-1] > 10.0 + 6 * span
+    step = lambda j: np.linalg.norm(np.diff(j, axis=0), axis=-1).max()  # noqa: E731
+    assert step(np.stack([f.joints for f in frames])) <= step(clip.joints) + 1e-12
     held = ReplaySource(path, CELL, place=False, loop=False)
     assert held.frame_at(100.0).t == pytest.approx(59 / 30)  # the last frame, held: the stream goes stale
 
@@ -268,7 +277,7 @@ def test_cmu_clip_replays_in_the_operator_area(cmu_dir: Path) -> None:
         accepted += 1
     assert accepted == 200
     f = src.frame_at(src.duration_s + 0.001)
-    assert f.t == pytest.approx(src.duration_s)  # looped
+    assert f.t == pytest.approx(src.duration_s)  # the last frame, then backwards
 
 
 def test_bad_clip_files_are_explained(tmp_path: Path) -> None:
