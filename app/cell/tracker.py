@@ -15,10 +15,10 @@ last one, and a dropped frame is never delivered. Noise and drops are drawn from
 
 Defaults (:class:`TrackerModel`):
 
-- ``latency_s = 0.06``: capture to delivery of a ZED 2i body-tracking skeleton at 30 Hz (Stereolabs quotes
-  about 60 ms glass-to-skeleton for the ``HUMAN_BODY_FAST`` model on an embedded GPU);
-- ``noise_m = 0.01``: per-joint, per-axis standard deviation (a ~1 cm jitter of stereo body tracking at
-  1-2 m);
+- ``latency_s = 0.06``: capture to delivery, the figure this project takes for a ZED 2/2i's body tracking
+  at 30 Hz (not measured here: measure your own tracker by comparing its frames' capture stamps with
+  their arrival on the runtime's clock, and set it);
+- ``noise_m = 0.01``: per-joint, per-axis standard deviation, about 1 cm (stereo body tracking at 1-2 m);
 - ``drop_p = 0.01`` single dropped frames, and bursts (occlusions) starting with ``burst_p = 0.002`` per
   frame, lasting up to ``max_burst_s = 0.3`` s;
 - ``rate_hz = 30``.
