@@ -23,15 +23,18 @@ from __future__ import annotations
 
 import bisect
 import copy
+import functools
 import logging
 import math
 from collections import deque
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from app.cell._kernels import body_pose
+from app.cell.population import Population, load_population
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
 
@@ -155,25 +158,28 @@ class OperatorParams:
             raise ValueError(f"handedness must be 'right' or 'left', got {self.handedness!r}")
 
     @classmethod
-    def draw(cls, seed: int) -> OperatorParams:
-        """A random participant, reproducible from ``seed``."""
-        rng = np.random.default_rng([int(seed), 0x0BE7A])
-        return cls(
-            height_m=float(np.clip(rng.normal(1.72, 0.09), 1.52, 1.95)),
-            handedness="right" if rng.random() < 0.88 else "left",
-            hand_speed_mps=float(rng.uniform(1.0, 1.5)),
-            reaction_s=float(rng.uniform(0.3, 1.2)),
-            assemble_s=float(np.clip(rng.lognormal(math.log(3.0), 0.35), 1.2, 8.0)),
-            reach_rate_hz=float(rng.uniform(0.03, 0.15)),
-            reach_depth=float(rng.beta(2.0, 2.0)),
-            stand_forward_m=float(rng.uniform(0.0, 0.1)),
-            stand_left_m=float(rng.uniform(-0.12, 0.12)),
-            sway_m=float(rng.uniform(0.005, 0.015)),
-            noise_m=float(rng.uniform(0.003, 0.008)),
-        )
+    def draw(cls, seed: int, population: Population | None = None) -> OperatorParams:
+        """A random participant of ``population`` (default: the shipped one), reproducible from ``seed``."""
+        return cls(**(population if population is not None else cls.population()).draw(seed))
+
+    @classmethod
+    def population(cls, path: str | Path | None = None) -> Population:
+        """The population of participants in ``path`` (None: the shipped ``app/assets/population.toml``).
+
+        Raises:
+            PopulationError: The file cannot be used (the message names it and says why).
+        """
+        if path is None:
+            return _default_population()
+        return load_population(path, [f.name for f in fields(cls)], lambda d: cls(**d))
 
     def to_dict(self) -> dict[str, float | str]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@functools.cache
+def _default_population() -> Population:
+    return load_population(None, [f.name for f in fields(OperatorParams)], lambda d: OperatorParams(**d))
 
 
 class _Track:

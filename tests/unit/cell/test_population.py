@@ -1,0 +1,55 @@
+"""The simulated population is read from a TOML file; bad files are explained, not replaced."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from app.cell.operator_sim import OperatorParams
+from app.cell.population import DEFAULT_POPULATION_PATH, PopulationError
+
+
+def test_the_shipped_population_draws_reproducible_valid_participants() -> None:
+    pop = OperatorParams.population()
+    assert OperatorParams.draw(11) == OperatorParams.draw(11, pop)
+    drawn = [OperatorParams.draw(s) for s in range(200)]
+    heights = [p.height_m for p in drawn]
+    assert min(heights) >= 1.52 and max(heights) <= 1.95
+    assert 0.7 < sum(p.handedness == "right" for p in drawn) / len(drawn) < 0.97
+    assert all(0.3 <= p.reaction_s <= 1.2 for p in drawn)
+
+
+def test_a_population_file_changes_the_participants(tmp_path: Path) -> None:
+    text = DEFAULT_POPULATION_PATH.read_text().replace(
+        "[reaction_s]\nuniform = { lo = 0.3, hi = 1.2 }", "[reaction_s]\nuniform = { lo = 2.0, hi = 2.5 }"
+    )
+    path = tmp_path / "slow.toml"
+    path.write_text(text)
+    slow = OperatorParams.population(path)
+    assert all(2.0 <= OperatorParams.draw(s, slow).reaction_s <= 2.5 for s in range(50))
+    assert OperatorParams.draw(3, slow).height_m == OperatorParams.draw(3).height_m  # same draw order
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda t: t + "\n[wings]\nuniform = { lo = 0, hi = 1 }\n", "unknown parameter"),
+        (lambda t: t.replace("[sway_m]\nuniform = { lo = 0.005, hi = 0.015 }", ""), "missing \\['sway_m'\\]"),
+        (lambda t: t.replace("beta = { a = 2.0, b = 2.0 }", "gamma = { k = 2.0 }"), "is not one of"),
+        (lambda t: t.replace("beta = { a = 2.0, b = 2.0 }", "beta = { a = 2.0 }"), "missing \\['b'\\]"),
+        (lambda t: t.replace("lo = 0.3, hi = 1.2", "lo = 30.0, hi = 31.0"), "invalid participant"),
+        (lambda t: t + "\n[[broken", "not valid TOML"),
+    ],
+)
+def test_bad_population_files_are_explained(tmp_path: Path, edit, message: str) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "bad.toml"
+    path.write_text(edit(DEFAULT_POPULATION_PATH.read_text()))
+    with pytest.raises(PopulationError, match=message) as info:
+        OperatorParams.population(path)
+    assert str(path) in str(info.value)
+
+
+def test_a_missing_population_file_is_an_error_not_the_default(tmp_path: Path) -> None:
+    with pytest.raises(PopulationError, match="does not exist"):
+        OperatorParams.population(tmp_path / "nope.toml")
