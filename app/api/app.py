@@ -21,7 +21,7 @@ import threading
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fastapi import FastAPI, Request, status
 from fastapi.exceptions import RequestValidationError
@@ -31,7 +31,22 @@ from app.api.auth import ensure_api_token
 from app.api.deps import ApiContext
 from app.api.live import LiveHub, LiveLimits
 from app.api.recorder import TrialRecorder
+from app.api.version import app_version
 from app.config import Settings
+from app.control.metrics import TrialMetrics
+from app.control.runtime import Runtime, TrialAlreadyRunning
+from app.study.repository import (
+    ConflictError,
+    NotFoundError,
+    RecordedFrames,
+    StudyRepository,
+    TrialStateError,
+)
+
+if TYPE_CHECKING:  # the 3D view is optional (viser); it is imported when it starts
+    from sqlalchemy.engine import Engine
+
+    from app.ui.scene import CellScene
 
 logger = logging.getLogger(__name__)
 
@@ -77,10 +92,9 @@ class StopOnce:
             self._done.set()
 
 
-def _open_repository(settings: Settings) -> tuple[Any, Any]:
+def _open_repository(settings: Settings) -> tuple[StudyRepository, Engine]:
     """Migrate the database to head and open a repository on it; returns ``(repo, engine)``."""
     from app.study.db import make_engine, upgrade_to_head
-    from app.study.repository import StudyRepository
 
     url = settings.resolved_database_url()
     upgrade_to_head(url)
@@ -88,18 +102,17 @@ def _open_repository(settings: Settings) -> tuple[Any, Any]:
     return StudyRepository(engine), engine
 
 
-def _make_runtime(settings: Settings) -> Any:
+def _make_runtime(settings: Settings) -> Runtime:
     from app.control.engine import EngineOptions
-    from app.control.runtime import Runtime
 
     return Runtime(settings, options=EngineOptions(record_frames=True))  # frames are stored for replay
 
 
-def _frames_getter(runtime: Any) -> Callable[[Any], Any]:
+def _frames_getter(runtime: Runtime) -> Callable[[TrialMetrics], RecordedFrames | None]:
     """``frames_of(metrics)``: the recorded frames of the trial whose result carries ``metrics`` (the
     runtime's ``last_result``), as the study's ``RecordedFrames``; None when not recorded."""
 
-    def frames_of(metrics: Any) -> Any:
+    def frames_of(metrics: TrialMetrics) -> RecordedFrames | None:
         result = getattr(runtime, "last_result", None)
         if result is None or getattr(result, "metrics", None) is not metrics:
             return None
@@ -113,7 +126,7 @@ def _frames_getter(runtime: Any) -> Callable[[Any], Any]:
     return frames_of
 
 
-def _start_scene(settings: Settings, runtime: Any) -> Any:
+def _start_scene(settings: Settings, runtime: Runtime) -> CellScene | None:
     """Start the viser 3D view when the UI package provides it; None (logged) when it cannot start."""
     try:
         from app.ui.scene import CellScene
@@ -141,8 +154,8 @@ def _start_scene(settings: Settings, runtime: Any) -> Any:
 def create_app(
     settings: Settings,
     *,
-    runtime: Any = None,
-    repo: Any = None,
+    runtime: Runtime | None = None,
+    repo: StudyRepository | None = None,
     limits: LiveLimits | None = None,
     scene: bool = True,
 ) -> FastAPI:
@@ -238,15 +251,6 @@ def create_app(
     return app
 
 
-def app_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("hrc-proactive")
-    except PackageNotFoundError:
-        return "0.0.0"
-
-
 def _include_routes(app: FastAPI) -> None:
     from app.api.deps import AuthDep
     from app.api.routes import export, health, live, participants, robot, sessions, summary, trials
@@ -273,6 +277,26 @@ def _format_loc(loc: tuple[Any, ...] | list[Any]) -> str:
     return ".".join(str(p) for p in loc) or "<request>"
 
 
+#: Exceptions of the study layer and the runtime that a request may raise, and the HTTP status each one is
+#: answered with (the body's ``detail`` is the exception's message). A route that can say more catches its
+#: exception first (``POST /trials`` names the trial that runs). Subclasses map with their base class.
+ERROR_STATUS: dict[type[Exception], int] = {
+    NotFoundError: status.HTTP_404_NOT_FOUND,
+    ConflictError: status.HTTP_409_CONFLICT,
+    TrialStateError: status.HTTP_409_CONFLICT,
+    TrialAlreadyRunning: status.HTTP_409_CONFLICT,
+}
+
+
+def _status_handler(code: int) -> Callable[[Request, Exception], Any]:
+    """An exception handler that answers ``code`` with the exception's message as ``detail``."""
+
+    async def handler(_request: Request, exc: Exception) -> JSONResponse:
+        return JSONResponse(status_code=code, content={"detail": str(exc)})
+
+    return handler
+
+
 def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _validation(_request: Request, exc: RequestValidationError) -> JSONResponse:
@@ -292,16 +316,8 @@ def _install_error_handlers(app: FastAPI) -> None:
 
     from sqlalchemy.exc import DataError, OperationalError
 
-    from app.study.repository import ConflictError, NotFoundError, TrialStateError
-
-    @app.exception_handler(NotFoundError)
-    async def _not_found(_request: Request, exc: NotFoundError) -> JSONResponse:
-        return JSONResponse(status_code=status.HTTP_404_NOT_FOUND, content={"detail": str(exc)})
-
-    @app.exception_handler(ConflictError)
-    @app.exception_handler(TrialStateError)
-    async def _conflict(_request: Request, exc: Exception) -> JSONResponse:
-        return JSONResponse(status_code=status.HTTP_409_CONFLICT, content={"detail": str(exc)})
+    for exc_class, code in ERROR_STATUS.items():
+        app.add_exception_handler(exc_class, _status_handler(code))
 
     @app.exception_handler(DataError)
     async def _bad_value(request: Request, exc: DataError) -> JSONResponse:

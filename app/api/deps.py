@@ -9,17 +9,17 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from app.api.auth import tokens_match
+from app.api.live import LiveHub
+from app.api.recorder import TrialRecorder
 from app.config import Settings
-
-if TYPE_CHECKING:
-    from app.api.live import LiveHub
-    from app.api.recorder import TrialRecorder
+from app.control.runtime import Runtime
+from app.study.repository import StudyRepository
 
 
 @dataclass
@@ -29,8 +29,8 @@ class ApiContext:
     Attributes:
         settings: The application settings.
         token: The operator token (never logged).
-        runtime: The live runtime (``app.control.runtime.Runtime`` or a test double with the same methods).
-        repo: The study repository (``app.study.repository.StudyRepository`` or a double).
+        runtime: The live runtime (tests pass a double with the same methods).
+        repo: The study repository (tests may pass a double with the same methods).
         hub: The live-snapshot fan-out to WebSocket clients.
         recorder: Writes trial events and results into the repository off the control thread.
         trial_lock: Serialises trial starts so that two concurrent requests cannot both start one.
@@ -40,8 +40,8 @@ class ApiContext:
 
     settings: Settings
     token: str
-    runtime: Any
-    repo: Any
+    runtime: Runtime
+    repo: StudyRepository
     hub: LiveHub
     recorder: TrialRecorder
     trial_lock: threading.Lock = field(default_factory=threading.Lock)
@@ -60,20 +60,23 @@ ContextDep = Annotated[ApiContext, Depends(get_context)]
 
 
 def get_settings(ctx: ContextDep) -> Settings:
+    """The application settings."""
     return ctx.settings
 
 
-def get_repo(ctx: ContextDep) -> Any:
+def get_repo(ctx: ContextDep) -> StudyRepository:
+    """The study repository."""
     return ctx.repo
 
 
-def get_runtime(ctx: ContextDep) -> Any:
+def get_runtime(ctx: ContextDep) -> Runtime:
+    """The live runtime."""
     return ctx.runtime
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-RepoDep = Annotated[Any, Depends(get_repo)]
-RuntimeDep = Annotated[Any, Depends(get_runtime)]
+RepoDep = Annotated[StudyRepository, Depends(get_repo)]
+RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
 
 _bearer = HTTPBearer(
     auto_error=False,

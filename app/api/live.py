@@ -33,6 +33,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from app.control.runtime import Runtime, Subscription
+
 logger = logging.getLogger(__name__)
 
 # WebSocket close codes (RFC 6455 section 7.4.1).
@@ -149,12 +151,11 @@ class LiveHub:
     """Fans runtime snapshots out to the ``/api/live`` clients (see the module docstring).
 
     Args:
-        runtime: Anything with ``subscribe(maxsize) -> Subscription`` (``get(timeout)``, ``close()``) and
-            ``snapshot()``.
+        runtime: The runtime; only ``subscribe(maxsize)`` and ``snapshot()`` are used (tests pass a double).
         limits: Rate and queue bounds.
     """
 
-    def __init__(self, runtime: Any, *, limits: LiveLimits | None = None) -> None:
+    def __init__(self, runtime: Runtime, *, limits: LiveLimits | None = None) -> None:
         self._runtime = runtime
         self.limits = limits or LiveLimits()
         self._clients: set[ClientQueue] = set()
@@ -162,7 +163,7 @@ class LiveHub:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._subscription: Any = None
+        self._subscription: Subscription | None = None
         self.published = 0
         self.latest_text: str | None = None
         self.ingest_clients = 0

@@ -16,6 +16,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from app.control.metrics import TrialEvent, TrialMetrics
+from app.study.repository import RecordedFrames, StudyRepository
+
 logger = logging.getLogger(__name__)
 
 #: Runtime trial statuses stored as they are; anything else ends the trial as ``aborted`` with that reason.
@@ -25,14 +28,14 @@ STORED_STATUSES = ("completed", "aborted")
 @dataclass(frozen=True, slots=True)
 class _TrialEnd:
     trial_id: int
-    metrics: Any
-    events: tuple[Any, ...]
+    metrics: TrialMetrics
+    events: tuple[TrialEvent, ...]
     status: str
     reason: str | None
-    frames: Any = None
+    frames: RecordedFrames | None = None
 
 
-def end_reason(events: Sequence[Any]) -> str | None:
+def end_reason(events: Sequence[TrialEvent]) -> str | None:
     """Why a trial ended, from its ``trial_ended`` event (payload ``reason``), or None."""
     for ev in reversed(events):
         if getattr(ev, "kind", None) == "trial_ended":
@@ -55,9 +58,9 @@ class TrialRecorder:
 
     def __init__(
         self,
-        repo: Any,
+        repo: StudyRepository,
         *,
-        frames_of: Callable[[Any], Any] | None = None,
+        frames_of: Callable[[TrialMetrics], RecordedFrames | None] | None = None,
         queue_size: int = 64,
         put_timeout_s: float = 1.0,
     ) -> None:
@@ -119,7 +122,7 @@ class TrialRecorder:
         return True if done is None else done.wait(timeout_s)
 
     # ---- runtime listeners (called on runtime threads: must not block) --------------------------------
-    def on_event(self, trial_id: int | None, event: Any) -> None:
+    def on_event(self, trial_id: int | None, event: TrialEvent) -> None:
         if trial_id is None:
             return
         with self._lock:
@@ -132,7 +135,9 @@ class TrialRecorder:
         except Exception:
             logger.exception("trial %s: an event could not be queued for the database", trial_id)
 
-    def on_trial_end(self, trial_id: int, metrics: Any, events: Sequence[Any], status: str) -> None:
+    def on_trial_end(
+        self, trial_id: int, metrics: TrialMetrics, events: Sequence[TrialEvent], status: str
+    ) -> None:
         events = tuple(events or ())
         stored_status = status if status in STORED_STATUSES else "aborted"
         reason = end_reason(events) if status in STORED_STATUSES else str(status)

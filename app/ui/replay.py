@@ -27,6 +27,7 @@ import numpy as np
 from app.config import WorkCell
 from app.prediction.skeleton import NUM_JOINTS
 from app.ui.scene import CellView, RobotCapsulesFn
+from app.ui.viser_server import ViserServerThread
 
 if TYPE_CHECKING:
     import viser
@@ -250,14 +251,10 @@ class TrialReplay:
             raise ValueError(f"rate_hz must be in (0, 120], got {rate_hz}")
         self.timeline = timeline
         self._cell = cell
-        self._port = int(port)
-        self._host = host
+        self._srv = ViserServerThread(host=host, port=port, name="hrc-replay")
         self._robot_capsules = robot_capsules
         self._period_s = 1.0 / rate_hz
-        self._server: viser.ViserServer | None = None
         self._view: CellView | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
         self._lock = threading.Lock()
         self._t = 0.0
         self._playing = False
@@ -268,44 +265,28 @@ class TrialReplay:
 
     def start(self) -> None:
         """Start the viser server, draw the first frame and the controls, and the playback thread."""
-        if self._server is not None:
+        if self._srv.server is not None:
             raise RuntimeError("TrialReplay.start() called twice; call stop() first")
-        import viser
-
         capsules = self._robot_capsules
         if capsules is None:
             from app.planning.collision import CollisionModel
 
             capsules = CollisionModel(self._cell).robot_capsules
-        server = viser.ViserServer(host=self._host, port=self._port, verbose=False)
-        try:
-            server.initial_camera.position = (2.3, -2.0, 1.6)
-            server.initial_camera.look_at = (0.45, 0.0, 0.1)
+
+        def build(server: viser.ViserServer) -> None:
             self._view = CellView(server, self._cell, robot_capsules=capsules)
             trace = self.timeline.tool_trace()
             if len(trace):
                 server.scene.add_line_segments("/replay/tool_trace", trace, (150, 160, 170), thickness=0.004)
             self._build_gui(server)
-            self._server = server
             self.seek(0.0)
-        except BaseException:
-            server.stop()
-            self._server = None
-            raise
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="hrc-replay", daemon=True)
-        self._thread.start()
-        logger.info("replay of trial %s at http://%s:%d", self.timeline.trial_id, self._host, self.port)
+
+        self._srv.start(build, self._run)
+        logger.info("replay of trial %s at http://%s:%d", self.timeline.trial_id, self._srv.host, self.port)
 
     def stop(self) -> None:
         """Stop playback and the server (idempotent)."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            self._thread = None
-        if self._server is not None:
-            self._server.stop()
-            self._server = None
+        self._srv.stop()
 
     def __enter__(self) -> TrialReplay:
         self.start()
@@ -316,7 +297,8 @@ class TrialReplay:
 
     @property
     def port(self) -> int:
-        return self._server.get_port() if self._server is not None else self._port
+        """The port the viser server is bound to (the requested one until :meth:`start`)."""
+        return self._srv.port
 
     @property
     def view(self) -> CellView:
@@ -407,9 +389,9 @@ class TrialReplay:
             self._playing = False
         return frame
 
-    def _run(self) -> None:
+    def _run(self, stop: threading.Event) -> None:
         last = time.monotonic()
-        while not self._stop.wait(self._period_s):
+        while not stop.wait(self._period_s):
             now = time.monotonic()
             dt_s, last = now - last, now
             try:

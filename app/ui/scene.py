@@ -30,6 +30,7 @@ import numpy as np
 from app.config import Box, WorkCell
 from app.prediction.skeleton import BONES, JOINT_INDEX, NUM_JOINTS
 from app.ui._geometry import segment_instances, unit_cylinder, unit_sphere
+from app.ui.viser_server import ViserServerThread
 
 if TYPE_CHECKING:
     import viser
@@ -638,17 +639,13 @@ class CellScene:
             raise ValueError(f"rate_hz must be in (0, 120], got {rate_hz}")
         self._runtime = runtime
         self._cell = cell
-        self._requested_port = int(port)
-        self._host = host
+        self._srv = ViserServerThread(host=host, port=port, name="hrc-scene")
         self._roadmap = roadmap
         self._period_s = 1.0 / rate_hz
         self._robot_capsules = robot_capsules
         self._ghosts = ghosts
-        self._server: viser.ViserServer | None = None
         self._view: CellView | None = None
         self._sub: Subscription | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
         self.frames_applied = 0
         self.frames_skipped = 0
         self.errors = 0
@@ -661,10 +658,8 @@ class CellScene:
         Raises:
             RuntimeError: already started.
         """
-        if self._server is not None:
+        if self._srv.server is not None:
             raise RuntimeError("CellScene.start() called twice; call stop() first")
-        import viser
-
         capsules = self._robot_capsules
         if capsules is None:
             from app.planning.collision import CollisionModel
@@ -673,10 +668,8 @@ class CellScene:
         # Default: the runtime's own roadmap (``Runtime.roadmap``, available once the runtime has started).
         roadmap = self._roadmap if self._roadmap is not None else getattr(self._runtime, "roadmap", None)
         nodes = None if roadmap is None else np.asarray(roadmap.nodes)
-        server = viser.ViserServer(host=self._host, port=self._requested_port, verbose=False)
-        try:
-            server.initial_camera.position = (2.3, -2.0, 1.6)
-            server.initial_camera.look_at = (0.45, 0.0, 0.1)
+
+        def build(server: viser.ViserServer) -> None:
             server.initial_camera.up = (0.0, 0.0, 1.0)
             self._view = CellView(
                 server, self._cell, robot_capsules=capsules, roadmap_nodes=nodes, ghosts=self._ghosts
@@ -684,30 +677,20 @@ class CellScene:
             self._view.apply(self._runtime.snapshot())
             self.frames_applied += 1
             self._sub = self._runtime.subscribe(maxsize=2)
+
+        try:
+            self._srv.start(build, self._run)
         except BaseException:
-            server.stop()
             self._view = None
             raise
-        self._server = server
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="hrc-scene", daemon=True)
-        self._thread.start()
-        logger.info("3D view at http://%s:%d", self._host, self.port)
+        logger.info("3D view at http://%s:%d", self._srv.host, self.port)
 
     def stop(self) -> None:
         """Stop following the runtime and shut the viser server down (idempotent)."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-            if self._thread.is_alive():
-                logger.warning("scene thread did not stop within 5 s")
-            self._thread = None
+        self._srv.stop()
         if self._sub is not None:
             self._sub.close()
             self._sub = None
-        if self._server is not None:
-            self._server.stop()
-            self._server = None
 
     def __enter__(self) -> CellScene:
         self.start()
@@ -721,15 +704,15 @@ class CellScene:
     @property
     def port(self) -> int:
         """The port the viser server is bound to (the requested one until :meth:`start`)."""
-        return self._server.get_port() if self._server is not None else self._requested_port
+        return self._srv.port
 
     @property
     def host(self) -> str:
-        return self._host
+        return self._srv.host
 
     @property
     def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+        return self._srv.running
 
     @property
     def view(self) -> CellView:
@@ -740,17 +723,18 @@ class CellScene:
 
     @property
     def server(self) -> viser.ViserServer:
-        if self._server is None:
+        server = self._srv.server
+        if server is None:
             raise RuntimeError("CellScene.server is available after start()")
-        return self._server
+        return server
 
     # ------------------------------------------------------------------ worker
 
-    def _run(self) -> None:
+    def _run(self, stop: threading.Event) -> None:
         sub, view = self._sub, self._view
         assert sub is not None and view is not None
         last_error_log = -1e9
-        while not self._stop.is_set():
+        while not stop.is_set():
             snap = sub.get(timeout=0.25)
             if snap is None:
                 continue
@@ -772,4 +756,4 @@ class CellScene:
                     last_error_log = t0
             rest = self._period_s - (time.monotonic() - t0)
             if rest > 0:
-                self._stop.wait(rest)
+                stop.wait(rest)

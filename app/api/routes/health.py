@@ -3,21 +3,23 @@
 from __future__ import annotations
 
 import logging
-from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from app.api.deps import AuthDep, ContextDep
 from app.api.schemas import AUTH_RESPONSES, MAX_TRIAL_DURATION_S, HealthRead, InfoRead
+from app.api.version import app_version
 from app.control.metrics import METHODS
+from app.control.runtime import Runtime
+from app.study.repository import StudyRepository
 
 logger = logging.getLogger(__name__)
 
 router = APIRouter(tags=["health"])
 
 
-def _database_ok(repo: object) -> bool:
+def _database_ok(repo: StudyRepository) -> bool:
     engine = getattr(repo, "engine", None)
     if engine is None:
         return True  # a repository without an engine (a test double) has nothing to ping
@@ -37,7 +39,7 @@ def _database_ok(repo: object) -> bool:
 STALE_SNAPSHOT_S = 2.0
 
 
-def _runtime_alive(runtime: Any) -> bool:
+def _runtime_alive(runtime: Runtime) -> bool:
     """The runtime's loops run: its newest snapshot is recent (frames are published at the camera rate)."""
     clock = getattr(runtime, "clock", None)
     if clock is None:
@@ -56,8 +58,6 @@ def _runtime_alive(runtime: Any) -> bool:
 )
 def health(request: Request) -> HealthRead | JSONResponse:
     """Liveness and readiness: 200 when the runtime runs and the database answers, else 503."""
-    from app.api.app import app_version
-
     ctx = getattr(request.app.state, "hrc", None)
     if ctx is None:
         body = HealthRead(status="degraded", version=app_version(), runtime="stopped", database="error")
@@ -78,8 +78,6 @@ def health(request: Request) -> HealthRead | JSONResponse:
 @router.get("/info", response_model=InfoRead, dependencies=[AuthDep], responses=AUTH_RESPONSES)
 def info(ctx: ContextDep) -> InfoRead:
     """Server facts for clients: the viser port of the 3D view, the cell's configuration, the limits."""
-    from app.api.app import app_version
-
     s = ctx.settings
     limits = ctx.hub.limits
     return InfoRead(

@@ -15,6 +15,7 @@ from fastapi import APIRouter, WebSocket
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from app.api.auth import bearer_token, tokens_match
+from app.api.deps import ApiContext
 from app.api.live import (
     WS_MESSAGE_TOO_BIG,
     WS_POLICY_VIOLATION,
@@ -25,15 +26,30 @@ from app.api.live import (
     RateLimiter,
     dumps_strict,
 )
+from app.cell.validation import FrameRejected
+from app.control.runtime import IngestUnavailable, Runtime
 
 logger = logging.getLogger(__name__)
+
+#: Exceptions of ``Runtime.ingest`` and the code of the error message ``/api/ingest`` answers each with
+#: (an open WebSocket has no HTTP status; the frame is dropped and the socket stays open).
+INGEST_ERROR_CODES: dict[type[Exception], str] = {
+    FrameRejected: "rejected",
+    IngestUnavailable: "unavailable",
+}
+_INGEST_ERRORS = tuple(INGEST_ERROR_CODES)
+
+
+def _ingest_error_code(exc: Exception) -> str:
+    """The code of ``exc`` in :data:`INGEST_ERROR_CODES` (a subclass takes its base class's code)."""
+    return next(code for cls, code in INGEST_ERROR_CODES.items() if isinstance(exc, cls))
 
 
 # ---------------------------------------------------------------------------------------------------------
 # authentication of a WebSocket
 
 
-def _ctx(websocket: WebSocket) -> Any:
+def _ctx(websocket: WebSocket) -> ApiContext | None:
     return getattr(websocket.app.state, "hrc", None)
 
 
@@ -189,11 +205,7 @@ async def ingest_socket(websocket: WebSocket) -> None:
         hub.ingest_clients -= 1
 
 
-async def _ingest_loop(websocket: WebSocket, runtime: Any, limits: LiveLimits) -> None:
-    from app.api.runtime_errors import frame_rejected_types, ingest_unavailable_types
-
-    rejected_types = frame_rejected_types()
-    unavailable_types = ingest_unavailable_types()
+async def _ingest_loop(websocket: WebSocket, runtime: Runtime, limits: LiveLimits) -> None:
     limiter = RateLimiter(limits.ingest_rate_hz, limits.ingest_burst, limits.clock)
     while True:
         message = await websocket.receive()
@@ -233,10 +245,8 @@ async def _ingest_loop(websocket: WebSocket, runtime: Any, limits: LiveLimits) -
             continue
         try:
             runtime.ingest(obj)
-        except rejected_types as exc:
-            await _send_error(websocket, "rejected", str(exc))
-        except unavailable_types as exc:
-            await _send_error(websocket, "unavailable", str(exc))
+        except _INGEST_ERRORS as exc:
+            await _send_error(websocket, _ingest_error_code(exc), str(exc))
         except (ValueError, TypeError, KeyError) as exc:
             await _send_error(websocket, "rejected", f"invalid frame: {exc}")
         except Exception:

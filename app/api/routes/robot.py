@@ -13,6 +13,7 @@ from fastapi import APIRouter, HTTPException, status
 from app.api.deps import RuntimeDep
 from app.api.live import finite_json, snapshot_json
 from app.api.schemas import AUTH_RESPONSES, CONFLICT, RobotStatus, robot_status
+from app.control.runtime import Runtime, Snapshot
 
 logger = logging.getLogger(__name__)
 
@@ -22,7 +23,7 @@ router = APIRouter(tags=["robot"], responses=AUTH_RESPONSES)
 FRESH_SNAPSHOT_TIMEOUT_S = 0.5
 
 
-def _snapshot_after(runtime: Any, action: Callable[[], None]) -> Any:
+def _snapshot_after(runtime: Runtime, action: Callable[[], None]) -> Snapshot:
     """Run ``action``, then return the first snapshot built after it (bounded wait; the runtime publishes
     one per camera frame), or the newest one when none comes in time."""
     clock = getattr(runtime, "clock", None)

@@ -15,6 +15,7 @@ from fastapi.responses import PlainTextResponse, Response
 
 from app.api.deps import RepoDep
 from app.api.schemas import AUTH_RESPONSES, MAX_ID
+from app.study.repository import StudyRepository
 
 router = APIRouter(prefix="/summary", tags=["summary"], responses=AUTH_RESPONSES)
 
@@ -23,7 +24,7 @@ SessionQuery = Annotated[
 ]
 
 
-def _summary(repo: Any, session_id: int | None) -> dict[str, Any]:
+def _summary(repo: StudyRepository, session_id: int | None) -> dict[str, Any]:
     from app.study.stats import summarize
 
     return summarize(repo, session_id=session_id)

@@ -13,7 +13,6 @@ from typing import Annotated, Any
 from fastapi import APIRouter, HTTPException, Query, status
 
 from app.api.deps import ContextDep, RepoDep
-from app.api.runtime_errors import trial_already_running_types
 from app.api.schemas import (
     AUTH_RESPONSES,
     CONFLICT,
@@ -26,6 +25,8 @@ from app.api.schemas import (
     TrialIdPath,
     TrialStart,
 )
+from app.config import Settings
+from app.control.runtime import TrialAlreadyRunning
 from app.study.schemas import TrialEventRead, TrialRead, TrialStatus
 
 logger = logging.getLogger(__name__)
@@ -41,7 +42,7 @@ MAX_EVENTS = 10_000
 OptionalId = Annotated[int | None, Query(ge=1, le=MAX_ID)]
 
 
-def _settings_snapshot(settings: Any) -> dict[str, Any]:
+def _settings_snapshot(settings: Settings) -> dict[str, Any]:
     """The settings a trial runs with, without secrets (token; a database password in the URL)."""
     from sqlalchemy.engine import make_url
 
@@ -108,7 +109,7 @@ def start_trial(body: TrialStart, ctx: ContextDep) -> TrialRead:
         ctx.recorder.begin(trial.id)
         try:
             runtime.start_trial(trial_id=trial.id, method=body.method, duration_s=body.duration_s, seed=seed)
-        except trial_already_running_types() as exc:
+        except TrialAlreadyRunning as exc:
             ctx.recorder.abandon(trial.id, f"not started: {exc}")
             other = runtime.running_trial_id
             raise _running_conflict(other) if other is not None else HTTPException(409, str(exc)) from exc

@@ -16,8 +16,10 @@ from fastapi.testclient import TestClient
 
 from app.api.app import create_app
 from app.api.live import LiveLimits
+from app.cell.validation import FrameRejected
 from app.config import Settings
 from app.control.metrics import TrialEvent, TrialMetrics
+from app.control.runtime import TrialAlreadyRunning
 
 TOKEN = "test-token-0123456789abcdef"
 
@@ -84,12 +86,6 @@ class FakeSubscription:
         self.closed = True
 
 
-class FakeFrameRejectedError(ValueError):
-    def __init__(self, reason: str) -> None:
-        super().__init__(reason)
-        self.reason = reason
-
-
 class FakeRuntime:
     """The ``Runtime`` contract, driven by the test: ``finish_trial`` ends the running trial."""
 
@@ -122,12 +118,9 @@ class FakeRuntime:
         self.event_listeners.append(fn)
 
     def start_trial(self, *, trial_id: int, method: str, duration_s: float, seed: int) -> None:
-        from app.api.runtime_errors import trial_already_running_types
-
         with self._lock:
             if self.running_trial_id is not None:
-                types = trial_already_running_types()
-                raise (types[0] if types else RuntimeError)(f"trial {self.running_trial_id} is running")
+                raise TrialAlreadyRunning(f"trial {self.running_trial_id} is running")
             if self.estopped:
                 raise RuntimeError("E-stopped: reset first")
             self.running_trial_id = trial_id
@@ -184,7 +177,7 @@ class FakeRuntime:
 
     def ingest(self, message: Any) -> None:
         if not isinstance(message, dict) or "joints" not in message:
-            raise FakeFrameRejectedError("a frame needs 'joints'")
+            raise FrameRejected("malformed", "a frame needs 'joints'")
         self.ingested.append(message)
 
 
