@@ -21,9 +21,9 @@ _EXPORTS: dict[str, str] = {
     "RobotState": "app.cell.robot",
     "RobotConnectionError": "app.cell.robot",
     "SimRobot": "app.cell.robot",
-    "make_robot": "app.cell.robot",
+    "make_robot": "app.cell.backends",
     "RtdeRobot": "app.cell.rtde_process",
-    "HumanSource": "app.cell.human",
+    "HumanSource": "app.cell.source",
     "OperatorParams": "app.cell.operator_sim",
     "SimulatedOperator": "app.cell.operator_sim",
     "ReplaySource": "app.cell.human",
@@ -66,9 +66,9 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
+    from app.cell.backends import make_robot
     from app.cell.clock import Clock, RateLoop, SimClock, WallClock
     from app.cell.human import (
-        HumanSource,
         ReplaySource,
         StreamSource,
         load_clip,
@@ -77,8 +77,9 @@ if TYPE_CHECKING:
     )
     from app.cell.joint_tracking import JointLimits
     from app.cell.operator_sim import OperatorParams, SimulatedOperator
-    from app.cell.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot, make_robot
+    from app.cell.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot
     from app.cell.rtde_process import RtdeRobot
+    from app.cell.source import HumanSource
     from app.cell.validation import (
         CellVolume,
         FrameRejected,

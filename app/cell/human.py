@@ -20,11 +20,12 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from app.cell.operator_sim import OperatorParams, SimulatedOperator
+from app.cell.source import HumanSource
 from app.cell.validation import FrameRejected, FrameValidator
 from app.prediction.skeleton import JOINT_INDEX, JOINTS, NUM_JOINTS, PARENTS, HumanFrame
 
@@ -49,15 +50,6 @@ log = logging.getLogger(__name__)
 
 #: Height of the ankle joint above the floor (m), used to put a clip's feet on the cell's floor.
 ANKLE_HEIGHT_M = 0.08
-
-
-@runtime_checkable
-class HumanSource(Protocol):
-    """Where skeleton frames come from. Sources may also have ``notify_block_placed(station, t)``."""
-
-    def frame_at(self, t: float) -> HumanFrame | None:
-        """The newest frame at or before ``t`` (s), or ``None`` if there is none yet."""
-        ...
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -414,7 +414,7 @@ class OperatorAction:
 
 
 class SimulatedOperator:
-    """A simulated person working across the table (a :class:`~app.cell.human.HumanSource`).
+    """A simulated person working across the table (a :class:`~app.cell.source.HumanSource`).
 
     Args:
         cell: The work cell (operator area, work spot, drop stations, table).

@@ -1,9 +1,10 @@
-"""Robot backends: one protocol, a simulated UR5e and a real one over RTDE, chosen by settings.
+"""Robot backends: one protocol and a simulated UR5e; the real one over RTDE is in
+:mod:`app.cell.rtde_process`, and :func:`app.cell.backends.make_robot` picks one by settings.
 
 - :class:`SimRobot` is a kinematic UR5e: it tracks servo set-points within the joint position, velocity
   and acceleration limits, applies a speed scale and a latched protective stop, and steps on any
   :class:`~app.cell.clock.Clock` (lazily, up to ``clock.now()``, or explicitly with :meth:`SimRobot.step`).
-- :class:`RtdeRobot` drives a real UR over ``ur_rtde`` from a worker process (see
+- :class:`~app.cell.rtde_process.RtdeRobot` drives a real UR over ``ur_rtde`` from a worker process (see
   :mod:`app.cell.rtde_process` for why a process and not a thread).
 
 Joint positions in rad, velocities in rad/s, times in seconds on the runtime's clock.
@@ -15,22 +16,18 @@ import logging
 import math
 import threading
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from app.cell.clock import Clock
 from app.cell.joint_tracking import JointLimits, JointTracker, ServoCommand
 
-if TYPE_CHECKING:
-    from app.config import Settings
-
 __all__ = [
     "RobotBackend",
     "RobotConnectionError",
     "RobotState",
     "SimRobot",
-    "make_robot",
 ]
 
 log = logging.getLogger(__name__)
@@ -241,33 +238,3 @@ class SimRobot:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def make_robot(settings: Settings, clock: Clock, *, q0: np.ndarray) -> RobotBackend:
-    """The robot backend that ``settings.robot`` selects.
-
-    ``"sim"``: a :class:`SimRobot` at ``q0``. ``"rtde"``: an :class:`~app.cell.rtde_process.RtdeRobot`
-    at ``settings.robot_host``, connected before it is returned (``q0`` is ignored: the real arm is where it
-    is).
-
-    Raises:
-        RobotConnectionError: ``"rtde"`` and no robot answers at the address.
-    """
-    if settings.robot == "sim":
-        return SimRobot(clock, q0=q0)
-    if settings.robot == "rtde":
-        from app.cell.rtde_process import RtdeRobot
-
-        robot = RtdeRobot(settings.robot_host, clock=clock)
-        robot.connect()
-        return robot
-    raise ValueError(f"unknown robot backend {settings.robot!r}; expected 'sim' or 'rtde'")
-
-
-def __getattr__(name: str) -> object:
-    # ``from app.cell.robot import RtdeRobot`` works without importing the RTDE module eagerly.
-    if name == "RtdeRobot":
-        from app.cell.rtde_process import RtdeRobot
-
-        return RtdeRobot
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

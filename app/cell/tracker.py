@@ -3,7 +3,7 @@
 In simulation the simulated operator (or a replayed clip) is the *truth*. A real tracker does not hand the
 runtime the truth: it sees the person at its own frame rate, delivers each skeleton some time after the
 image was taken, adds per-joint noise and now and then loses frames, alone or in bursts.
-:class:`TrackedSource` puts that between a true :class:`~app.cell.human.HumanSource` and the runtime, so the
+:class:`TrackedSource` puts that between a true :class:`~app.cell.source.HumanSource` and the runtime, so the
 supervisor and the predictor see only what a real cell would give them, while the ground-truth monitor
 judges the robot against the truth.
 

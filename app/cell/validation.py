@@ -4,7 +4,7 @@ A frame is rejected (and counted, by reason) when it has non-finite values, the 
 timestamp that is not after the previous accepted one (duplicate or backwards), or a joint outside the
 cell volume. :class:`StaleWatchdog` reports when no valid frame came for longer than its timeout (100 ms by
 default), so that the supervisor can stop the robot. :class:`ValidatedSource` puts both in front of any
-:class:`~app.cell.human.HumanSource`.
+:class:`~app.cell.source.HumanSource`.
 """
 
 from __future__ import annotations
@@ -16,10 +16,10 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from app.cell.source import HumanSource
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 
 if TYPE_CHECKING:
-    from app.cell.human import HumanSource
     from app.config import WorkCell
 
 __all__ = [

@@ -258,7 +258,7 @@ class Runtime:
     Args:
         settings: Application settings (robot and human source, D, F, workers).
         cell: The work cell (default: ``settings.load_workcell()``).
-        robot: A robot backend (default: :func:`app.cell.robot.make_robot` at :meth:`start`).
+        robot: A robot backend (default: :func:`app.cell.backends.make_robot` at :meth:`start`).
         source: A human source (default by ``settings.human_source``: a simulated operator, re-seeded for
             every trial; a replayed clip; or a :class:`~app.cell.human.StreamSource` fed by
             :meth:`ingest`).
@@ -334,7 +334,7 @@ class Runtime:
             if self._stack is None:
                 self._stack = PlanningStack.for_cell(self.cell)
             if self._robot is None:
-                from app.cell.robot import make_robot
+                from app.cell.backends import make_robot
 
                 self._robot = make_robot(self.settings, self.clock, q0=np.asarray(self.cell.robot.home_q))
             self._open_source(seed=0)

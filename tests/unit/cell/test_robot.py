@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from app.cell.backends import make_robot
 from app.cell.clock import SimClock
 from app.cell.joint_tracking import JointLimits, JointTracker, ServoCommand
-from app.cell.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot, make_robot
+from app.cell.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot
 from app.config import Settings
 
 HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
