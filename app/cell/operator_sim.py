@@ -36,12 +36,13 @@ import numpy as np
 from app.cell._kernels import body_pose
 from app.cell.population import Population, load_population
 from app.prediction.forecast import HumanForecast
+from app.prediction.profiles import min_jerk
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
 
 if TYPE_CHECKING:
     from app.config import WorkCell
 
-__all__ = ["OperatorParams", "OracleForecaster", "SimulatedOperator", "min_jerk"]
+__all__ = ["OperatorParams", "OracleForecaster", "SimulatedOperator"]
 
 log = logging.getLogger(__name__)
 
@@ -59,12 +60,6 @@ _J = JOINT_INDEX
 _LEAN_GRID = np.arange(0.0, 1.3501, 0.05)
 _DX_GRID = np.array([0.0, 0.04, 0.08, 0.12])
 _NOISE_BLOCK = 256  # frames of tracking noise drawn at once
-
-
-def min_jerk(s: float | np.ndarray) -> float | np.ndarray:
-    """Minimum-jerk phase ``10 s^3 - 15 s^4 + 6 s^5`` for ``s`` in [0, 1] (clipped)."""
-    s = np.clip(s, 0.0, 1.0)
-    return s**3 * (10.0 + s * (-15.0 + 6.0 * s))
 
 
 def _rz(a: float) -> np.ndarray:

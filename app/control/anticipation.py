@@ -39,8 +39,8 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from app.cell.operator_sim import min_jerk
 from app.prediction.forecast import HumanForecast
+from app.prediction.profiles import MIN_JERK_PEAK_SPEED, min_jerk
 from app.prediction.skeleton import JOINT_INDEX, HumanFrame
 
 _ARM = {
@@ -48,8 +48,6 @@ _ARM = {
     for side in ("l", "r")
 }
 _HANDS = np.array([JOINT_INDEX["l_hand"], JOINT_INDEX["r_hand"]])
-#: A minimum-jerk reach of length L and duration T peaks at this many times L / T.
-_MIN_JERK_PEAK = 1.875
 
 
 @dataclass(frozen=True, slots=True)
@@ -164,7 +162,7 @@ class FetchAnticipation:
             progress = np.ones_like(forecast.times)
         else:
             length = float(np.linalg.norm(target - frame.joints[hand]))
-            duration = max(p.min_reach_s, _MIN_JERK_PEAK * length / p.hand_speed_mps)
+            duration = max(p.min_reach_s, MIN_JERK_PEAK_SPEED * length / p.hand_speed_mps)
             t_on = max(frame.t, t_release + p.reaction_s)
             progress = min_jerk((forecast.times - t_on) / duration)
         joints = np.array(forecast.joints, dtype=np.float64, copy=True)

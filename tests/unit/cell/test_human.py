@@ -21,11 +21,12 @@ from app.cell.human import (
     place_clip,
     save_clip,
 )
-from app.cell.operator_sim import OracleForecaster, min_jerk
+from app.cell.operator_sim import OracleForecaster
 from app.cell.stream_protocol import make_message, message_from_zed_body, parse_message, send_messages
 from app.cell.validation import CellVolume, FrameRejected, FrameValidator
 from app.config import Settings, load_workcell
 from app.prediction import adapters
+from app.prediction.profiles import min_jerk
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, bone_lengths
 
 CELL = load_workcell()
