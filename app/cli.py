@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from app.cell.cli import cell_app
-from app.prediction.cli import hmp_app
+from app.commands.cell import cell_app
+from app.commands.hmp import hmp_app
 
 if TYPE_CHECKING:
     from app.study.repository import StudyRepository

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from app.cell.recording import simulated_operator_sequences
 from app.cli import app
 from app.config import Settings
-from app.prediction.calibrate import calibrate_quantiles, simulated_operator_sequences, write_quantiles
+from app.prediction.calibrate import calibrate_quantiles, write_quantiles
 from app.prediction.predictor import MotionPredictor, load_quantiles
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS
 

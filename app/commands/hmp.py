@@ -1,5 +1,7 @@
 """``hrc hmp``: train and evaluate the human motion predictor (registered in :mod:`app.cli`).
 
+It lives above the predictor's package so that it may record simulated operators for it.
+
 Heavy modules (torch, the data loaders) are imported inside the command bodies so ``hrc --help`` stays fast.
 """
 
@@ -199,8 +201,9 @@ def calibrate_cmd(
     keeps around the forecast person, measured where the predictor runs instead of on the CMU clips."""
     import torch
 
+    from app.cell.recording import simulated_operator_sequences
     from app.config import Settings
-    from app.prediction.calibrate import calibrate_quantiles, simulated_operator_sequences, write_quantiles
+    from app.prediction.calibrate import calibrate_quantiles, write_quantiles
     from app.prediction.data import ClipError, load_clip_dir
     from app.prediction.predictor import MotionPredictor
 
@@ -259,8 +262,8 @@ def record_sim_cmd(
     records its own operators with the tracker to tune the predictor to its cell."""
     import numpy as np
 
+    from app.cell.recording import simulated_operator_sequences
     from app.config import Settings
-    from app.prediction.calibrate import simulated_operator_sequences
     from app.prediction.skeleton import JOINTS
 
     cell = Settings().load_workcell()
