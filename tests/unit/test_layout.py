@@ -20,6 +20,7 @@ offends (take it off the list).
 from __future__ import annotations
 
 import ast
+import re
 from functools import cache
 from pathlib import Path
 
@@ -256,3 +257,13 @@ def test_no_module_is_longer_than_1200_lines() -> None:
         if n > MAX_LINES:
             bad[name] = f"{path.relative_to(APP.parent)}: {n} lines (at most {MAX_LINES})"
     _check("module_lines", bad)
+
+
+def test_the_architecture_notes_list_exactly_the_modules_that_exist() -> None:
+    doc = (APP.parent / "docs" / "architecture.md").read_text()
+    listed = set(re.findall(r"^\| `(app/[\w/]+\.py)` \|", doc, flags=re.MULTILINE))
+    present = {p.relative_to(APP.parent).as_posix() for p in APP.rglob("*.py") if "migrations" not in p.parts}
+    assert listed == present, (
+        "docs/architecture.md is out of date (run scripts/module_map.py): "
+        f"missing {sorted(present - listed)}, gone {sorted(listed - present)}"
+    )
