@@ -194,9 +194,16 @@ def study(
     ] = None,
     frames: Annotated[bool, typer.Option("--frames/--no-frames", help="Record frames for replay.")] = True,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar.")] = True,
+    engine: Annotated[
+        str, typer.Option("--engine", help="Where trials run: ray (default), process (a local pool), inline.")
+    ] = "ray",
+    address: Annotated[
+        str | None,
+        typer.Option("--address", help="Ray cluster address (default RAY_ADDRESS; none: a local cluster)."),
+    ] = None,
     url: _DbUrl = None,
 ) -> None:
-    """Headless study: simulated participants x both methods, in parallel processes, into the database.
+    """Headless study: simulated participants x both methods, as Ray tasks or on a process pool, into the DB.
 
     Each participant runs both methods in counterbalanced order with the same participant parameters, on
     the simulated clock; the trials are stored under one new study session.
@@ -213,7 +220,11 @@ def study(
             max_workers=workers,
             progress=progress,
             record_frames=frames,
+            engine=engine,
+            address=address,
         )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     finally:
         repo.close()
     typer.echo(json.dumps(result.to_json()))
