@@ -57,11 +57,12 @@ def _throughput(executor: Any, jobs: list[Any]) -> tuple[float, int]:
 
 
 def run(*, quick: bool = False, progress: bool = True, duration_s: float | None = None) -> dict[str, Any]:
-    """Measure the three engines on ``2 x cores`` trials (``quick``: 4 s simulated each, else 20 s)."""
+    """Measure the three engines on ``2 x cores`` trials (``quick``: 4 s simulated each, else 60 s: a
+    study's trials are 300 s, and with short ones the workers' start-up and imports dominate)."""
     from app.study.runner import _InlineExecutor, make_executor
 
     workers = os.cpu_count() or 1
-    duration = duration_s if duration_s is not None else (4.0 if quick else 20.0)
+    duration = duration_s if duration_s is not None else (4.0 if quick else 60.0)
     jobs = _jobs(max(1, workers), duration)
     out: dict[str, Any] = {"workers": workers, "trials": len(jobs), "trial_duration_s": duration}
     rates: dict[str, float] = {}
