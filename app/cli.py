@@ -120,17 +120,25 @@ def report(
         Path | None, typer.Option("--out", help="Directory for table.md/.csv, summary.json, boxplots.png.")
     ] = None,
     session: _SessionSpec = "latest",
+    sweep: Annotated[
+        str | None, typer.Option("--sweep", help="Per-setting report of the sweep with this name.")
+    ] = None,
     url: _DbUrl = None,
 ) -> None:
     """Study report: Table I per method, paired tests with p-values and effect sizes, tables and box plots.
 
     Tests: Wilcoxon signed-rank, or repeated-measures ANOVA where the paired differences pass Shapiro-Wilk.
     Files (table.md, table.csv, summary.json, boxplots.png) go to --out (default: HRC_DATA_DIR/report).
+    With --sweep: Table I and the paired effect (95 % interval, p) per setting, sweep.json, sweep.csv and
+    one effect_<parameter>.png per swept parameter.
     """
     from app.config import Settings
     from app.study.stats import markdown_table, summarize, write_report
 
     settings = Settings()
+    if sweep is not None:
+        _sweep_report(sweep, as_json=as_json, out=out, url=url or settings.resolved_database_url())
+        return
     repo = _open_study(url or settings.resolved_database_url())
     try:
         session_id = _session_id(repo, session)
@@ -194,9 +202,16 @@ def study(
     ] = None,
     frames: Annotated[bool, typer.Option("--frames/--no-frames", help="Record frames for replay.")] = True,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar.")] = True,
+    engine: Annotated[
+        str, typer.Option("--engine", help="Where trials run: ray (default), process (a local pool), inline.")
+    ] = "ray",
+    address: Annotated[
+        str | None,
+        typer.Option("--address", help="Ray cluster address (default RAY_ADDRESS; none: a local cluster)."),
+    ] = None,
     url: _DbUrl = None,
 ) -> None:
-    """Headless study: simulated participants x both methods, in parallel processes, into the database.
+    """Headless study: simulated participants x both methods, as Ray tasks or on a process pool, into the DB.
 
     Each participant runs both methods in counterbalanced order with the same participant parameters, on
     the simulated clock; the trials are stored under one new study session.
@@ -213,12 +228,91 @@ def study(
             max_workers=workers,
             progress=progress,
             record_frames=frames,
+            engine=engine,
+            address=address,
         )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
     finally:
         repo.close()
     typer.echo(json.dumps(result.to_json()))
     if result.aborted:
         typer.echo(f"{result.aborted} trials aborted; see `hrc export` (trials.csv, abort_reason)", err=True)
+
+
+def _sweep_report(name: str, *, as_json: bool, out: Path | None, url: str) -> None:
+    from app.config import Settings
+    from app.study.stats import markdown_table
+    from app.study.sweep import sweep_report, write_sweep_report
+
+    repo = _open_study(url)
+    try:
+        rep = sweep_report(repo, name)
+    except LookupError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--sweep") from exc
+    finally:
+        repo.close()
+    if out is None and not as_json:
+        out = Settings().data_dir / "report" / f"sweep-{name}"
+    paths = write_sweep_report(rep, out) if out is not None else {}
+    if as_json:
+        typer.echo(json.dumps(rep, allow_nan=False))
+        return
+    for label, summary in rep["settings"].items():
+        typer.echo(f"## {label}\n")
+        typer.echo(markdown_table(summary))
+        eff = summary["effects"]["completed_tasks"]
+        typer.echo(
+            f"completed tasks, proactive - reactive: {eff['mean_difference']} (95 % CI {eff['ci95']})\n"
+        )
+    for kind, path in paths.items():
+        typer.echo(f"{kind}: {path}")
+
+
+@app.command("sweep")
+def sweep_(
+    spec: Annotated[Path, typer.Argument(help="Sweep spec (TOML; see examples/sweep_deadline.toml).")],
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="Print the plan and the trial count.")] = False,
+    workers: Annotated[
+        int | None, typer.Option("--workers", min=0, help="CPUs/processes (default: every core; 0: inline).")
+    ] = None,
+    engine: Annotated[str, typer.Option("--engine", help="ray (default), process or inline.")] = "ray",
+    address: Annotated[
+        str | None, typer.Option("--address", help="Ray cluster address (default RAY_ADDRESS; none: local).")
+    ] = None,
+    frames: Annotated[bool, typer.Option("--frames/--no-frames", help="Record frames for replay.")] = False,
+    progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar.")] = True,
+    url: _DbUrl = None,
+) -> None:
+    """Settings sweep: every setting of SPEC x participants x methods, resumable (only the trials not
+    stored yet run; a completed trial is stored once, under its setting's label and settings snapshot)."""
+    from app.study.sweep import SweepSpecError, describe_plan, load_spec, run_sweep
+
+    try:
+        parsed = load_spec(spec)
+    except SweepSpecError as exc:
+        raise typer.BadParameter(str(exc), param_hint="SPEC") from exc
+    if dry_run:
+        typer.echo(json.dumps(describe_plan(parsed), indent=2))
+        return
+    repo = _open_study(url)
+    try:
+        result = run_sweep(
+            parsed,
+            repo,
+            engine=engine,
+            workers=workers,
+            address=address,
+            progress=progress,
+            record_frames=frames,
+        )
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    finally:
+        repo.close()
+    typer.echo(json.dumps(result.to_json()))
+    if result.failed:
+        typer.echo(f"{result.failed} trials failed; run the sweep again to retry them", err=True)
 
 
 # --- server (app.api) ------------------------------------------------------------------------------------

@@ -113,6 +113,9 @@ class Trial(Base):
 
     ``settings`` is a JSON snapshot of the application settings the trial ran with (secrets removed).
     ``order_index`` is the position of the trial in the participant's sequence within its session (0, 1, ...).
+    ``trial_key`` (unique, None outside sweeps) is a sweep trial's deterministic identity (sweep, setting
+    label, participant, method, seed): a completed sweep trial is stored once, whoever stores it;
+    ``setting_label`` names the sweep's setting the trial ran with.
     """
 
     __tablename__ = "trials"
@@ -131,6 +134,8 @@ class Trial(Base):
     ended_at: Mapped[datetime | None] = mapped_column(UTCDateTime())
     status: Mapped[str] = mapped_column(String(16), default="running", index=True)
     abort_reason: Mapped[str | None] = mapped_column(Text)
+    trial_key: Mapped[str | None] = mapped_column(String(400), unique=True, index=True)
+    setting_label: Mapped[str | None] = mapped_column(String(200))
 
     participant: Mapped[Participant] = relationship(back_populates="trials")
     session: Mapped[StudySession | None] = relationship(back_populates="trials")

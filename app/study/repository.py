@@ -472,6 +472,75 @@ class StudyRepository:
             s.commit()
             return self._trial_read_by_id(s, trial_id)
 
+    def store_keyed_trial(
+        self,
+        *,
+        trial_key: str,
+        setting_label: str,
+        participant_id: int,
+        method: Method,
+        session_id: int | None,
+        order_index: int,
+        seed: int,
+        duration_s: float,
+        settings: Mapping[str, Any],
+        metrics: TrialMetrics | Mapping[str, Any],
+        events: Iterable[TrialEvent] = (),
+        frames: RecordedFrames | None = None,
+        started_at: datetime | None = None,
+    ) -> int | None:
+        """Store a completed sweep trial with its metrics, events and frames in one transaction, or nothing.
+
+        Returns:
+            The new trial's id, or None when a trial with ``trial_key`` is stored already (by this or
+            another driver: the unique key decides, also between concurrent writers).
+        """
+        m_method = metrics.get("method") if isinstance(metrics, Mapping) else metrics.method
+        if m_method is not None and m_method != method:
+            raise ValueError(f"metrics of a {m_method} trial given for the {method} trial {trial_key!r}")
+        with self._sessions() as s:
+            row = Trial(
+                participant_id=participant_id,
+                session_id=session_id,
+                method=method,
+                order_index=order_index,
+                seed=seed,
+                duration_s=duration_s,
+                settings=dict(settings),
+                started_at=started_at or utcnow(),
+                ended_at=utcnow(),
+                status="completed",
+                trial_key=trial_key,
+                setting_label=setting_label,
+            )
+            s.add(row)
+            try:
+                s.flush()
+                s.add(TrialMetricsRow(trial_id=row.id, **_metrics_values(metrics)))
+                self._insert_events(s, row.id, events)
+                if frames is not None:
+                    self._insert_frames(s, row.id, frames, DEFAULT_CHUNK_FRAMES)
+                s.commit()
+            except IntegrityError:
+                s.rollback()
+                if self.stored_trial_keys([trial_key]):
+                    return None
+                raise
+            return row.id
+
+    def stored_trial_keys(self, keys: Iterable[str] | None = None, *, prefix: str | None = None) -> set[str]:
+        """The trial keys stored already: those of ``keys``, or every key starting with ``prefix``."""
+        with self._sessions() as s:
+            q = select(Trial.trial_key).where(Trial.trial_key.is_not(None))
+            if keys is not None:
+                wanted = list(keys)
+                if not wanted:
+                    return set()
+                q = q.where(Trial.trial_key.in_(wanted))
+            if prefix is not None:
+                q = q.where(Trial.trial_key.startswith(prefix, autoescape=True))
+            return {k for k in s.scalars(q) if k is not None}
+
     def get_trial(self, trial_id: int) -> TrialRead:
         """One trial with its metrics (None while running).
 

@@ -1,9 +1,10 @@
-"""Headless study runner: simulated participants x {proactive, reactive}, in parallel processes.
+"""Headless study runner: simulated participants x {proactive, reactive}, on a process pool or Ray.
 
 Every simulated participant gets its own parameters from a seed derived from the study seed; it runs both
 methods with the *same* participant parameters and the same trial seed (a paired design with common random
 numbers), in the counterbalanced order of :meth:`StudyRepository.suggest_method_order`. Trials run in a
-``ProcessPoolExecutor`` (one process per core by default) through
+``ProcessPoolExecutor`` (one process per core by default), as Ray tasks (``engine="ray"``: a local
+in-process cluster, or the cluster at ``RAY_ADDRESS``) or inline, through
 :func:`app.control.runtime.run_headless_trial` on the simulated clock; only the parent process writes the
 database: the trial rows first (status ``running``, so that a killed study leaves them to be marked aborted
 at the next start), then each trial's metrics, events and recorded frames in one transaction as it ends.
@@ -207,6 +208,69 @@ def _make_executor(max_workers: int) -> Executor:
     )
 
 
+ENGINES = ("inline", "process", "ray")
+
+
+class _RayExecutor(Executor):
+    """Submits each job as a Ray task (one CPU, one BLAS/torch thread inside) and hands back a
+    ``concurrent.futures.Future`` for its result; the driver stores the outcomes as they arrive.
+
+    Connects to the cluster at ``address`` (or ``RAY_ADDRESS``); without either it starts a local
+    in-process cluster with ``num_cpus`` CPUs (default: every core). Only the job (settings as JSON, seeds,
+    method, duration) travels to the workers; the outcome (metrics, events, frames) travels back.
+    """
+
+    def __init__(self, *, address: str | None = None, num_cpus: int | None = None) -> None:
+        import ray
+
+        self._ray = ray
+        self._owns = not ray.is_initialized()
+        if self._owns:
+            address = address or os.environ.get("RAY_ADDRESS") or None
+            kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
+            if address is None:
+                kwargs["num_cpus"] = num_cpus
+            ray.init(address=address, **kwargs)
+        env = {name: "1" for name in _THREAD_ENV}
+        if address is None:  # a local cluster: the workers import what the driver imports, from here
+            paths = [os.getcwd(), *(p for p in sys.path if p and os.path.isdir(p))]
+            env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
+        self._remote = ray.remote(_ray_task).options(num_cpus=1, max_retries=2, runtime_env={"env_vars": env})
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        return self._remote.remote(fn, *args, **kwargs).future()
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        if self._owns and self._ray.is_initialized():
+            self._ray.shutdown()
+
+
+def _ray_task(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """The body of a Ray task: thread limits as in a pool worker, then the job."""
+    _init_worker()
+    return fn(*args, **kwargs)
+
+
+def make_executor(engine: str, workers: int, *, address: str | None = None) -> Executor:
+    """The executor of ``engine`` (``inline``, ``process`` or ``ray``) with ``workers`` processes/CPUs
+    (``workers`` 0 always means inline)."""
+    if engine not in ENGINES:
+        raise ValueError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
+    if engine == "inline" or workers == 0:
+        return _InlineExecutor()
+    if engine == "process":
+        return _make_executor(workers)
+    return _RayExecutor(address=address, num_cpus=workers)
+
+
+def _ray_errors() -> tuple[type[BaseException], ...]:
+    """Ray's errors for a lost worker or node (empty when Ray was never imported)."""
+    ray_exc = sys.modules.get("ray.exceptions")
+    if ray_exc is None:
+        return ()
+    return (ray_exc.RayError,)
+
+
 class _InlineExecutor(Executor):
     """Runs each job in the calling process at submit time (``max_workers=0``: debugging and tests)."""
 
@@ -331,6 +395,8 @@ def run_study(
     record_frames: bool = True,
     session_name: str | None = None,
     trial_fn: Callable[[TrialJob], TrialOutcome] | None = None,
+    engine: str = "process",
+    address: str | None = None,
 ) -> StudyRunResult:
     """Run a whole headless study and store it under one new study session.
 
@@ -345,6 +411,8 @@ def run_study(
         record_frames: Store the trials' frames (robot q and skeleton at 30 Hz) for replay.
         trial_fn: Runs one job (a picklable top-level function when ``max_workers`` > 0); default
             :func:`run_trial_job`.
+        engine: ``process`` (a local process pool), ``ray`` (Ray tasks, one CPU each) or ``inline``.
+        address: Ray cluster address (default ``RAY_ADDRESS``, else a local in-process cluster).
 
     Returns:
         The session id, participant and trial ids, how many trials completed and aborted, the wall time.
@@ -376,7 +444,7 @@ def run_study(
     )
     completed = aborted = 0
     pending = {job.trial_id for job in jobs}
-    executor = _InlineExecutor() if workers == 0 else _make_executor(workers)
+    executor = make_executor(engine, workers, address=address)
     bar = tqdm(total=len(jobs), unit="trial", desc="study", disable=not progress, dynamic_ncols=True)
     try:
         # longest first: the proactive trials (the predictor runs every frame) take about 1.6x as long as the
@@ -389,6 +457,8 @@ def run_study(
                 outcome = fut.result()
             except BrokenProcessPool as exc:
                 outcome = TrialOutcome(job.trial_id, None, error=f"worker process died: {exc}")
+            except _ray_errors() as exc:  # the task's worker or node died more often than Ray retries
+                outcome = TrialOutcome(job.trial_id, None, error=f"Ray worker lost: {exc}")
             except Exception as exc:
                 outcome = TrialOutcome(job.trial_id, None, error=f"{type(exc).__name__}: {exc}")
             ok = _store(repo, outcome)

@@ -13,7 +13,7 @@ from app.control.metrics import TrialMetrics
 from app.study.db import DatabaseError, alembic_config, current_revision, make_engine, upgrade_to_head
 from app.study.models import METRIC_COLUMNS, Base, TrialMetricsRow, UTCDateTime
 
-HEAD = "0002"
+HEAD = "0003"
 
 
 def test_one_metrics_column_per_trial_metrics_field() -> None:
@@ -88,6 +88,8 @@ def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
                 text("SELECT completed_tasks, time_moving_s, mean_speed_scale FROM trial_metrics")
             )
             assert [tuple(r) for r in row] == [(3, 0.0, 0.0)]
+            keys = conn.execute(text("SELECT id, trial_key, setting_label FROM trials"))
+            assert [tuple(r) for r in keys] == [(1, None, None)]
     finally:
         engine.dispose()
 

@@ -188,6 +188,28 @@ def test_study_in_worker_processes(db: tuple[str, StudyRepository]) -> None:
     _check_study(repo, result.session_id, 4)
 
 
+def test_study_as_ray_tasks_on_a_local_cluster(db: tuple[str, StudyRepository]) -> None:
+    _, repo = db
+    result = run_study(
+        participants=4,
+        duration_s=5.0,
+        seed=11,
+        repo=repo,
+        settings=Settings(),
+        max_workers=2,
+        progress=False,
+        trial_fn=fake_trial,
+        engine="ray",
+    )
+    assert (result.completed, result.aborted) == (6, 2)
+    _check_study(repo, result.session_id, 4)
+
+
+def test_an_unknown_engine_is_refused_with_the_choices(db: tuple[str, StudyRepository]) -> None:
+    with pytest.raises(ValueError, match=r"unknown engine 'dask'.*inline, process, ray"):
+        runner.make_executor("dask", 2)
+
+
 def test_run_trial_job_calls_the_runtime_contract(monkeypatch: pytest.MonkeyPatch) -> None:
     calls: list[dict[str, Any]] = []
 
