@@ -26,7 +26,9 @@ from typing import Any
 import numpy as np
 
 WALL_CLOCK_KEYS = {"avg_planning_time_s", "sim_speedup", "wall_s"}
-CMU_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "cmu_mocap"
+ROOT = Path(__file__).resolve().parents[1]
+CMU_DIR = ROOT.parent / "shared" / "data" / "cmu_mocap"
+sys.path.insert(0, str(ROOT))  # the checkout this script lives in, not the one the venv was installed from
 
 
 def _plan_record(res: Any) -> dict[str, Any]:

@@ -32,19 +32,13 @@ from app.cell.robot import RobotBackend, RobotConnectionError, RobotState
 from app.cell.validation import FrameValidator, StaleWatchdog, ValidatedSource
 from app.config import Settings, WorkCell
 from app.control.anticipation import FetchAnticipation, FetchAnticipationParams
+from app.control.backup import BackupComputer, PlanJobs
 from app.control.metrics import Method, TrialEvent, TrialMetrics
-from app.control.supervisor import (
-    BackupComputer,
-    FrameDecision,
-    PlanJobs,
-    SeparationModel,
-    SpeedScaleLaw,
-    Supervisor,
-    SupervisorConfig,
-)
+from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.task import TaskExecutive
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import HumanFrame
+from app.safety.governor import SeparationModel, SpeedScaleLaw
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +52,7 @@ TrialStatus = Literal["completed", "aborted"]
 
 class CellGeometry:
     """The UR5e's body as parts, one per capsule of the collision model (the supervisor's
-    :class:`~app.control.supervisor.RobotGeometry`).
+    :class:`~app.control.trajectory_views.RobotGeometry`).
 
     A part's speed is that of the faster end of its capsule's axis: on a rigid link every point of the axis
     moves no faster than that, so it bounds the speed of the capsule's whole surface.
@@ -492,7 +486,7 @@ class EngineOptions:
         plan_margin_m: Extra clearance (m) the plans keep from the forecast person (both methods alike): room
             for the speed governor, which slows a robot that passes close to a person.
         human_accel_mps2, human_speed_max_mps: The person's worst case for the speed governor (see
-            :class:`~app.control.supervisor.SeparationModel`): how fast their speed may change between
+            :class:`~app.safety.governor.SeparationModel`): how fast their speed may change between
             frames and during a brake, and their fastest approach.
         pick_dwell_s, place_dwell_s: Gripper times (s).
     """

@@ -1,7 +1,7 @@
 """Headless trials: the runtime's engine on the simulated clock, single-threaded and deterministic.
 
 One loop advances a :class:`~app.cell.clock.SimClock` in servo ticks; a frame is read at every camera
-period. Backup plans run lazily (:class:`~app.control.supervisor.InlinePlanJobs`): a plan is computed when the
+period. Backup plans run lazily (:class:`~app.control.backup.InlinePlanJobs`): a plan is computed when the
 switch that its own frame's decision scheduled is due, and its *measured* compute time decides, as in live
 mode, whether it met the deadline ``D`` (the decisions are the same as with eager computation; see there).
 The emergency plan's measured compute time delays its start likewise. A run is therefore deterministic for a
@@ -20,6 +20,7 @@ import numpy as np
 
 from app.cell.clock import SimClock
 from app.config import Settings, WorkCell
+from app.control.backup import InlinePlanJobs
 from app.control.engine import (
     EngineOptions,
     PlanningStack,
@@ -28,7 +29,6 @@ from app.control.engine import (
     make_validated_source,
 )
 from app.control.metrics import Method
-from app.control.supervisor import InlinePlanJobs
 
 log = logging.getLogger(__name__)
 

@@ -39,6 +39,7 @@ from app.cell.clock import Clock, RateLoop, WallClock
 from app.cell.robot import RobotBackend, RobotConnectionError
 from app.cell.validation import ValidatedSource
 from app.config import Settings, WorkCell
+from app.control.backup import BackupComputer, BackupRequest, PlanOutcome
 from app.control.engine import (
     EngineOptions,
     PlanningStack,
@@ -50,7 +51,7 @@ from app.control.engine import (
 )
 from app.control.headless import forecast_model, make_predictor, run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
-from app.control.supervisor import BackupComputer, BackupRequest, PlanOutcome, SupervisorConfig
+from app.control.supervisor import SupervisorConfig
 
 log = logging.getLogger(__name__)
 

@@ -15,21 +15,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.control.supervisor import (
-    BackupComputer,
-    HoldTrajectory,
-    InlinePlanJobs,
-    ScaledView,
-    SeparationModel,
-    SpeedProfile,
-    SpeedScaleLaw,
-    Supervisor,
-    SupervisorConfig,
-    _ramp_distance,
-)
+from app.control.backup import BackupComputer, InlinePlanJobs
+from app.control.supervisor import Supervisor, SupervisorConfig, _ramp_distance
+from app.control.trajectory_views import HoldTrajectory, ScaledView, SpeedProfile
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 from app.safety import _kernels
+from app.safety.governor import SeparationModel, SpeedScaleLaw
 from app.safety.ssm import SSMParams
 
 R_HUMAN = 0.1  # radius of the point person (m)

@@ -336,7 +336,7 @@ def test_move_checks_and_verification_match_the_numpy_checks(cell, planners) -> 
 
 class _SlowView:
     """A trajectory run at ``scale`` of its speed from wall time ``t_ref`` at its time ``tau_ref`` (the
-    interface of :class:`app.control.supervisor.ScaledView` that the planner's check uses)."""
+    interface of :class:`app.control.trajectory_views.ScaledView` that the planner's check uses)."""
 
     def __init__(self, traj: Trajectory, *, t_ref: float, tau_ref: float, scale: float) -> None:
         self.base_trajectory, self.t_ref, self.tau_ref, self.scale = traj, t_ref, tau_ref, scale

@@ -1,0 +1,209 @@
+"""Plan jobs: the backup plans the supervisor asks for under the deadline D, computed by a
+:class:`BackupComputer` inline (headless runs) or by the runtime's planner threads."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol
+
+import numpy as np
+
+from app.control.trajectory_views import (
+    Goal,
+    MakeTrajectory,
+    PlannerLike,
+    RobotGeometry,
+    SpeedProfile,
+    TrajectoryLike,
+)
+from app.prediction.forecast import HumanForecast
+
+log = logging.getLogger(__name__)
+
+# ----------------------------------------------------------------------------------------------------
+# Plan jobs: backup plans under the deadline
+# ----------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class BackupRequest:
+    """A backup plan to compute for frame ``key``.
+
+    Attributes:
+        key: Frame sequence number.
+        t_request: ``T_i``: when the frame arrived (s).
+        t_start: When the plan starts (``T_i + D``, or later when the robot holds until then) (s).
+        q_start: (6,) start configuration ``pi_curr(T_i + D)``.
+        qd_start: (6,) path velocity of the plan in execution at the branch point (scale 1), so that the
+            new trajectory continues it.
+        goal: Roadmap goal (station name or node index).
+        forecast: The forecast of frame ``key``.
+        deadline_s: Compute-time budget of this plan: D, or the start deadline for a robot at rest.
+    """
+
+    key: int
+    t_request: float
+    t_start: float
+    q_start: np.ndarray
+    qd_start: np.ndarray
+    goal: Goal
+    forecast: HumanForecast
+    deadline_s: float | None = None
+
+
+OutcomeStatus = Literal["ok", "failed", "deadline_miss", "error", "skipped"]
+
+
+@dataclass(frozen=True, slots=True)
+class PlanOutcome:
+    """What became of a plan request.
+
+    Attributes:
+        status: ``ok``; ``failed`` (the planner found no plan); ``deadline_miss`` (slower than D);
+            ``error`` (the planner raised); ``skipped`` (no worker free, or never requested).
+        compute_s: Measured compute time (s) of the planner call and the trajectory building.
+        traj: The trajectory (when ``ok``).
+        profile: Its speed profile (when ``ok``).
+        plan: The planner's plan (when ``ok``).
+        reason: The planner's reason or the error message.
+    """
+
+    status: OutcomeStatus
+    compute_s: float = 0.0
+    traj: TrajectoryLike | None = None
+    profile: SpeedProfile | None = None
+    plan: Any = None
+    reason: str = ""
+
+
+class PlanJobs(Protocol):
+    """Runs backup plans. ``submit`` at ``T_i``; ``take`` at or after ``T_i + D`` (never blocks long)."""
+
+    def submit(self, request: BackupRequest) -> None: ...
+
+    def take(self, key: int, request: BackupRequest | None = None) -> PlanOutcome: ...
+
+    def peek(self, key: int) -> PlanOutcome | None:
+        """The outcome if it is already known without computing anything, else None."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class BackupComputer:
+    """Computes one backup plan: planner call, trajectory, speed profile; times the whole of it."""
+
+    def __init__(
+        self,
+        planner: PlannerLike,
+        make_trajectory: MakeTrajectory,
+        geometry: RobotGeometry,
+        *,
+        deadline_s: float,
+        workers: int,
+        timer: Callable[[], float] = time.perf_counter,
+        profile_window_s: float = 0.6,
+    ) -> None:
+        self.planner = planner
+        self.make_trajectory = make_trajectory
+        self.geometry = geometry
+        self.deadline_s = float(deadline_s)
+        self.workers = int(workers)
+        self.timer = timer
+        self.profile_window_s = profile_window_s
+        #: Give the planner the deadline (live, measured headless); False when compute times are fixed.
+        self.enforce_deadline = True
+
+    def __call__(self, req: BackupRequest) -> PlanOutcome:
+        """Plan, build the trajectory and its speed profile; ``ok`` or ``deadline_miss`` by the measured
+        compute time (see :meth:`judge`)."""
+        return self.judge(self.compute_raw(req), None, deadline_s=req.deadline_s)
+
+    def compute_raw(self, req: BackupRequest) -> PlanOutcome:
+        """The plan with its measured compute time, not yet judged against the deadline."""
+        t0 = self.timer()
+        try:
+            res = self.planner.plan(
+                q_start=req.q_start,
+                t_start=req.t_start,
+                goal=req.goal,
+                forecast=req.forecast,
+                workers=self.workers,
+                deadline_s=(req.deadline_s or self.deadline_s) if self.enforce_deadline else None,
+                qd0=req.qd_start,
+            )
+            if not res.ok or res.plan is None:
+                return PlanOutcome("failed", compute_s=self.timer() - t0, reason=str(res.reason))
+            traj = self.make_trajectory(res.plan, req.qd_start)
+            prof = SpeedProfile.of(traj, self.geometry, window_s=self.profile_window_s)
+        except Exception as exc:  # a planner fault must take the emergency path, never kill the loop
+            log.exception("backup plan for frame %d raised", req.key)
+            return PlanOutcome("error", compute_s=self.timer() - t0, reason=f"{type(exc).__name__}: {exc}")
+        dt = self.timer() - t0
+        return PlanOutcome("ok", compute_s=dt, traj=traj, profile=prof, plan=res.plan, reason=str(res.reason))
+
+    def judge(
+        self, out: PlanOutcome, compute_s: float | None, *, deadline_s: float | None = None
+    ) -> PlanOutcome:
+        """Apply the deadline (``deadline_s``, default D): a plan slower than it (by ``compute_s`` when
+        given, else its measured time) is a ``deadline_miss``, whatever it found; so is a search the
+        planner cut at the deadline."""
+        c = out.compute_s if compute_s is None else float(compute_s)
+        limit = self.deadline_s if deadline_s is None else float(deadline_s)
+        if out.status in ("ok", "failed") and (c > limit or out.reason == "deadline"):
+            return PlanOutcome("deadline_miss", compute_s=c, reason=f"{c * 1e3:.1f} ms > D ({out.reason})")
+        return PlanOutcome(out.status, c, out.traj, out.profile, out.plan, out.reason)
+
+
+class InlinePlanJobs:
+    """Headless plan jobs: a backup plan is computed only when its own frame's decision consumes it.
+
+    A backup plan of frame ``i`` is used by nothing but the switch that frame ``i``'s decision schedules
+    at ``T_i + D`` (later frames branch from the plan in execution at their own time, and a switch
+    invalidates backups that branched from the plan it replaces). Computing it when that switch is due and
+    charging its measured compute time as if it had started at ``T_i`` therefore gives the same decisions as
+    computing every backup eagerly, at a fraction of the cost: a plan slower than ``D`` is a deadline miss,
+    exactly as in live mode.
+
+    Args:
+        compute: The backup computer.
+        fixed_compute_s: When given, the compute time charged for every plan instead of the measured one
+            (makes a headless run fully deterministic; used in tests).
+        keep: How many pending requests to keep (older ones are dropped: their switch can no longer occur).
+    """
+
+    def __init__(
+        self, compute: BackupComputer, *, fixed_compute_s: float | None = None, keep: int = 16
+    ) -> None:
+        self.compute = compute
+        self.fixed_compute_s = fixed_compute_s
+        compute.enforce_deadline = fixed_compute_s is None
+        self._pending: dict[int, BackupRequest] = {}
+        self._keep = keep
+
+    def submit(self, request: BackupRequest) -> None:
+        self._pending[request.key] = request
+        if len(self._pending) > self._keep:
+            for k in sorted(self._pending)[: len(self._pending) - self._keep]:
+                del self._pending[k]
+
+    def take(self, key: int, request: BackupRequest | None = None) -> PlanOutcome:
+        req = self._pending.pop(key, None) or request
+        if req is None:
+            return PlanOutcome("skipped", reason=f"no backup request for frame {key}")
+        return self.compute.judge(
+            self.compute.compute_raw(req), self.fixed_compute_s, deadline_s=req.deadline_s
+        )
+
+    def peek(self, key: int) -> PlanOutcome | None:
+        return None
+
+    def close(self) -> None:
+        self._pending.clear()
+
+
+# ----------------------------------------------------------------------------------------------------
+# The supervisor
