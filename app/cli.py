@@ -398,6 +398,13 @@ def simulate(
             "what proactive planning can gain; --method proactive --source sim only; about 3x slower)."
         ),
     ] = "model",
+    population: Annotated[
+        Path | None,
+        typer.Option(
+            help="TOML file of the simulated participants (default HRC_POPULATION, else the shipped "
+            "app/assets/population.toml)."
+        ),
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
 ) -> None:
     """Run one headless trial on the simulated clock and print its metrics."""
@@ -421,7 +428,12 @@ def simulate(
         torch.set_num_threads(1)
     except ImportError:  # the reactive method needs no predictor
         pass
-    settings = Settings()
+    from pydantic import ValidationError
+
+    try:
+        settings = Settings() if population is None else Settings(population=population)
+    except ValidationError as exc:
+        raise typer.BadParameter("; ".join(e["msg"] for e in exc.errors())) from exc
     try:
         result = run_headless_trial(
             settings=settings,

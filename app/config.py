@@ -255,6 +255,19 @@ class Settings(BaseSettings):
         le=10.0,
         description="when the person is expected to start reaching for a placed block, after its release (s)",
     )
+    # the simulated world (headless trials, studies, sweeps): never read by what decides
+    population: Path | None = Field(
+        None,
+        description="TOML file of the simulated participants' distributions (default: the shipped "
+        "app/assets/population.toml)",
+    )
+
+    @field_validator("population")
+    @classmethod
+    def _population_file_exists(cls, value: Path | None) -> Path | None:
+        if value is not None and not value.is_file():
+            raise ValueError(f"population file {value} does not exist")
+        return value
 
     def resolved_database_url(self) -> str:
         if self.database_url:

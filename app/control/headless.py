@@ -104,14 +104,17 @@ def make_operator(
     seed: int,
     participant_seed: int,
     clip: str | Path | None = None,
+    population: str | Path | None = None,
 ) -> Any:
     """The person of a headless trial: a simulated participant (``participant_seed`` draws their body and
-    habits, ``seed`` their moment-to-moment behaviour and noise) or a recorded clip, looped."""
+    habits from ``population``, a TOML file or None for the shipped one; ``seed`` their moment-to-moment
+    behaviour and noise) or a recorded clip, played forth and back."""
     from app.cell.human import ReplaySource
     from app.cell.operator_sim import OperatorParams, SimulatedOperator
 
     if source == "sim":
-        return SimulatedOperator(cell, OperatorParams.draw(participant_seed), seed=seed)
+        params = OperatorParams.draw(participant_seed, OperatorParams.population(population))
+        return SimulatedOperator(cell, params, seed=seed)
     if source == "replay":
         if clip is None:
             raise ValueError("--source replay needs a clip: pass clip=PATH or set HRC_REPLAY_CLIP")
@@ -179,6 +182,7 @@ def run_headless_trial(
             seed=seed,
             participant_seed=p_seed,
             clip=clip if clip is not None else settings.replay_clip,
+            population=settings.population,
         )
     if forecast not in ("model", "oracle"):
         raise ValueError(f"forecast must be 'model' or 'oracle', got {forecast!r}")

@@ -53,3 +53,33 @@ def test_bad_population_files_are_explained(tmp_path: Path, edit, message: str) 
 def test_a_missing_population_file_is_an_error_not_the_default(tmp_path: Path) -> None:
     with pytest.raises(PopulationError, match="does not exist"):
         OperatorParams.population(tmp_path / "nope.toml")
+
+
+def test_simulate_takes_a_population_file_and_refuses_a_wrong_path(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from app.cli import app
+
+    runner = CliRunner()
+    missing = runner.invoke(app, ["simulate", "--duration", "1", "--population", str(tmp_path / "no.toml")])
+    assert missing.exit_code != 0 and "no.toml" in missing.output
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[height_m]\nuniform = { lo = 1.6, hi = 1.7 }\n")
+    refused = runner.invoke(
+        app, ["simulate", "--duration", "1", "--method", "reactive", "--population", str(bad)]
+    )
+    assert refused.exit_code == 2 and "missing" in refused.output and str(bad) in refused.output
+    ok = runner.invoke(
+        app,
+        [
+            "simulate",
+            "--duration",
+            "2",
+            "--method",
+            "reactive",
+            "--json",
+            "--population",
+            str(DEFAULT_POPULATION_PATH),
+        ],
+    )
+    assert ok.exit_code == 0, ok.output
