@@ -172,7 +172,8 @@ def test_inline_study_is_counterbalanced_and_stored(db: tuple[str, StudyReposito
     assert again.session_id != result.session_id
 
 
-def test_study_in_worker_processes(db: tuple[str, StudyRepository]) -> None:
+@pytest.mark.parametrize("engine", ["process", "ray"])
+def test_study_in_worker_processes_and_as_ray_tasks(db: tuple[str, StudyRepository], engine: str) -> None:
     _, repo = db
     result = run_study(
         participants=4,
@@ -183,23 +184,7 @@ def test_study_in_worker_processes(db: tuple[str, StudyRepository]) -> None:
         max_workers=2,
         progress=False,
         trial_fn=fake_trial,
-    )
-    assert (result.completed, result.aborted) == (6, 2)
-    _check_study(repo, result.session_id, 4)
-
-
-def test_study_as_ray_tasks_on_a_local_cluster(db: tuple[str, StudyRepository]) -> None:
-    _, repo = db
-    result = run_study(
-        participants=4,
-        duration_s=5.0,
-        seed=11,
-        repo=repo,
-        settings=Settings(),
-        max_workers=2,
-        progress=False,
-        trial_fn=fake_trial,
-        engine="ray",
+        engine=engine,
     )
     assert (result.completed, result.aborted) == (6, 2)
     _check_study(repo, result.session_id, 4)
