@@ -11,11 +11,14 @@ import tomllib
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+if TYPE_CHECKING:
+    from app.cell.tracker import TrackerModel
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
@@ -255,6 +258,35 @@ class Settings(BaseSettings):
         le=10.0,
         description="when the person is expected to start reaching for a placed block, after its release (s)",
     )
+    # the body tracker (app.cell.tracker): in simulation the model between the true person and the runtime;
+    # with a real tracker, its measured figures (they set the reaction time T_r of ISO/TS 15066)
+    tracker_latency_s: float = Field(
+        0.06, ge=0.0, le=1.0, description="capture to delivery of a skeleton (s); ZED 2/2i body tracking"
+    )
+    tracker_noise_m: float = Field(
+        0.01, ge=0.0, le=0.1, description="per-joint, per-axis standard deviation of the tracker's error (m)"
+    )
+    tracker_drop_p: float = Field(0.01, ge=0.0, le=0.5, description="probability that a frame is lost")
+    tracker_burst_p: float = Field(
+        0.002, ge=0.0, le=0.5, description="probability per frame that a burst of lost frames starts"
+    )
+    tracker_max_burst_s: float = Field(0.3, ge=0.0, le=5.0, description="longest burst of lost frames (s)")
+    stale_timeout_s: float = Field(
+        0.35,
+        gt=0.0,
+        le=5.0,
+        description="the human stream is stale (the robot stops) after this long without a valid frame "
+        "(s). Between frames the speed governor assumes the person's worst case since the last one, so a "
+        "short gap only slows the robot; the default bridges the tracker model's longest burst of lost "
+        "frames (0.3 s) plus a frame",
+    )
+    processing_time_s: float = Field(
+        0.01,
+        ge=0.0,
+        le=1.0,
+        description="frame arrival to the robot's command (validation, forecast, decision; s): part of T_r; "
+        "measure it with hrc bench loop",
+    )
     # the simulated world (headless trials, studies, sweeps): never read by what decides
     population: Path | None = Field(
         None,
@@ -268,6 +300,31 @@ class Settings(BaseSettings):
         if value is not None and not value.is_file():
             raise ValueError(f"population file {value} does not exist")
         return value
+
+    def tracker_model(self) -> TrackerModel:
+        """The tracker model of these settings (its rate is the camera's, ``1 / frame_period_s``)."""
+        from app.cell.tracker import TrackerModel
+
+        return TrackerModel(
+            rate_hz=1.0 / self.frame_period_s,
+            latency_s=self.tracker_latency_s,
+            noise_m=self.tracker_noise_m,
+            drop_p=self.tracker_drop_p,
+            burst_p=self.tracker_burst_p,
+            max_burst_s=self.tracker_max_burst_s,
+        )
+
+    def reaction_time_s(self, servo_period_s: float) -> float:
+        """ISO/TS 15066's ``T_r`` of this system (:func:`app.safety.stopping.reaction_time_s`): tracker
+        latency + frame period + processing + one controller cycle of ``servo_period_s``."""
+        from app.safety.stopping import reaction_time_s
+
+        return reaction_time_s(
+            tracker_latency_s=self.tracker_latency_s,
+            frame_period_s=self.frame_period_s,
+            processing_s=self.processing_time_s,
+            servo_period_s=servo_period_s,
+        )
 
     def resolved_database_url(self) -> str:
         if self.database_url:

@@ -257,6 +257,25 @@ class ReplaySource:
         self._cache = (key, frame)
         return frame
 
+    def pose_at(self, t: float) -> np.ndarray:
+        """The recorded pose (J, 3) at any time ``t`` (s), interpolated linearly between the clip's frames
+        and played forth and back like :meth:`frame_at`: the true person of a replay."""
+        times = self.clip.times
+        span = float(times[-1])
+        u = max(float(t) - self.t0, 0.0)
+        if len(times) == 1 or span <= 0:
+            return self.joints[0].copy()
+        if self.loop:
+            cycle = math.floor(u / span)
+            within = u - cycle * span
+            s = within if cycle % 2 == 0 else span - within
+        else:
+            s = min(u, span)
+        k = min(max(int(np.searchsorted(times, s, side="right")) - 1, 0), len(times) - 2)
+        w = (s - float(times[k])) / max(float(times[k + 1] - times[k]), 1e-12)
+        w = min(max(w, 0.0), 1.0)
+        return (1.0 - w) * self.joints[k] + w * self.joints[k + 1]
+
     def notify_block_placed(self, station: str, t: float) -> None:
         """A recorded person does not react to the robot: ignored."""
 
@@ -405,9 +424,11 @@ def make_human_source(
     seed: int = 0,
     t0: float = 0.0,
     params: OperatorParams | None = None,
+    noise: bool = True,
 ) -> HumanSource:
     """The source ``settings.human_source`` selects (``sim``, ``replay`` with ``settings.replay_clip``,
-    ``stream``). Simulated and replayed frames start at ``t0``.
+    ``stream``). Simulated and replayed frames start at ``t0``; ``noise=False``: the simulated operator
+    without tracking noise (the truth behind a tracker model).
 
     Raises:
         ValueError: ``replay`` without a clip, or an unknown source.
@@ -415,7 +436,7 @@ def make_human_source(
     kind = settings.human_source
     if kind == "sim":
         return SimulatedOperator(
-            cell, params if params is not None else OperatorParams.draw(seed), seed=seed, t0=t0
+            cell, params if params is not None else OperatorParams.draw(seed), seed=seed, t0=t0, noise=noise
         )
     if kind == "replay":
         if settings.replay_clip is None:

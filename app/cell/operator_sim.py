@@ -510,6 +510,15 @@ class SimulatedOperator:
                 track.prune(self._oldest_t)
         return frame
 
+    def pose_at(self, t: float) -> np.ndarray:
+        """The person's true pose (J, 3) (m, world) at any time ``t`` >= ``t0`` (s), between frames too and
+        without tracking noise: what the ground-truth monitor judges the robot against."""
+        t = max(float(t), self.t0)
+        if t < self._oldest_t - 1e-9:
+            raise ValueError(f"pose_at({t}): poses older than {self._oldest_t:.3f} s were discarded")
+        self._plan_until(t)
+        return self.to_world(self._pose_body(t))
+
     def _noise(self, k: int) -> np.ndarray:
         """The tracking noise (J, 3) (m) of frame ``k``: drawn per block of frames from a generator seeded
         by the operator's seed and the block (the same for a frame however it is reached)."""

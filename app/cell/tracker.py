@@ -94,8 +94,8 @@ class TrackedSource:
     """The frames a tracker with :class:`TrackerModel` delivers of a true human source.
 
     Args:
-        truth: The true person (``frame_at(t)`` gives their pose at ``t``; it should carry no noise of its
-            own).
+        truth: The true person: ``pose_at(t)`` (their pose at any instant), else ``frame_at(t)``; it should
+            carry no noise of its own.
         model: The tracker's latency, noise, drops and rate.
         seed: Seeds the noise and the drops.
         t0: Capture time of frame 0 (s).
@@ -143,12 +143,19 @@ class TrackedSource:
     def _frame(self, k: int) -> HumanFrame | None:
         if self._cache is not None and self._cache[0] == k:
             return self._cache[1]
-        true = self.truth.frame_at(self.capture_time(k))
-        if true is None:
+        t_k = self.capture_time(k)
+        pose_at = getattr(self.truth, "pose_at", None)
+        if pose_at is not None:  # the true motion at the capture instant
+            seen = t_k >= getattr(self.truth, "t0", 0.0)
+            joints, confidence = (pose_at(t_k), np.ones(NUM_JOINTS)) if seen else (None, None)
+        else:
+            true = self.truth.frame_at(t_k)
+            joints, confidence = (None, None) if true is None else (true.joints, true.confidence)
+        if joints is None:
             frame = None
         else:
             noise, _ = self._draws(k)
-            frame = HumanFrame(t=self.capture_time(k), joints=true.joints + noise, confidence=true.confidence)
+            frame = HumanFrame(t=t_k, joints=joints + noise, confidence=confidence)
         self._cache = (k, frame)
         return frame
 

@@ -9,8 +9,13 @@ rate with the current time (the live runtime from its threads on the wall clock,
 from one loop on the simulated clock).
 
 Also here: :class:`PlanningStack` (kinematics, collision model, roadmap and planner, built once per
-work cell), :class:`CellGeometry` (the supervisor's view of the robot's body) and
-:class:`SafetyMonitor`, an independent ISO/TS 15066 check of the executed motion against the person.
+work cell) and :class:`CellGeometry` (the supervisor's and the monitor's view of the robot's body).
+
+Safety is judged by the ground-truth monitor (:class:`app.safety.monitor.GroundTruthMonitor`) at every
+servo tick: against the *true* person where the caller has one (``truth``: the simulated operator or a
+replayed clip behind a tracker model), else against the tracker's frames (a real cell, where nothing
+better exists). A frame in which the person moved faster than a person can is an *intrusion* (someone
+appeared, or the tracker jumped to another person): a protective stop, counted apart.
 """
 
 from __future__ import annotations
@@ -39,6 +44,8 @@ from app.control.task import TaskExecutive
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import HumanFrame
 from app.safety.governor import SeparationModel, SpeedScaleLaw
+from app.safety.monitor import GroundTruthMonitor, MonitorTotals
+from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
 
@@ -195,122 +202,6 @@ def _build_stack(
 
 
 # --------------------------------------------------------------------------------------------------------
-# Independent safety monitor
-# --------------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class MonitorSample:
-    """One check of the executed motion.
-
-    Attributes:
-        t: Time (s).
-        separation_m: Robot-person surface distance (m).
-        required_m: ISO/TS 15066 S_p for the robot's speed and the person's approach speed (m).
-        robot_speed_mps: Largest speed of the robot's body points (m/s).
-        human_speed_mps: The person's directed speed toward the robot (m/s).
-        violation: The moving robot was closer than S_p.
-    """
-
-    t: float
-    separation_m: float
-    required_m: float
-    robot_speed_mps: float
-    human_speed_mps: float
-    violation: bool
-
-
-class SafetyMonitor:
-    """Checks the *executed* motion: at each call, the separation between the robot (its measured state) and
-    a pose of the person, against ISO/TS 15066's S_p for the robot's actual speed and the person's directed
-    speed toward it (:func:`app.safety.ssm.protective_separation`, with the stopping time ``T_s`` of
-    the robot's current speed: ``v_top / stop_decel_mps2``). It shares nothing with the
-    supervisor: its own distance and speed computations, the robot's reported state, the poses it is given.
-
-    The person's approach speed is measured over the same window as the supervisor's (the engine passes
-    the frame 0.1 s older): a one-frame difference of tracked positions jitters by about +-0.3 m/s with a
-    tracker's 3-8 mm noise, which is noise, not motion. Over the same pair of frames, the supervisor's
-    speed (the fastest approach of the person's capsules near a part) is never below the monitor's (the
-    rate of the part's nearest distance), so a violation means the person sped up faster than the
-    supervisor's worst case, or the supervisor failed.
-
-    Args:
-        collision: The collision model (``distance_to_human``, ``robot_capsules``).
-        ssm: :class:`app.safety.ssm.SSMParams`.
-        moving_mps: A robot part slower than this counts as standing still.
-        stop_decel_mps2: The robot's stopping deceleration (``T_s = v / stop_decel_mps2``).
-    """
-
-    def __init__(
-        self, collision: Any, ssm: Any, *, moving_mps: float = 0.01, stop_decel_mps2: float = 2.0
-    ) -> None:
-        from app.safety.ssm import protective_separation
-
-        self._sp = protective_separation
-        self.stop_decel_mps2 = float(stop_decel_mps2)
-        self.collision = collision
-        self.geometry = CellGeometry(collision)
-        self.ssm = ssm
-        self.moving_mps = float(moving_mps)
-        self.samples = 0
-        self.violation_ticks = 0
-        self.violation_episodes = 0
-        self.min_separation_m = math.inf
-        self.min_separation_moving_m = math.inf
-        self.worst: MonitorSample | None = None
-        self._in_violation = False
-
-    def check(
-        self,
-        t: float,
-        q: np.ndarray,
-        qd: np.ndarray,
-        joints: np.ndarray,
-        joints_before: np.ndarray | None,
-        dt_before_s: float,
-    ) -> MonitorSample:
-        """Check the robot at ``q``, ``qd`` (6,) against the person at ``joints`` (J, 3), who was at
-        ``joints_before`` ``dt_before_s`` seconds earlier (for their approach speed; None: 0).
-
-        Per robot part (capsule): its separation, its speed and the person's approach speed toward it; the
-        part violates when it moves and is closer than S_p(its speed, the approach speed). The sample
-        reports the worst part (the largest S_p - separation).
-        """
-        q = np.asarray(q, dtype=np.float64).reshape(6)
-        joints = np.asarray(joints, dtype=np.float64)
-        poses = joints[None] if joints_before is None else np.stack([joints, joints_before])
-        d = self.geometry.part_separations(q, poses)  # (P, L)
-        sep = d[0]
-        v_h = np.zeros_like(sep)
-        if joints_before is not None and dt_before_s > 0:
-            v_h = np.maximum((d[1] - sep) / dt_before_s, 0.0)
-        v_r = self.geometry.part_speeds(q, np.asarray(qd, dtype=np.float64))[0]
-        # T_s: the robot's stopping time from its current speed (its fastest part's)
-        params = dataclasses.replace(self.ssm, t_stop_s=float(v_r.max()) / self.stop_decel_mps2)
-        # S_p per part: S_h = v_h (T_r + T_s) with the part's own approach speed, plus S_r + S_s + C + Z
-        req = params.human_distance_m(1.0) * v_h + np.asarray(self._sp(v_r, params, v_human_mps=0.0))
-        moving = v_r > self.moving_mps
-        bad_parts = moving & (sep < req)
-        bad = bool(bad_parts.any())
-        i = int(np.argmax(np.where(bad_parts, req - sep, -np.inf))) if bad else int(np.argmin(sep))
-        sep_i = float(sep[i]) if bad else float(sep.min())
-        sample = MonitorSample(t, sep_i, float(req[i]), float(v_r[i]), float(v_h[i]), bad)
-        self.samples += 1
-        self.min_separation_m = min(self.min_separation_m, float(sep.min()))
-        if moving.any():
-            self.min_separation_moving_m = min(self.min_separation_moving_m, float(sep[moving].min()))
-        if bad:
-            self.violation_ticks += 1
-            if not self._in_violation:
-                self.violation_episodes += 1
-            gap = float((req - sep)[i])
-            if self.worst is None or gap > (self.worst.required_m - self.worst.separation_m):
-                self.worst = MonitorSample(t, float(sep[i]), float(req[i]), float(v_r[i]), float(v_h[i]), bad)
-        self._in_violation = bad
-        return sample
-
-
-# --------------------------------------------------------------------------------------------------------
 # Messages: snapshots and trial results
 # --------------------------------------------------------------------------------------------------------
 
@@ -345,6 +236,8 @@ class TrialResult:
         reason: Why it ended (``duration``, ``operator``, ``estop``, ``robot_fault``, ...).
         wall_s: Wall-clock seconds the run took.
         sim_speedup: Simulated seconds per wall second (headless runs; 1 live).
+        safety: The ground-truth monitor's verdict (None when the monitor was off).
+        tracker_latency_s: The tracker latency the trial ran with (s; None: unknown, a live tracker).
     """
 
     metrics: TrialMetrics
@@ -354,6 +247,12 @@ class TrialResult:
     reason: str = "duration"
     wall_s: float = 0.0
     sim_speedup: float = 1.0
+    safety: MonitorTotals | None = None
+    tracker_latency_s: float | None = None
+
+    def _worst_json(self) -> dict[str, Any] | None:
+        worst = None if self.safety is None else self.safety.worst
+        return None if worst is None else worst.to_json()
 
     def summary(self) -> dict[str, Any]:
         """The ``hrc simulate --json`` object."""
@@ -372,6 +271,16 @@ class TrialResult:
             "plans_computed": m.plans_computed,
             "min_separation_m": None if not math.isfinite(m.min_separation_m) else m.min_separation_m,
             "violations": m.violations,
+            "contacts": m.contacts,
+            "violation_time_s": m.violation_time_s,
+            "violations_iso": m.violations_iso,
+            "intrusions": m.intrusions,
+            "min_separation_moving_m": (
+                None if not math.isfinite(m.min_separation_moving_m) else m.min_separation_moving_m
+            ),
+            "tracker_latency_s": self.tracker_latency_s,
+            "violations_in_intrusions": 0 if self.safety is None else self.safety.violations_in_intrusions,
+            "worst_sample": self._worst_json(),
             "time_stopped_s": m.time_stopped_s,
             "time_moving_s": m.time_moving_s,
             "mean_speed_scale": m.mean_speed_scale,
@@ -479,8 +388,11 @@ class EngineOptions:
     """How a :class:`TrialEngine` runs.
 
     Attributes:
-        monitor: ``"frame"``: the safety monitor checks at every frame (against that frame); ``"tick"``: at
-            every servo tick (against the newest frame); ``"off"``.
+        monitor: Judge the trial with the ground-truth monitor at every servo tick.
+        servo_period_s: The robot's command period (s): one controller cycle of the reaction time ``T_r``.
+        intrusion_speed_mps: A frame in which a joint moved faster than this since the previous frame is an
+            intrusion (no person moves a joint at 5 m/s; a fast hand reaches 2-3 m/s, and the tracker's noise
+            adds under 2 m/s between two frames).
         record_frames: Keep the frames for the study database.
         tracking_margin_m: Tracking error of a frame (m) (see :class:`SupervisorConfig`).
         plan_margin_m: Extra clearance (m) the plans keep from the forecast person (both methods alike): room
@@ -491,7 +403,9 @@ class EngineOptions:
         pick_dwell_s, place_dwell_s: Gripper times (s).
     """
 
-    monitor: Literal["frame", "tick", "off"] = "frame"
+    monitor: bool = True
+    servo_period_s: float = 1 / 125
+    intrusion_speed_mps: float = 5.0
     record_frames: bool = True
     tracking_margin_m: float = 0.02
     human_accel_mps2: float = 8.0
@@ -522,6 +436,8 @@ class TrialEngine:
         on_event: Called with every event (already in the trial's list).
         separation: The speed governor's model (default: from the planner's SSM parameters).
         timer: Monotonic timer for compute times.
+        truth: The true person, ``truth(t) -> (J, 3)`` at any time (simulation); None: the monitor judges
+            against the tracker's frames.
     """
 
     def __init__(
@@ -541,6 +457,7 @@ class TrialEngine:
         on_event: EventListener | None = None,
         separation: SeparationModel | None = None,
         timer: Callable[[], float] = time.perf_counter,
+        truth: Callable[[float], np.ndarray] | None = None,
     ) -> None:
         if method not in ("proactive", "reactive"):
             raise ValueError(f"method must be 'proactive' or 'reactive', got {method!r}")
@@ -577,11 +494,15 @@ class TrialEngine:
         )
         self.jobs = jobs_factory(computer, self.config)
 
-        ssm = stack.ssm
+        # T_r of this system (tracker latency, frame, processing, controller cycle) and the one stopping
+        # model: the governor and the monitor use the same figures
+        self.reaction_time_s = settings.reaction_time_s(self.options.servo_period_s)
+        ssm = dataclasses.replace(stack.ssm, t_reaction_s=self.reaction_time_s)
         self.separation = separation or SeparationModel.from_ssm(
             ssm,
             human_speed_max_mps=self.options.human_speed_max_mps,
             human_accel_mps2=self.options.human_accel_mps2,
+            stop_decel_mps2=UR5E_STOP.decel_mps2,
         )
         robot_state = robot.state()
         self.supervisor = Supervisor(
@@ -610,7 +531,20 @@ class TrialEngine:
                 {st.name: np.asarray(st.xyz, dtype=np.float64) for st in stack.cell.drop_stations},
                 FetchAnticipationParams(reaction_s=settings.fetch_reaction_s),
             )
-        self.monitor = SafetyMonitor(stack.collision, ssm) if self.options.monitor != "off" else None
+        self.monitor: GroundTruthMonitor | None = None
+        if self.options.monitor:
+            from app.planning.collision import HUMAN_CAPSULES, ROBOT_LINKS
+
+            self.monitor = GroundTruthMonitor(
+                stack.geometry,
+                ssm,
+                part_names=ROBOT_LINKS,
+                human_capsules=HUMAN_CAPSULES,
+                reaction_time_s=self.reaction_time_s,
+            )
+        self.truth = truth
+        self._truth_prev: tuple[float, np.ndarray] | None = None
+        self.intrusions = 0
         self.completed_tasks = 0
         self.min_separation_m = math.inf
         self.finished: tuple[TrialStatus, str] | None = None
@@ -664,6 +598,7 @@ class TrialEngine:
         frame = self.source.poll(t)
         if frame is None:
             return None
+        self._check_intrusion(t, frame)
         if self.method == "proactive":
             forecast = self.predictor.update(frame)
             if self.anticipation is not None:
@@ -681,8 +616,6 @@ class TrialEngine:
         sep = decision.separation_m + self.config.tracking_margin_m
         self.min_separation_m = min(self.min_separation_m, sep)
         self.last_forecast = forecast
-        if self.monitor is not None and self.options.monitor == "frame":
-            self._monitor(t, frame)
         self.last_frame = frame
         self._recent.append(frame)
         if self.options.record_frames:
@@ -691,31 +624,62 @@ class TrialEngine:
             self._frames_sk.append(np.asarray(frame.joints, dtype=np.float32))
         return decision
 
-    def _monitor(self, t: float, frame: HumanFrame) -> None:
-        assert self.monitor is not None
-        st = self.last_state
-        if not np.any(np.abs(st.qd) > 1e-4):  # at rest: nothing to check (a still robot never violates)
+    def _check_intrusion(self, t: float, frame: HumanFrame) -> None:
+        """A person who moved faster than a person can since the last frame appeared (or the tracker jumped
+        to someone else): a protective stop, and the predictor starts over."""
+        prev = self.last_frame
+        if prev is None or not frame.t > prev.t:
             return
-        before = self._older_frame(frame)
-        episodes = self.monitor.violation_episodes
-        sample = self.monitor.check(
-            t,
-            st.q,
-            st.qd,
-            frame.joints,
-            None if before is None else before.joints,
-            0.0 if before is None else frame.t - before.t,
-        )
-        if self.monitor.violation_episodes > episodes:
+        speed = float(np.linalg.norm(frame.joints - prev.joints, axis=1).max()) / (frame.t - prev.t)
+        if speed <= self.options.intrusion_speed_mps:
+            return
+        self.intrusions += 1
+        log.warning("intrusion: the person moved at %.1f m/s between two frames; protective stop", speed)
+        self._emit_abs(t, "intrusion", {"speed_mps": speed})
+        self.supervisor.intrusion(t)
+        self._recent.clear()
+        if self.predictor is not None and hasattr(self.predictor, "reset"):
+            self.predictor.reset()
+
+    def _judge(self, t: float, state: RobotState) -> None:
+        """The ground-truth monitor's check of this servo tick."""
+        mon = self.monitor
+        assert mon is not None
+        if self.truth is not None:
+            joints = np.asarray(self.truth(t), dtype=np.float64)
+            prev = self._truth_prev
+            before, dt = (joints, 0.0) if prev is None else (prev[1], t - prev[0])
+            self._truth_prev = (t, joints)
+        else:  # no truth (a real cell): the tracker's frames are the best there is
+            frame = self.last_frame
+            if frame is None:
+                return
+            old = self._older_frame(frame)
+            joints = frame.joints
+            before, dt = (joints, 0.0) if old is None else (old.joints, frame.t - old.t)
+        violations, contacts = mon.violations, mon.contacts
+        sample = mon.check(t, state.q, state.qd, joints, before, dt)
+        if mon.violations > violations:
             log.error(
-                "safety monitor: separation %.3f m < S_p %.3f m", sample.separation_m, sample.required_m
+                "safety monitor: %s at %.3f m < S_p %.3f m",
+                sample.part,
+                sample.separation_m,
+                sample.required_m,
             )
-            payload = {
-                "separation_m": sample.separation_m,
-                "required_m": sample.required_m,
-                "speed_mps": sample.robot_speed_mps,
-            }
+            payload = sample.to_json()
+            payload.pop("t")
             self._emit_abs(t, "violation", payload)
+        if mon.contacts > contacts:
+            log.error("safety monitor: contact of %s with the person", sample.part)
+            self._emit_abs(
+                t,
+                "contact",
+                {
+                    "part": sample.part,
+                    "separation_m": sample.separation_m,
+                    "robot_speed_mps": sample.robot_speed_mps,
+                },
+            )
 
     def _older_frame(self, frame: HumanFrame) -> HumanFrame | None:
         """The frame the person's approach speed is measured from: the newest one at least the speed window
@@ -740,6 +704,8 @@ class TrialEngine:
             self._robot_lost(t, f"robot disconnected ({getattr(state, 'fault', None) or 'no reason given'})")
             return
         self.last_state = state
+        if self.monitor is not None:
+            self._judge(t, state)
         stale = self.source.is_stale(t)
         if stale != self._stale:
             self._stale = stale
@@ -764,8 +730,6 @@ class TrialEngine:
             self.completed_tasks += 1
             self._emit_abs(t, "task_completed", {"station": station, "index": self.completed_tasks})
             self.source.notify_block_placed(station, t)
-        if self.monitor is not None and self.options.monitor == "tick" and self.last_frame is not None:
-            self._monitor(t, self.last_frame)
         if self.elapsed(t) >= self.duration_s - 1e-9:
             self.finish(t, "completed", "duration")
 
@@ -808,7 +772,12 @@ class TrialEngine:
             emergency_plans=c.emergency_plans,
             plan_failures=c.plan_failures,
             min_separation_m=self.min_separation_m,
-            violations=0 if mon is None else mon.violation_episodes,
+            violations=0 if mon is None else mon.violations,
+            contacts=0 if mon is None else mon.contacts,
+            violation_time_s=0.0 if mon is None else round(mon.violation_time_s, 6),
+            violations_iso=0 if mon is None else mon.violations_iso,
+            intrusions=self.intrusions,
+            min_separation_moving_m=math.inf if mon is None else mon.min_separation_moving_m,
             time_stopped_s=st["stopped"] + st["estop"] + st["fault"],
             time_nominal_s=st["nominal"],
             time_collision_avoidance_s=st["collision_avoidance"],
@@ -839,17 +808,20 @@ class TrialEngine:
             "plan_failures": c.plan_failures,
             "plans_computed": c.plans_computed,
             "frames": c.frames,
-            "violations": 0 if self.monitor is None else self.monitor.violation_episodes,
+            "violations": 0 if self.monitor is None else self.monitor.violations,
+            "contacts": 0 if self.monitor is None else self.monitor.contacts,
+            "intrusions": self.intrusions,
             "min_separation_m": self.min_separation_m,
         }
 
 
-def make_validated_source(source: Any, cell: WorkCell) -> ValidatedSource:
-    """``source`` behind the cell's frame checks and a 100 ms stale watchdog (a :class:`ValidatedSource`
-    is returned as it is)."""
+def make_validated_source(source: Any, cell: WorkCell, *, stale_timeout_s: float = 0.35) -> ValidatedSource:
+    """``source`` behind the cell's frame checks and a stale watchdog (``Settings.stale_timeout_s``; a
+    :class:`ValidatedSource` is returned as it is)."""
     if isinstance(source, ValidatedSource):
         return source
-    return ValidatedSource(source, validator=FrameValidator.for_workcell(cell), watchdog=StaleWatchdog(0.1))
+    watchdog = StaleWatchdog(stale_timeout_s)
+    return ValidatedSource(source, validator=FrameValidator.for_workcell(cell), watchdog=watchdog)
 
 
 _TIME_KEYS = frozenset({"t_switch", "violation_t"})
@@ -873,9 +845,7 @@ def _json_safe(payload: dict[str, Any]) -> dict[str, Any]:
 __all__ = [
     "CellGeometry",
     "EngineOptions",
-    "MonitorSample",
     "PlanningStack",
-    "SafetyMonitor",
     "Snapshot",
     "TrialEngine",
     "TrialFrames",

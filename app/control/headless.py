@@ -10,6 +10,7 @@ seed apart from those measured times (pass ``fixed_compute_s`` to fix them too, 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -105,16 +106,18 @@ def make_operator(
     participant_seed: int,
     clip: str | Path | None = None,
     population: str | Path | None = None,
+    noise: bool = True,
 ) -> Any:
     """The person of a headless trial: a simulated participant (``participant_seed`` draws their body and
     habits from ``population``, a TOML file or None for the shipped one; ``seed`` their moment-to-moment
-    behaviour and noise) or a recorded clip, played forth and back."""
+    behaviour and noise) or a recorded clip, played forth and back. ``noise=False``: the simulated
+    participant without tracking noise (the truth behind a tracker model)."""
     from app.cell.human import ReplaySource
     from app.cell.operator_sim import OperatorParams, SimulatedOperator
 
     if source == "sim":
         params = OperatorParams.draw(participant_seed, OperatorParams.population(population))
-        return SimulatedOperator(cell, params, seed=seed)
+        return SimulatedOperator(cell, params, seed=seed, noise=noise)
     if source == "replay":
         if clip is None:
             raise ValueError("--source replay needs a clip: pass clip=PATH or set HRC_REPLAY_CLIP")
@@ -141,6 +144,7 @@ def run_headless_trial(
     observer: Observer | None = None,
     robot_factory: Callable[[SimClock, np.ndarray], Any] | None = None,
     forecast: Literal["model", "oracle"] = "model",
+    tracker: Any | None = None,
 ) -> TrialResult:
     """Run one trial on the simulated clock and return its metrics, events and frames.
 
@@ -164,6 +168,12 @@ def run_headless_trial(
         forecast: The proactive method's forecast: ``model`` (the motion predictor) or ``oracle`` (the
             simulated operator's own future, :class:`~app.cell.operator_sim.OracleForecaster`: the bound
             of what proactive planning can gain; ``source="sim"`` only).
+        tracker: The tracker between the true person and the runtime (default: the settings'
+            :meth:`~app.config.Settings.tracker_model`). Not applied to a ``human`` given by the caller,
+            whose frames the runtime sees as they are.
+
+    The true person (the simulated operator without noise, or the clip) is what the ground-truth monitor
+    judges the robot against; the runtime sees them only through the tracker model.
     """
     from app.cell.robot import RobotConnectionError, SimRobot
 
@@ -175,15 +185,24 @@ def run_headless_trial(
     stack = stack if stack is not None else PlanningStack.for_cell(cell)
     p_seed = seed if participant_seed is None else participant_seed
     options = options or EngineOptions()
+    tracker_model = None
     if human is None:
-        human = make_operator(
+        from app.cell.tracker import TrackedSource
+
+        truth = make_operator(
             cell,
             source=source,
             seed=seed,
             participant_seed=p_seed,
             clip=clip if clip is not None else settings.replay_clip,
             population=settings.population,
+            noise=False,
         )
+        tracker_model = tracker if tracker is not None else settings.tracker_model()
+        human = TrackedSource(truth, tracker_model, seed=seed)
+    else:
+        truth = human
+    truth_fn = getattr(truth, "pose_at", None)
     if forecast not in ("model", "oracle"):
         raise ValueError(f"forecast must be 'model' or 'oracle', got {forecast!r}")
     if forecast == "oracle":
@@ -191,12 +210,12 @@ def run_headless_trial(
 
         if method != "proactive" or predictor is not None:
             raise ValueError("the oracle forecast is for the proactive method, instead of its predictor")
-        if not isinstance(human, SimulatedOperator):
+        if not isinstance(truth, SimulatedOperator):
             raise ValueError("the oracle forecast needs the simulated operator (source 'sim')")
         # the operator's own future, nothing added (it knows of a fetch as soon as the block is placed)
         settings = settings.model_copy(update={"anticipate_fetch": False})
         predictor = OracleForecaster(
-            human,
+            truth,
             margin_m=options.tracking_margin_m,
             growth_mps=BEYOND_HORIZON_GROWTH_MPS,
             max_margin_m=BEYOND_HORIZON_MAX_MARGIN_M,
@@ -209,7 +228,7 @@ def run_headless_trial(
     clock = SimClock(0.0)
     q0 = np.asarray(cell.robot.home_q, dtype=np.float64)
     robot = SimRobot(clock, q0=q0) if robot_factory is None else robot_factory(clock, q0)
-    vsource = make_validated_source(human, cell)
+    vsource = make_validated_source(human, cell, stale_timeout_s=settings.stale_timeout_s)
     wall0 = time.perf_counter()
     engine = TrialEngine(
         stack=stack,
@@ -222,21 +241,16 @@ def run_headless_trial(
         duration_s=duration_s,
         seed=p_seed,
         t0=0.0,
-        options=options,
+        options=dataclasses.replace(options, servo_period_s=1.0 / servo_rate_hz),
+        truth=truth_fn,
     )
     dt = 1.0 / servo_rate_hz
-    frame_period = settings.frame_period_s
     n_ticks = round(duration_s * servo_rate_hz)
-    next_frame = 0.0
     try:
         for k in range(n_ticks + 1):
             t = k * dt
             clock.set(t)
-            if t >= next_frame - 1e-9:
-                engine.frame_tick(t)
-                next_frame += frame_period
-                while next_frame <= t:  # frames slower than ticks never pile up
-                    next_frame += frame_period
+            engine.frame_tick(t)  # a frame is processed at the first tick after it arrived
             engine.servo_tick(t)
             if observer is not None:
                 observer(t, engine)
@@ -261,4 +275,6 @@ def run_headless_trial(
         reason=reason,
         wall_s=wall,
         sim_speedup=metrics.duration_s / wall if wall > 0 else float("inf"),
+        safety=None if engine.monitor is None else engine.monitor.totals(),
+        tracker_latency_s=None if tracker_model is None else tracker_model.latency_s,
     )

@@ -27,7 +27,9 @@ EVENT_KINDS: tuple[str, ...] = (
     "stream_resumed",  # []
     "estop",  # [source]
     "robot_fault",  # [message]
-    "violation",  # [separation_m, required_m, speed_mps]
+    "violation",  # [part, separation_m, required_m, robot_speed_mps, human_speed_mps]
+    "contact",  # [part, separation_m, robot_speed_mps]
+    "intrusion",  # [speed_mps]
 )
 
 
@@ -60,7 +62,13 @@ class TrialMetrics:
     ``time_moving_s`` is the time the robot was under way on a plan (speed scale above zero, brakes
     included) and ``mean_speed_scale`` the average speed scale over that time (0 when it never moved): 1
     means that the plans ran at the speed they were planned for, and ``1 - mean_speed_scale`` is what speed
-    and separation monitoring (and braking) took from them."""
+    and separation monitoring (and braking) took from them.
+
+    The safety counts come from the ground-truth monitor (:mod:`app.safety.monitor`): ``violations`` and
+    ``contacts`` are episodes, ``violation_time_s`` their total time, ``violations_iso`` the episodes with ISO
+    13855's constant human speeds, ``min_separation_moving_m`` the smallest true separation while the robot
+    moved; ``intrusions`` counts the frames in which the person appeared or jumped (a protective stop each).
+    ``min_separation_m`` is the separation as the supervisor saw it (tracked frames)."""
 
     method: Method = "proactive"
     duration_s: float = 0.0
@@ -75,6 +83,11 @@ class TrialMetrics:
     plan_failures: int = 0
     min_separation_m: float = math.inf
     violations: int = 0
+    contacts: int = 0
+    violation_time_s: float = 0.0
+    violations_iso: int = 0
+    intrusions: int = 0
+    min_separation_moving_m: float = math.inf
     time_stopped_s: float = 0.0
     time_nominal_s: float = 0.0
     time_collision_avoidance_s: float = 0.0

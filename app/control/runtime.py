@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
+import dataclasses
 import logging
 import math
 import queue
@@ -227,6 +228,10 @@ class _LockedSource:
         with self._lock:
             return self.source.frame_at(t)
 
+    def pose_at(self, t: float) -> Any:
+        with self._lock:
+            return self.source.pose_at(t)
+
     def notify_block_placed(self, station: str, t: float) -> None:
         notify = getattr(self.source, "notify_block_placed", None)
         if notify is not None:
@@ -300,6 +305,7 @@ class Runtime:
         self._trial_id: int | None = None
         self._source: ValidatedSource | None = None
         self._sim_source = False
+        self._truth: Any = None  # the true person's pose at any time (simulated sources), for the monitor
         self._stream: Any | None = None
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
@@ -418,16 +424,27 @@ class Runtime:
         if given is not None:
             if self._source is None:
                 self._stream = given if hasattr(given, "push") else None
-                self._source = make_validated_source(_LockedSource(given), self.cell)
+                self._source = make_validated_source(
+                    _LockedSource(given), self.cell, stale_timeout_s=self.settings.stale_timeout_s
+                )
             return
         kind = self.settings.human_source
         if kind == "sim" or self._source is None:
             from app.cell.human import make_human_source
+            from app.cell.tracker import TrackedSource
 
-            src = make_human_source(self.settings, self.cell, seed=seed, t0=self.clock.now())
+            t0 = self.clock.now()
+            src = make_human_source(self.settings, self.cell, seed=seed, t0=t0, noise=False)
             self._sim_source = kind == "sim"
             self._stream = src if kind == "stream" else None
-            self._source = make_validated_source(_LockedSource(src), self.cell)
+            self._truth = None
+            if kind in ("sim", "replay"):  # the simulated world: the truth, seen through the tracker model
+                locked = _LockedSource(src)
+                self._truth = locked.pose_at
+                src = TrackedSource(locked, self.settings.tracker_model(), seed=seed, t0=t0)
+            self._source = make_validated_source(
+                _LockedSource(src), self.cell, stale_timeout_s=self.settings.stale_timeout_s
+            )
 
     # -------------------------------------------------------------------------------------------- trials
     @property
@@ -471,8 +488,9 @@ class Runtime:
                 duration_s=duration_s,
                 seed=seed,
                 t0=clock.now(),
-                options=self.options,
+                options=dataclasses.replace(self.options, servo_period_s=1.0 / self.servo_rate_hz),
                 on_event=lambda ev, tid=trial_id: self._post_event(tid, ev),
+                truth=self._truth,
             )
             self._trial_id = trial_id
         log.info("trial %d started (%s, %.0f s, seed %d)", trial_id, method, duration_s, seed)
@@ -496,7 +514,11 @@ class Runtime:
         status, reason = engine.finished or ("aborted", "unknown")
         metrics = engine.metrics()
         events = list(engine.events)
-        self.last_result = TrialResult(metrics, events, engine.frames(), status, reason)
+        safety = None if engine.monitor is None else engine.monitor.totals()
+        latency = self.settings.tracker_latency_s if self._truth is not None else None
+        self.last_result = TrialResult(
+            metrics, events, engine.frames(), status, reason, safety=safety, tracker_latency_s=latency
+        )
         if reason == "robot_fault":
             self._fault = "robot connection lost"
         log.info("trial %d ended: %s (%s), %d tasks", trial_id, status, reason, metrics.completed_tasks)

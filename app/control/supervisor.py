@@ -73,6 +73,7 @@ from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 from app.safety._kernels import governed_scale as _kernel_governed_scale
 from app.safety.governor import BRAKE_INSTANTS, NO_LAW, SCALE_GRID, SeparationModel, SpeedScaleLaw
+from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
 
@@ -131,8 +132,8 @@ class SupervisorConfig:
     start_deadline_s: float | None = None
     frame_period_s: float = 1.0 / 30.0
     planner_workers: int = 1
-    brake_decel_mps2: float = 3.0
-    brake_joint_decel: float = 3.0
+    brake_decel_mps2: float = UR5E_STOP.decel_mps2
+    brake_joint_decel: float = UR5E_STOP.joint_decel_radps2
     scale_up_rate: float = 4.0
     tracking_margin_m: float = 0.02
     human_speed_window_s: float = 0.1
@@ -437,6 +438,22 @@ class Supervisor:
                 self._emit(t, "stream_resumed", {})
             self._stale = stale
 
+    def intrusion(self, t: float) -> None:
+        """The person appeared or jumped (a frame-to-frame motion no person makes): a protective stop. The
+        robot brakes to rest along its path (when it is under way) and replans from there; the person's
+        speed history is forgotten, so the next frames assume their fastest approach until it is measured
+        again."""
+        with self._lock:
+            self._history.clear()
+            self._v_h_t = -math.inf
+            if self._estop or self._fault or self._brake is not None:
+                return
+            if self._s > 1e-6 and self._active.under_way(self._tau):
+                self._stop_and_replan(t, reason="intrusion", violation_t=None)
+            else:
+                self._pending = None
+                self._generation += 1
+
     def estop(self, t: float, *, source: str = "api") -> None:
         """Latch the E-stop: the robot is held (the runtime also stops the robot); needs :meth:`reset`."""
         with self._lock:
@@ -540,8 +557,9 @@ class Supervisor:
             t_v = self._first_violation(view, forecast, T, view.t_end)
         # the stop distance: a part that is to move is within S_p(0) of the person (at their measured speed;
         # the speed governor allows for what they may do before the next frame)
-        to_move = active.profile.window_at(tau) > 1e-6
-        stop_distance = bool(np.any(to_move & (sep_parts <= self.ssm.s0_m + self.ssm.t_reaction_s * v_h0)))
+        # (every part of a robot that is to move: a part at rest on a moving robot must keep S_p(0) too)
+        to_move = bool(np.any(active.profile.window_at(tau) > 1e-6))
+        stop_distance = to_move and bool(np.any(sep_parts <= self.ssm.s0_m + self.ssm.t_reaction_s * v_h0))
 
         # 3. pre-check a finished backup of the pending switch against this (latest) forecast
         with self._lock:
@@ -1120,7 +1138,7 @@ class Supervisor:
         # separation lower bound of each part at the next tick
         sep_lb, v_h = self._separation_bound(t + dt)
         sep_lb = sep_lb - s * vmax * dt
-        m = vmax > 1e-4
+        m = np.full(vmax.shape, bool(np.any(vmax > 1e-4)))  # every part of a robot that moves
         s_target = self.ssm.max_scale_reference(
             sep_lb[m], v_human_mps=v_h[m], v_parts_mps=vmax[m], rate=rate, lo=lo, hi=hi
         )

@@ -170,7 +170,7 @@ def governed_scale(
     (m), the person's worst-case approach since (from ``v_h0`` (m/s), ``dt_h`` (s) after the measurement,
     less the ``x_h0`` (m) already counted; NaN ``dt_h``: no measurement, the fastest approach), the part's
     travel since ``travel_m`` and its travel this tick (``s * vmax * dt``). The target is the braking
-    envelope's largest safe scale in ``[lo, hi]`` (:func:`max_scale`) over the parts that move
+    envelope's largest safe scale in ``[lo, hi]`` (:func:`max_scale`) over every part when any part moves
     (``vmax > 1e-4`` m/s), limited by the speed-scaling law at the measured ``v_h0`` when ``law`` is not
     empty (:func:`law_scale`)."""
     n = sep_m.shape[0]
@@ -179,9 +179,15 @@ def governed_scale(
     vh = np.empty(n)
     vp = np.empty(n)
     vm = np.empty(n)
-    k = 0
+    # a robot that moves at all is judged by every part: a part at rest on a moving robot must keep its
+    # S_p too (ISO/TS 15066 asks the robot, not the part, to be at standstill within S_p)
+    moving = False
     for i in range(n):
         if vmax[i] > 1e-4:
+            moving = True
+    k = 0
+    for i in range(n):
+        if moving:
             if math.isnan(dt_h):
                 sep_lb, v_h = sep_m[i], v_max_h
             else:

@@ -152,7 +152,8 @@ class Trial(Base):
 
 class TrialMetricsRow(Base):
     """The metrics of one trial: one column per stored field of :class:`app.control.metrics.TrialMetrics`
-    (``method`` lives on the trial). A non-finite ``min_separation_m`` (no person seen) is stored as NULL."""
+    (``method`` lives on the trial). A non-finite ``min_separation_m`` or ``min_separation_moving_m`` (no
+    person seen, or the robot never moved) is stored as NULL."""
 
     __tablename__ = "trial_metrics"
 
@@ -169,6 +170,11 @@ class TrialMetricsRow(Base):
     plan_failures: Mapped[int] = mapped_column(Integer)
     min_separation_m: Mapped[float | None] = mapped_column(Float)
     violations: Mapped[int] = mapped_column(Integer)
+    contacts: Mapped[int] = mapped_column(Integer, server_default="0")
+    violation_time_s: Mapped[float] = mapped_column(Float, server_default="0")
+    violations_iso: Mapped[int] = mapped_column(Integer, server_default="0")
+    intrusions: Mapped[int] = mapped_column(Integer, server_default="0")
+    min_separation_moving_m: Mapped[float | None] = mapped_column(Float)
     time_stopped_s: Mapped[float] = mapped_column(Float)
     time_nominal_s: Mapped[float] = mapped_column(Float)
     time_collision_avoidance_s: Mapped[float] = mapped_column(Float)
@@ -195,6 +201,11 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "plan_failures",
     "min_separation_m",
     "violations",
+    "contacts",
+    "violation_time_s",
+    "violations_iso",
+    "intrusions",
+    "min_separation_moving_m",
     "time_stopped_s",
     "time_nominal_s",
     "time_collision_avoidance_s",

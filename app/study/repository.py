@@ -144,6 +144,10 @@ class RecordedFrames:
         return int(self.t.size)
 
 
+#: Metrics that are infinite when unmeasured (no person seen, a robot that never moved), stored as NULL.
+NULLABLE_METRICS = frozenset({"min_separation_m", "min_separation_moving_m"})
+
+
 def _metrics_values(metrics: TrialMetrics | Mapping[str, Any]) -> dict[str, Any]:
     """The stored columns of ``metrics`` (non-finite min separation -> None)."""
     data = asdict(metrics) if is_dataclass(metrics) and not isinstance(metrics, type) else dict(metrics)
@@ -159,8 +163,9 @@ def _metrics_values(metrics: TrialMetrics | Mapping[str, Any]) -> dict[str, Any]
         if isinstance(v, (float, np.floating)):
             v = float(v)
             if not math.isfinite(v):
-                if c != "min_separation_m":
-                    raise ValueError(f"trial metric {c} is {v}; only min_separation_m may be non-finite")
+                if c not in NULLABLE_METRICS:
+                    allowed = sorted(NULLABLE_METRICS)
+                    raise ValueError(f"trial metric {c} is {v}; only {allowed} may be non-finite")
                 v = None
         elif isinstance(v, np.integer):
             v = int(v)
@@ -171,8 +176,9 @@ def _metrics_values(metrics: TrialMetrics | Mapping[str, Any]) -> dict[str, Any]
 def metrics_from_read(row: TrialMetricsRead, method: Method) -> TrialMetrics:
     """Back to the runtime's :class:`TrialMetrics` (None min separation -> inf)."""
     values = {c: getattr(row, c) for c in METRIC_COLUMNS}
-    if values["min_separation_m"] is None:
-        values["min_separation_m"] = math.inf
+    for c in NULLABLE_METRICS:
+        if values[c] is None:
+            values[c] = math.inf
     return TrialMetrics(method=method, **values)
 
 

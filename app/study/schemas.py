@@ -113,6 +113,11 @@ class TrialMetricsRead(_Out):
     plan_failures: int
     min_separation_m: float | None
     violations: int
+    contacts: int = 0
+    violation_time_s: float = 0.0
+    violations_iso: int = 0
+    intrusions: int = 0
+    min_separation_moving_m: float | None = None
     time_stopped_s: float
     time_nominal_s: float
     time_collision_avoidance_s: float
@@ -132,7 +137,7 @@ class TrialMetricsRead(_Out):
     def online_replans_per_task(self) -> float:
         return self.online_replans / max(self.completed_tasks, 1)
 
-    @field_validator("min_separation_m")
+    @field_validator("min_separation_m", "min_separation_moving_m")
     @classmethod
     def _finite_or_none(cls, v: float | None) -> float | None:
         return v if v is not None and math.isfinite(v) else None

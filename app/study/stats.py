@@ -44,6 +44,8 @@ REPORT_METRICS: tuple[str, ...] = (
     "deadline_misses",
     "time_stopped_s",
     "mean_speed_scale",
+    "violations",
+    "contacts",
 )
 METRIC_LABELS: dict[str, str] = {
     "completed_tasks": "Completed tasks",
@@ -54,6 +56,8 @@ METRIC_LABELS: dict[str, str] = {
     "deadline_misses": "Deadline misses",
     "time_stopped_s": "Time stopped (s)",
     "mean_speed_scale": "Mean speed scale under way",
+    "violations": "Violations (ground truth)",
+    "contacts": "Contacts (ground truth)",
 }
 NORMALITY_ALPHA = 0.05
 MIN_PAIRS = 3

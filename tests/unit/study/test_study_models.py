@@ -13,7 +13,9 @@ from app.control.metrics import TrialMetrics
 from app.study.db import DatabaseError, alembic_config, current_revision, make_engine, upgrade_to_head
 from app.study.models import METRIC_COLUMNS, Base, TrialMetricsRow, UTCDateTime
 
-HEAD = "0003"
+HEAD = "0004"
+#: The ground-truth monitor's columns (revision 0004).
+_SAFETY_0004 = ("contacts", "violation_time_s", "violations_iso", "intrusions", "min_separation_moving_m")
 
 
 def test_one_metrics_column_per_trial_metrics_field() -> None:
@@ -57,7 +59,8 @@ def test_upgrade_downgrade_upgrade(tmp_path: Path) -> None:
 
 
 def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
-    """A database made by the first schema gains the motion metrics as 0 and keeps every trial."""
+    """A database made by the first schema gains the later metrics (0, or NULL where not measured) and keeps
+    every trial."""
     url = f"sqlite:///{tmp_path / 'old.db'}"
     command.upgrade(alembic_config(url), "0001")
     engine = make_engine(url)
@@ -74,7 +77,8 @@ def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
                     " status) VALUES (1, 1, 'proactive', 0, 7, '{}', '2026-01-01', 'completed')"
                 )
             )
-            cols = [c for c in METRIC_COLUMNS if c not in ("time_moving_s", "mean_speed_scale")]
+            later = ("time_moving_s", "mean_speed_scale", *_SAFETY_0004)
+            cols = [c for c in METRIC_COLUMNS if c not in later]
             conn.execute(
                 text(
                     f"INSERT INTO trial_metrics (trial_id, {', '.join(cols)}) "
@@ -88,6 +92,8 @@ def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
                 text("SELECT completed_tasks, time_moving_s, mean_speed_scale FROM trial_metrics")
             )
             assert [tuple(r) for r in row] == [(3, 0.0, 0.0)]
+            safety = conn.execute(text(f"SELECT {', '.join(_SAFETY_0004)} FROM trial_metrics"))
+            assert [tuple(r) for r in safety] == [(0, 0.0, 0, 0, None)]  # not measured: 0, and NULL
             keys = conn.execute(text("SELECT id, trial_key, setting_label FROM trials"))
             assert [tuple(r) for r in keys] == [(1, None, None)]
     finally:
