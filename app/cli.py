@@ -18,6 +18,7 @@ from app.commands.cell import cell_app
 from app.commands.hmp import hmp_app
 
 if TYPE_CHECKING:
+    from app.config import Settings
     from app.study.repository import StudyRepository
 
 app = typer.Typer(
@@ -74,6 +75,32 @@ _DbUrl = Annotated[
 _SessionSpec = Annotated[
     str, typer.Option("--session", help="Study session: 'latest' (newest), 'all', or a session id.")
 ]
+
+
+_SettingsFile = Annotated[
+    Path | None,
+    typer.Option(
+        "--settings",
+        help="TOML file of settings overrides (Settings fields, e.g. the best.toml of `hrc tune`); they take "
+        "precedence over HRC_* variables.",
+    ),
+]
+
+
+def _load_settings(path: Path | None, **given: object) -> Settings:
+    """Settings from the environment, the ``--settings`` file and the given options (None: not given)."""
+    from pydantic import ValidationError
+
+    from app.config import Settings, SettingsFileError, load_settings_file
+
+    try:
+        overrides = load_settings_file(path) if path is not None else {}
+        return Settings(**{**overrides, **{k: v for k, v in given.items() if v is not None}})
+    except SettingsFileError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--settings") from exc
+    except ValidationError as exc:
+        msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise typer.BadParameter(msgs) from exc
 
 
 def _open_study(url: str | None) -> StudyRepository:
@@ -209,6 +236,7 @@ def study(
         str | None,
         typer.Option("--address", help="Ray cluster address (default RAY_ADDRESS; none: a local cluster)."),
     ] = None,
+    settings_file: _SettingsFile = None,
     url: _DbUrl = None,
 ) -> None:
     """Headless study: simulated participants x both methods, as Ray tasks or on a process pool, into the DB.
@@ -218,9 +246,11 @@ def study(
     """
     from app.study.runner import run_study
 
+    settings = _load_settings(settings_file)
     repo = _open_study(url)
     try:
         result = run_study(
+            settings=settings,
             participants=participants,
             duration_s=duration,
             seed=seed,
@@ -324,17 +354,16 @@ def serve(
     port: Annotated[int | None, typer.Option(help="API port (default HRC_PORT, 8000).")] = None,
     viser_port: Annotated[int | None, typer.Option(help="3D view port (default HRC_VISER_PORT).")] = None,
     log_level: Annotated[str, typer.Option(help="uvicorn log level.")] = "info",
+    settings_file: _SettingsFile = None,
 ) -> None:
     """Start the operator server: REST API (/docs), live WebSockets, the runtime and the 3D view."""
     import logging
 
     from app.api.auth import TokenError
     from app.api.server import run_server
-    from app.config import Settings
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    given = {"host": host, "port": port, "viser_port": viser_port}
-    settings = Settings(**{k: v for k, v in given.items() if v is not None})  # validated
+    settings = _load_settings(settings_file, host=host, port=port, viser_port=viser_port)  # validated
     try:
         run_server(settings, log_level=log_level, echo=lambda text: typer.echo(text, err=True))
     except TokenError as exc:  # the message says which file and what to do; no traceback needed
