@@ -345,6 +345,57 @@ def sweep_(
         typer.echo(f"{result.failed} trials failed; run the sweep again to retry them", err=True)
 
 
+@app.command("tune")
+def tune_(
+    spec: Annotated[Path, typer.Argument(help="Tuning spec (TOML; see examples/tune_margins.toml).")],
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="Print the search and the trial count.")] = False,
+    engine: Annotated[
+        str, typer.Option("--engine", help="ray (Ray Tune, default) or inline (Optuna in this process).")
+    ] = "ray",
+    address: Annotated[
+        str | None, typer.Option("--address", help="Ray cluster address (default RAY_ADDRESS; none: local).")
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", help="Settings TOML of the best sample (default HRC_DATA_DIR/tune/NAME.toml)."),
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
+) -> None:
+    """Tune planner and forecast settings with Ray Tune and Optuna on the tuning seeds 1000-1999.
+
+    Each sample runs the spec's participants (seeds) x methods as headless trials; it scores the mean
+    completed tasks per trial if no trial had a violation or a contact (else a large negative penalty).
+    ISO/TS 15066 safety parameters are refused: they come from the cell's measurements. The best
+    settings go to --out as a TOML for `hrc study --settings` / `hrc serve --settings`.
+    """
+    import logging
+
+    from app.config import Settings
+    from app.study.tune import TuneSpecError, describe_tune, load_tune_spec, run_tune, write_best_settings
+
+    try:
+        parsed = load_tune_spec(spec)
+    except TuneSpecError as exc:
+        raise typer.BadParameter(str(exc), param_hint="SPEC") from exc
+    if dry_run:
+        typer.echo(json.dumps(describe_tune(parsed), indent=None if as_json else 2))
+        return
+    if engine not in ("ray", "inline"):
+        raise typer.BadParameter(f"--engine must be ray or inline, not {engine!r}")
+    logging.basicConfig(level=logging.ERROR if as_json else logging.WARNING)
+    result = run_tune(parsed, engine=engine, address=address)  # type: ignore[arg-type]
+    summary = result.to_json(parsed)
+    out = out or Settings().data_dir / "tune" / f"{parsed.name}.toml"
+    try:
+        summary["out"] = str(write_best_settings(result, parsed, out, spec_path=spec))
+    except LookupError as exc:
+        summary["out"] = None
+        typer.echo(json.dumps(summary, indent=None if as_json else 2))
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(1) from exc
+    typer.echo(json.dumps(summary, indent=None if as_json else 2))
+
+
 # --- server (app.api) ------------------------------------------------------------------------------------
 
 
