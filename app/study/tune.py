@@ -437,21 +437,28 @@ def base_settings() -> dict[str, Any]:
 
 
 def _absolute(params: Mapping[str, Any]) -> dict[str, Any]:
-    """Choices of path settings made absolute (a Ray Tune trial runs in its own directory)."""
+    """The sampled settings as the trials get them: floats to 12 digits (a stepped range gives 0.9, not
+    0.9000000000000001) and path choices made absolute (a Ray Tune trial may run in its own directory)."""
     from app.config import Settings
 
-    return {
-        k: str(Path(v).resolve())
-        if isinstance(v, str) and "Path" in str(Settings.model_fields[k].annotation)
-        else v
-        for k, v in params.items()
-    }
+    out = {}
+    for k, v in params.items():
+        if isinstance(v, float):
+            v = float(f"{v:.12g}")
+        elif isinstance(v, str) and "Path" in str(Settings.model_fields[k].annotation):
+            v = str(Path(v).resolve())
+        out[k] = v
+    return out
+
+
+def _rounded(params: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: float(f"{v:.12g}") if isinstance(v, float) else v for k, v in params.items()}
 
 
 def _row(
     i: int, params: Mapping[str, Any], metrics: Mapping[str, Any] | None, error: str | None
 ) -> dict[str, Any]:
-    row: dict[str, Any] = {"trial": i, "params": dict(params)}
+    row: dict[str, Any] = {"trial": i, "params": _rounded(params)}
     if metrics is None:
         row.update(score=None, feasible=False, error=error)
     else:
@@ -526,7 +533,8 @@ def _run_ray(spec: TuneSpec, base: dict[str, Any], address: str | None) -> list[
         for i, r in enumerate(sorted(results, key=_sample_index)):
             params = {p.name: (r.config or {}).get(p.name) for p in spec.space}
             ok = r.error is None and r.metrics and "score" in r.metrics
-            rows.append(_row(i, params, r.metrics if ok else None, None if ok else str(r.error)))
+            error = None if ok else str(r.error)[:1000]
+            rows.append(_row(i, params, r.metrics if ok else None, error))
         return rows
     finally:
         if owns and ray.is_initialized():
