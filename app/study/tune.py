@@ -56,12 +56,12 @@ INFEASIBLE_PENALTY = 1000.0
 SAFETY_PARAMETERS: dict[str, str] = {
     "frame_period_s": "the tracking camera's frame period",
     "camera_pose": "the tracking camera's calibration",
-    "v_human_mps": "ISO/TS 15066 v_h, the person's speed",
-    "t_reaction_s": "ISO/TS 15066 T_r, the robot system's reaction time",
-    "t_stop_s": "ISO/TS 15066 T_s, the robot's stopping time",
-    "intrusion_m": "ISO/TS 15066 C, the intrusion distance",
-    "z_human_m": "ISO/TS 15066 Z_d, the tracker's position uncertainty",
-    "z_robot_m": "ISO/TS 15066 Z_r, the robot's position uncertainty",
+    "v_human_mps": "v_h, the person's speed",
+    "t_reaction_s": "T_r, the robot system's reaction time",
+    "t_stop_s": "T_s, the robot's stopping time",
+    "intrusion_m": "C, the intrusion distance",
+    "z_human_m": "Z_d, the tracker's position uncertainty",
+    "z_robot_m": "Z_r, the robot's position uncertainty",
     "tracking_margin_m": "the tracker's error",
     "human_accel_mps2": "the person's worst-case acceleration (speed governor)",
     "human_speed_max_mps": "the person's fastest approach (speed governor)",
@@ -158,7 +158,7 @@ def _safety_reason(key: str) -> str | None:
         return SAFETY_PARAMETERS[key]
     low = key.lower()
     word = next((w for w in _SAFETY_WORDS if w in low), None)
-    return None if word is None else f"a safety or measurement parameter ('{word}')"
+    return None if word is None else f"its name says '{word}'"
 
 
 def _check_key(key: str) -> None:
@@ -167,8 +167,8 @@ def _check_key(key: str) -> None:
     reason = _safety_reason(key)
     if reason is not None:
         raise TuneSpecError(
-            f"[space] {key}: {reason} is an ISO/TS 15066 safety parameter; it comes from the cell's "
-            f"measurements and is never tuned (tunable: {', '.join(TUNABLE)})"
+            f"[space] {key} ({reason}) is an ISO/TS 15066 safety or measurement parameter: it comes from "
+            f"the cell's measurements and is never tuned (tunable: {', '.join(TUNABLE)})"
         )
     if key not in Settings.model_fields:
         raise TuneSpecError(

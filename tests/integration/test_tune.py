@@ -64,7 +64,7 @@ def test_the_example_spec_is_valid() -> None:
     ],
 )
 def test_safety_parameters_are_refused(key: str) -> None:
-    with pytest.raises(TuneSpecError, match=rf"\[space\] {key}: .*ISO/TS 15066.*never tuned"):
+    with pytest.raises(TuneSpecError, match=rf"\[space\] {key} \(.*\) is an ISO/TS 15066 .*never tuned"):
         parse_tune_spec(
             _spec(space={"deadline_s": {"low": 0.05, "high": 0.2}, key: {"low": 0.1, "high": 0.2}})
         )
