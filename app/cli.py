@@ -18,6 +18,7 @@ from app.commands.cell import cell_app
 from app.commands.hmp import hmp_app
 
 if TYPE_CHECKING:
+    from app.config import Settings
     from app.study.repository import StudyRepository
 
 app = typer.Typer(
@@ -74,6 +75,32 @@ _DbUrl = Annotated[
 _SessionSpec = Annotated[
     str, typer.Option("--session", help="Study session: 'latest' (newest), 'all', or a session id.")
 ]
+
+
+_SettingsFile = Annotated[
+    Path | None,
+    typer.Option(
+        "--settings",
+        help="TOML file of settings overrides (Settings fields, e.g. the best.toml of `hrc tune`); they take "
+        "precedence over HRC_* variables.",
+    ),
+]
+
+
+def _load_settings(path: Path | None, **given: object) -> Settings:
+    """Settings from the environment, the ``--settings`` file and the given options (None: not given)."""
+    from pydantic import ValidationError
+
+    from app.config import Settings, SettingsFileError, load_settings_file
+
+    try:
+        overrides = load_settings_file(path) if path is not None else {}
+        return Settings(**{**overrides, **{k: v for k, v in given.items() if v is not None}})
+    except SettingsFileError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--settings") from exc
+    except ValidationError as exc:
+        msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise typer.BadParameter(msgs) from exc
 
 
 def _open_study(url: str | None) -> StudyRepository:
@@ -209,6 +236,7 @@ def study(
         str | None,
         typer.Option("--address", help="Ray cluster address (default RAY_ADDRESS; none: a local cluster)."),
     ] = None,
+    settings_file: _SettingsFile = None,
     url: _DbUrl = None,
 ) -> None:
     """Headless study: simulated participants x both methods, as Ray tasks or on a process pool, into the DB.
@@ -218,9 +246,11 @@ def study(
     """
     from app.study.runner import run_study
 
+    settings = _load_settings(settings_file)
     repo = _open_study(url)
     try:
         result = run_study(
+            settings=settings,
             participants=participants,
             duration_s=duration,
             seed=seed,
@@ -315,6 +345,57 @@ def sweep_(
         typer.echo(f"{result.failed} trials failed; run the sweep again to retry them", err=True)
 
 
+@app.command("tune")
+def tune_(
+    spec: Annotated[Path, typer.Argument(help="Tuning spec (TOML; see examples/tune_margins.toml).")],
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="Print the search and the trial count.")] = False,
+    engine: Annotated[
+        str, typer.Option("--engine", help="ray (Ray Tune, default) or inline (Optuna in this process).")
+    ] = "ray",
+    address: Annotated[
+        str | None, typer.Option("--address", help="Ray cluster address (default RAY_ADDRESS; none: local).")
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option("--out", help="Settings TOML of the best sample (default HRC_DATA_DIR/tune/NAME.toml)."),
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
+) -> None:
+    """Tune planner and forecast settings with Ray Tune and Optuna on the tuning seeds 1000-1999.
+
+    Each sample runs the spec's participants (seeds) x methods as headless trials; it scores the mean
+    completed tasks per trial if no trial had a violation or a contact (else a large negative penalty).
+    ISO/TS 15066 safety parameters are refused: they come from the cell's measurements. The best
+    settings go to --out as a TOML for `hrc study --settings` / `hrc serve --settings`.
+    """
+    import logging
+
+    from app.config import Settings
+    from app.study.tune import TuneSpecError, describe_tune, load_tune_spec, run_tune, write_best_settings
+
+    try:
+        parsed = load_tune_spec(spec)
+    except TuneSpecError as exc:
+        raise typer.BadParameter(str(exc), param_hint="SPEC") from exc
+    if dry_run:
+        typer.echo(json.dumps(describe_tune(parsed), indent=None if as_json else 2))
+        return
+    if engine not in ("ray", "inline"):
+        raise typer.BadParameter(f"--engine must be ray or inline, not {engine!r}")
+    logging.basicConfig(level=logging.ERROR if as_json else logging.WARNING)
+    result = run_tune(parsed, engine=engine, address=address)  # type: ignore[arg-type]
+    summary = result.to_json(parsed)
+    out = out or Settings().data_dir / "tune" / f"{parsed.name}.toml"
+    try:
+        summary["out"] = str(write_best_settings(result, parsed, out, spec_path=spec))
+    except LookupError as exc:
+        summary["out"] = None
+        typer.echo(json.dumps(summary, indent=None if as_json else 2))
+        typer.echo(str(exc), err=True)
+        raise typer.Exit(1) from exc
+    typer.echo(json.dumps(summary, indent=None if as_json else 2))
+
+
 # --- server (app.api) ------------------------------------------------------------------------------------
 
 
@@ -324,17 +405,16 @@ def serve(
     port: Annotated[int | None, typer.Option(help="API port (default HRC_PORT, 8000).")] = None,
     viser_port: Annotated[int | None, typer.Option(help="3D view port (default HRC_VISER_PORT).")] = None,
     log_level: Annotated[str, typer.Option(help="uvicorn log level.")] = "info",
+    settings_file: _SettingsFile = None,
 ) -> None:
     """Start the operator server: REST API (/docs), live WebSockets, the runtime and the 3D view."""
     import logging
 
     from app.api.auth import TokenError
     from app.api.server import run_server
-    from app.config import Settings
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    given = {"host": host, "port": port, "viser_port": viser_port}
-    settings = Settings(**{k: v for k, v in given.items() if v is not None})  # validated
+    settings = _load_settings(settings_file, host=host, port=port, viser_port=viser_port)  # validated
     try:
         run_server(settings, log_level=log_level, echo=lambda text: typer.echo(text, err=True))
     except TokenError as exc:  # the message says which file and what to do; no traceback needed

@@ -333,3 +333,38 @@ class Settings(BaseSettings):
 
     def load_workcell(self) -> WorkCell:
         return load_workcell(self.workcell)
+
+
+class SettingsFileError(ValueError):
+    """A settings file could not be read or names an unknown setting or an invalid value."""
+
+
+def load_settings_file(path: str | Path) -> dict[str, object]:
+    """The overrides of a settings TOML file: top-level ``key = value`` pairs, each a :class:`Settings`
+    field (e.g. ``deadline_s = 0.12``; ``hrc tune`` writes such files). Pass them as keyword arguments
+    (``Settings(**overrides)``): they take precedence over the environment. Relative paths in the file are
+    relative to the working directory, as in the environment.
+
+    Raises:
+        SettingsFileError: the file is missing or not TOML, a key is not a setting (named), or a value is
+            invalid (the field and the reason).
+    """
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise SettingsFileError(f"cannot read the settings file {p}: {exc.strerror}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise SettingsFileError(f"the settings file {p} is not valid TOML: {exc}") from exc
+    unknown = sorted(set(data) - set(Settings.model_fields))
+    if unknown:
+        raise SettingsFileError(
+            f"the settings file {p}: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} not a "
+            f"setting (the fields of app.config.Settings, e.g. deadline_s, fetch_reaction_s)"
+        )
+    try:
+        Settings.model_validate(data)
+    except ValidationError as exc:
+        msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise SettingsFileError(f"the settings file {p}: {msgs}") from None
+    return dict(data)

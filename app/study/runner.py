@@ -231,10 +231,7 @@ class _RayExecutor(Executor):
             if address is None:
                 kwargs["num_cpus"] = num_cpus
             ray.init(address=address, **kwargs)
-        env = {name: "1" for name in _THREAD_ENV}
-        if address is None:  # a local cluster: the workers import what the driver imports, from here
-            paths = [os.getcwd(), *(p for p in sys.path if p and os.path.isdir(p))]
-            env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
+        env = ray_worker_env(local=address is None)
         self._remote = ray.remote(_ray_task).options(num_cpus=1, max_retries=2, runtime_env={"env_vars": env})
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
@@ -243,6 +240,16 @@ class _RayExecutor(Executor):
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         if self._owns and self._ray.is_initialized():
             self._ray.shutdown()
+
+
+def ray_worker_env(*, local: bool) -> dict[str, str]:
+    """Environment variables of a Ray worker: one BLAS/OpenMP thread each; on a ``local`` cluster also the
+    driver's import path (the workers import what the driver imports, from here)."""
+    env = {name: "1" for name in _THREAD_ENV}
+    if local:
+        paths = [os.getcwd(), *(p for p in sys.path if p and os.path.isdir(p))]
+        env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
+    return env
 
 
 def _ray_task(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
