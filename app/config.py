@@ -90,11 +90,29 @@ class RobotMount(_Strict):
 
 
 class Tool(_Strict):
-    """Tool geometry: the flange -> TCP transform and a capsule that encloses the gripper."""
+    """Tool geometry: the flange -> TCP transform, the gripper and the part it carries (its centre at the
+    TCP), and the capsule that must enclose both: from the flange toward the TCP, radius ``radius_m``, its
+    round end reaching down to the bottom of the part. The radius is checked to be at least half the open
+    gripper's width and half the part's diagonal across the gripper's axis."""
 
     tcp_xyz: Vec3 = [0.0, 0.0, 0.15]
     tcp_rpy: Vec3 = [0.0, 0.0, 0.0]
-    radius_m: float = Field(0.045, gt=0, le=0.3)
+    radius_m: float = Field(0.08, gt=0, le=0.3)
+    gripper: str = Field("Robotiq 2F-85", description="the gripper, for the record")
+    gripper_open_width_m: float = Field(0.15, gt=0, le=0.6, description="outer width of the open gripper (m)")
+    part_size_m: PositiveVec3 = Field(
+        [0.04, 0.04, 0.04], description="the carried part's box (m), its z along the gripper's axis"
+    )
+
+    @model_validator(mode="after")
+    def _capsule_encloses_the_tool(self) -> Tool:
+        need = max(self.gripper_open_width_m / 2, math.hypot(self.part_size_m[0], self.part_size_m[1]) / 2)
+        if self.radius_m < need - 1e-9:
+            raise ValueError(
+                f"tool.radius_m = {self.radius_m} m does not enclose the {self.gripper} (open width "
+                f"{self.gripper_open_width_m} m) and the part {self.part_size_m}: it must be >= {need:.3f} m"
+            )
+        return self
 
     def T_flange_tcp(self) -> np.ndarray:
         return pose_matrix(self.tcp_xyz, self.tcp_rpy)

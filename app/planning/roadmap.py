@@ -574,9 +574,17 @@ def build_roadmap(
 
 
 def roadmap_key(cell: WorkCell, config: RoadmapConfig) -> str:
-    """Cache key: a hash of the cell's fingerprint, the roadmap settings and the format version."""
+    """Cache key: a hash of the cell's fingerprint, the robot's capsules, the roadmap settings and the format
+    version."""
+    from app.planning.collision import robot_geometry_key
+
     payload = json.dumps(
-        {"cell": cell.fingerprint(), "config": asdict(config), "version": ROADMAP_FORMAT_VERSION},
+        {
+            "cell": cell.fingerprint(),
+            "robot": robot_geometry_key(),
+            "config": asdict(config),
+            "version": ROADMAP_FORMAT_VERSION,
+        },
         sort_keys=True,
     )
     return hashlib.sha256(payload.encode()).hexdigest()[:20]

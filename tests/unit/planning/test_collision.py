@@ -14,6 +14,7 @@ from hypothesis.extra.numpy import arrays
 from app.config import load_workcell, pose_matrix
 from app.planning.collision import (
     HUMAN_CAPSULES,
+    ROBOT_LINK_RADII,
     ROBOT_LINKS,
     SELF_COLLISION_PAIRS,
     CollisionModel,
@@ -270,7 +271,7 @@ def test_distance_to_human_known_answers(model: CollisionModel, cell) -> None:
     near[JOINT_INDEX["r_hand"]] = tcp - np.array([0.0, 0.0, 0.1])
     d = model.distance_to_human(home, np.stack([far, near]))
     assert d[0, 0] > 4.0
-    assert d[0, 1] == pytest.approx(-(cell.tool.radius_m + HumanRadii().hand))
+    assert d[0, 1] == pytest.approx(-(cell.tool.radius_m + HumanRadii().hand), abs=1e-6)
     # moving the person away increases the distance by at most the displacement
     p1 = _standing_person(1.0)
     p2 = p1 + np.array([0.5, 0.0, 0.0])
@@ -324,7 +325,13 @@ def test_robot_capsules_follow_the_kinematics(model: CollisionModel, cell) -> No
     np.testing.assert_allclose(a[:, 0], np.broadcast_to(model.kin.T_world_base[:3, 3], (20, 3)))
     np.testing.assert_allclose(b[:, 0], T[:, 0, :3, 3])  # base column up to the shoulder axis
     np.testing.assert_allclose(a[:, -1], T[:, 5, :3, 3])  # tool from the flange ...
-    np.testing.assert_allclose(b[:, -1], T[:, 6, :3, 3])  # ... to the TCP
+    # ... toward the TCP, ending where its round end reaches the carried part's bottom
+    f = model.tool_end_fraction
+    np.testing.assert_allclose(b[:, -1], T[:, 5, :3, 3] + f * (T[:, 6, :3, 3] - T[:, 5, :3, 3]))
+    tool = model.cell.tool
+    assert f * np.linalg.norm(tool.tcp_xyz) + tool.radius_m == pytest.approx(
+        np.linalg.norm(tool.tcp_xyz) + tool.part_size_m[2] / 2
+    )
     assert r[-1] == cell.tool.radius_m
     np.testing.assert_allclose(b[:, :-1], a[:, 1:])  # a connected chain
     lengths = np.linalg.norm(b - a, axis=-1)
@@ -351,8 +358,9 @@ def test_home_is_free(model: CollisionModel, cell) -> None:
     home = np.array([cell.robot.home_q])
     assert not model.in_static_collision(home)[0]
     assert not model.self_collision(home)[0]
-    # the lowest robot part at home is the shoulder housing: its axis at d1 = 0.1625 m, radius 0.075 m
-    assert model.static_clearance(home)[0] == pytest.approx(0.1625 - 0.075, abs=1e-12)
+    # the lowest robot part at home is the shoulder housing: its axis at d1 = 0.1625 m
+    r = ROBOT_LINK_RADII["shoulder"]
+    assert model.static_clearance(home)[0] == pytest.approx(0.1625 - r, abs=1e-12)
 
 
 def test_tool_into_the_table_collides(model: CollisionModel) -> None:
@@ -361,14 +369,15 @@ def test_tool_into_the_table_collides(model: CollisionModel) -> None:
     q_ik, valid = kin.ik_down(p)
     idx = np.argmax(valid, axis=1)
     q = q_ik[np.arange(2), idx]
-    clearance = model.static_clearance(q)
-    r_tool = model.robot_radii[-1]
-    # tool pointing down: its capsule bottom is r_tool below the TCP; the table top is z = 0
-    assert clearance[0] == pytest.approx(0.10 - r_tool, abs=1e-9)
-    # TCP 2 cm inside the 5 cm table top: depth 2 cm plus the capsule radius
-    assert clearance[1] == pytest.approx(-0.02 - r_tool, abs=1e-9)
+    tool = model.static_distances(q)[:, ROBOT_LINKS.index("tool"), 0]  # to the table
+    below = model.cell.tool.part_size_m[2] / 2
+    # tool pointing down: its capsule's round end reaches the carried part's bottom, `below` under the TCP;
+    # the table top is z = 0
+    assert tool[0] == pytest.approx(0.10 - below, abs=1e-9)
+    # TCP 2 cm inside the 5 cm table top: depth 2 cm plus the part below the TCP
+    assert tool[1] == pytest.approx(-0.02 - below, abs=1e-9)
     np.testing.assert_array_equal(model.in_static_collision(q), [False, True])
-    np.testing.assert_array_equal(model.in_static_collision(q, margin_m=0.06), [True, True])
+    np.testing.assert_array_equal(model.in_static_collision(q, margin_m=0.09), [True, True])
 
 
 def test_obstacle_and_conveyor_are_in_the_scene(model: CollisionModel, cell) -> None:
@@ -384,7 +393,7 @@ def test_obstacle_and_conveyor_are_in_the_scene(model: CollisionModel, cell) -> 
     assert len(q) > 0
     d = model.static_distances(q)
     k = names.index("parts_bin")
-    np.testing.assert_allclose(d[:, -1, k], -0.03 - model.robot_radii[-1], atol=1e-9)
+    np.testing.assert_allclose(d[:, -1, k], -0.03 - model.cell.tool.part_size_m[2] / 2, atol=1e-9)
 
 
 def test_static_clearance_matches_fcl_and_exhaustive(model: CollisionModel) -> None:
@@ -448,5 +457,7 @@ def test_model_accepts_custom_kinematics(cell) -> None:
     home = np.array([cell.robot.home_q])
     # the robot lifted by 0.3 m: the shoulder is 0.3 m further from the table
     d = model.static_distances(home)[0]
-    assert d[ROBOT_LINKS.index("shoulder"), 0] == pytest.approx(0.1625 - 0.075 + 0.3, abs=1e-12)
+    assert d[ROBOT_LINKS.index("shoulder"), 0] == pytest.approx(
+        0.1625 - ROBOT_LINK_RADII["shoulder"] + 0.3, abs=1e-12
+    )
     assert model.static_clearance(home)[0] == pytest.approx(d.min())
