@@ -19,6 +19,13 @@ to the proactive method's forecast:
   the robot has placed another block meanwhile) takes its turn. An expected fetch that has not happened
   ``timeout_s`` after the release is forgotten.
 
+The timing is learned online, per participant: every fetch seen (the hand leaving for the station after a
+release and reaching it) gives an observed reaction time and peak hand speed (:func:`observed_fetch`), and
+the forecast uses their running mean, starting from a prior (``reaction_s``, ``hand_speed_mps``) that
+counts as ``prior_weight`` fetches. The prior: 0.6 s from the release to the start of the reach (simple
+visual reaction times are 0.2-0.3 s; noticing that a placement is over and deciding to reach takes longer)
+and a 1.2 m/s peak hand speed (unhurried reaches of 30-50 cm at table height peak at about 1-1.5 m/s).
+
 A plan that would leave the station through the hand's way then fails its check against the forecast, and
 the robot waits at rest for the fetch (the supervisor starts a robot at rest only on a plan the forecast
 leaves clear, :attr:`app.control.supervisor.SupervisorConfig.clear_start`) instead of setting off into the
@@ -55,14 +62,17 @@ class FetchAnticipationParams:
     """How :class:`FetchAnticipation` expects a person to fetch a block.
 
     Attributes:
-        reaction_s: When the reach is expected to start after the release (s): the person's reaction time
+        reaction_s: The prior of when the reach starts after the release (s): the person's reaction time
             (``Settings.fetch_reaction_s``). Earlier makes the robot wait for more fetches that come later;
             later lets it set off into more of the early ones.
-        hand_speed_mps: Peak hand speed of the reach (m/s).
+        hand_speed_mps: The prior of the reach's peak hand speed (m/s).
         min_reach_s: Shortest reach (s).
         reached_radius_m: A hand this close to the station has reached it (m).
         withdraw_m: ... and has withdrawn when both hands are this much farther (m).
         timeout_s: An expected fetch that has not happened this long after the release is forgotten (s).
+        prior_weight: How many observed fetches the prior of ``reaction_s`` and ``hand_speed_mps`` counts
+            as (0: the first observation replaces it).
+        min_reach_m: A fetch from nearer than this teaches nothing about the timing (m).
     """
 
     reaction_s: float = 0.6
@@ -71,6 +81,8 @@ class FetchAnticipationParams:
     reached_radius_m: float = 0.12
     withdraw_m: float = 0.1
     timeout_s: float = 4.0
+    prior_weight: float = 3.0
+    min_reach_m: float = 0.15
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -80,6 +92,40 @@ class FetchAnticipationParams:
         for name in ("hand_speed_mps", "reached_radius_m", "timeout_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"FetchAnticipationParams.{name} must be > 0")
+
+
+#: Progress of a minimum-jerk reach at which its start is detected: 10 % of the way.
+_START_PROGRESS = 0.1
+
+
+def _min_jerk_time(progress: float) -> float:
+    """The normalised time (0..1) at which a minimum-jerk profile reaches ``progress`` (0..1)."""
+    lo, hi = 0.0, 1.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if float(min_jerk(np.array([mid]))[0]) < progress:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def observed_fetch(
+    t_release: float, t_start10: float, t_reached: float, length_m: float, reached_radius_m: float
+) -> tuple[float, float] | None:
+    """The reaction time (s) and peak hand speed (m/s) of one observed fetch, or None when the observation
+    says nothing: the hand covered 10 % of its ``length_m`` reach at ``t_start10`` and came within
+    ``reached_radius_m`` of the station at ``t_reached``. Fitted to a minimum-jerk reach: both instants fix
+    its duration ``T`` and its start, and a reach of ``L`` in ``T`` peaks at ``1.875 L / T``."""
+    if not (length_m > reached_radius_m and t_reached > t_start10 >= t_release):
+        return None
+    tau_10 = _min_jerk_time(_START_PROGRESS)
+    tau_reached = _min_jerk_time(1.0 - reached_radius_m / length_m)
+    if tau_reached <= tau_10 + 1e-6:
+        return None
+    duration = (t_reached - t_start10) / (tau_reached - tau_10)
+    start = t_start10 - tau_10 * duration
+    return max(start - t_release, 0.0), MIN_JERK_PEAK_SPEED * length_m / duration
 
 
 class FetchAnticipation:
@@ -104,13 +150,39 @@ class FetchAnticipation:
             self.stations[name] = p
         self._expected: deque[tuple[float, str]] = deque()
         self._reached = False
+        self._watch: dict[str, float] | None = None  # the fetch under way: its start distance and instants
+        self._observed: list[tuple[float, float]] = []
         self._lock = threading.Lock()
 
     def reset(self) -> None:
-        """Forget every expected fetch (a new trial)."""
+        """Forget every expected fetch and what was learned (a new participant)."""
         with self._lock:
             self._expected.clear()
             self._reached = False
+            self._watch = None
+            self._observed.clear()
+
+    def timing(self) -> tuple[float, float]:
+        """The expected reaction time (s) and peak hand speed (m/s): the running mean of the fetches seen,
+        with the prior counted ``prior_weight`` times."""
+        with self._lock:
+            return self._timing()
+
+    def _timing(self) -> tuple[float, float]:
+        p = self.params
+        n = len(self._observed)
+        if n == 0:
+            return p.reaction_s, p.hand_speed_mps
+        w = p.prior_weight
+        reaction = (w * p.reaction_s + sum(r for r, _ in self._observed)) / (w + n)
+        speed = (w * p.hand_speed_mps + sum(v for _, v in self._observed)) / (w + n)
+        return reaction, speed
+
+    @property
+    def fetches_seen(self) -> int:
+        """How many fetches the timing has learned from."""
+        with self._lock:
+            return len(self._observed)
 
     def expect(self, station: str, t_release: float) -> None:
         """The robot releases a block at ``station`` at ``t_release`` (s); the person will come for it.
@@ -136,14 +208,39 @@ class FetchAnticipation:
         while self._expected:
             t_release, station = self._expected[0]
             d = float(np.min(np.linalg.norm(frame.joints[_HANDS] - self.stations[station], axis=1)))
+            self._learn(t_release, frame.t, d)
             if d <= p.reached_radius_m:
                 self._reached = True
             done = self._reached and d > p.reached_radius_m + p.withdraw_m
             if done or frame.t > t_release + p.timeout_s:
                 self._expected.popleft()
                 self._reached = False
+                self._watch = None
                 continue
             return
+
+    def _learn(self, t_release: float, t: float, d: float) -> None:
+        """Follow the fetch of the next expected station; when the hand reaches it, learn its timing.
+        Caller holds the lock."""
+        p = self.params
+        if t < t_release:
+            return
+        w = self._watch
+        if w is None:  # the first frame after the release: the reach's length
+            self._watch = {"t_release": t_release, "d0": d, "t10": math.nan, "done": 0.0}
+            return
+        if w["done"] or w["t_release"] != t_release:
+            return
+        length = w["d0"]
+        if math.isnan(w["t10"]) and w["d0"] - d >= _START_PROGRESS * length:
+            w["t10"] = t
+        if d <= p.reached_radius_m:
+            w["done"] = 1.0
+            if length >= p.min_reach_m and not math.isnan(w["t10"]):
+                seen = observed_fetch(t_release, w["t10"], t, length, p.reached_radius_m)
+                if seen is not None:
+                    reaction, speed = seen
+                    self._observed.append((min(reaction, 3.0), min(max(speed, 0.2), 3.0)))
 
     def apply(self, frame: HumanFrame, forecast: HumanForecast) -> HumanForecast:
         """``forecast`` (made from ``frame``) with the nearer hand reaching for the next expected station;
@@ -154,6 +251,7 @@ class FetchAnticipation:
                 return forecast
             t_release, station = self._expected[0]
             reached = self._reached
+            reaction_s, hand_speed_mps = self._timing()
         p = self.params
         target = self.stations[station]
         d_hands = np.linalg.norm(frame.joints[_HANDS] - target, axis=1)
@@ -162,8 +260,8 @@ class FetchAnticipation:
             progress = np.ones_like(forecast.times)
         else:
             length = float(np.linalg.norm(target - frame.joints[hand]))
-            duration = max(p.min_reach_s, MIN_JERK_PEAK_SPEED * length / p.hand_speed_mps)
-            t_on = max(frame.t, t_release + p.reaction_s)
+            duration = max(p.min_reach_s, MIN_JERK_PEAK_SPEED * length / hand_speed_mps)
+            t_on = max(frame.t, t_release + reaction_s)
             progress = min_jerk((forecast.times - t_on) / duration)
         joints = np.array(forecast.joints, dtype=np.float64, copy=True)
         # the predicted hand is drawn to the station: (1 - s) * predicted + s * station

@@ -159,3 +159,55 @@ def test_bad_input_is_refused_with_a_message() -> None:
         FetchAnticipationParams(hand_speed_mps=0.0)
     with pytest.raises(ValueError, match="reaction_s must be finite and >= 0"):
         FetchAnticipationParams(reaction_s=-0.1)
+
+
+def test_one_observed_fetch_gives_back_the_reaction_and_the_hand_speed() -> None:
+    from app.control.anticipation import observed_fetch
+    from app.prediction.profiles import min_jerk
+
+    reaction, duration, length, radius = 0.45, 0.7, 0.5, 0.12
+    t = np.arange(0.0, 3.0, 1 / 240)
+    d = length * (1 - min_jerk((t - reaction) / duration))  # the hand's distance to the station
+    t10 = t[np.argmax(d <= 0.9 * length)]
+    t_reached = t[np.argmax(d <= radius)]
+    seen = observed_fetch(0.0, t10, t_reached, length, radius)
+    assert seen is not None
+    assert seen[0] == pytest.approx(reaction, abs=0.01)
+    assert seen[1] == pytest.approx(1.875 * length / duration, rel=0.02)
+    assert observed_fetch(0.0, 0.5, 0.4, length, radius) is None  # reached before it started
+    assert observed_fetch(0.0, 0.1, 0.4, 0.1, radius) is None  # from within the reached radius
+
+
+def test_the_fetch_timing_is_learned_from_the_fetches_seen() -> None:
+    """A participant who reacts late and reaches slowly: after their fetches the forecast expects that,
+    not the prior."""
+    from app.prediction.profiles import min_jerk
+
+    base = _frame()
+    name, station = next(iter(STATIONS.items()))
+    side = (
+        "l"
+        if np.linalg.norm(base.joints[ARM["l"][2]] - station)
+        < np.linalg.norm(base.joints[ARM["r"][2]] - station)
+        else "r"
+    )
+    params = FetchAnticipationParams(reaction_s=0.6, hand_speed_mps=1.2, prior_weight=1.0)
+    ant = FetchAnticipation(STATIONS, params)
+    assert ant.timing() == (0.6, 1.2)
+    reaction, duration = 1.2, 1.0
+    t0 = 0.0
+    for _ in range(4):  # four fetches: reach, hold, withdraw
+        ant.expect(name, t0)
+        for k in range(int(4.0 * FPS)):
+            t = t0 + k / FPS
+            s = float(min_jerk(np.array([(t - t0 - reaction) / duration]))[0])
+            back = float(min_jerk(np.array([(t - t0 - reaction - duration - 0.5) / 0.6]))[0])
+            frame = _moved(base, side, station, s * (1 - back), t)
+            ant.apply(frame, _forecast(frame))
+        t0 += 5.0
+    assert ant.fetches_seen == 4
+    learned_reaction, learned_speed = ant.timing()
+    length = float(np.linalg.norm(base.joints[ARM[side][2]] - station))
+    # the running mean with the prior counted once: 4 observations of (1.2 s, 1.875 L / 1 s) and the prior
+    assert learned_reaction == pytest.approx((0.6 + 4 * reaction) / 5, abs=0.05)
+    assert learned_speed == pytest.approx((1.2 + 4 * 1.875 * length / duration) / 5, rel=0.08)
