@@ -41,6 +41,7 @@ from app.control.backup import BackupComputer, PlanJobs
 from app.control.metrics import Method, TrialEvent, TrialMetrics
 from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.task import TaskExecutive
+from app.planning.collision import reach_fingertips
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import HumanFrame
 from app.safety.governor import SeparationModel, SpeedScaleLaw
@@ -544,6 +545,7 @@ class TrialEngine:
             )
         self.truth = truth
         self._truth_prev: tuple[float, np.ndarray] | None = None
+        self._last_tracked: HumanFrame | None = None  # the last frame as the tracker gave it
         self.intrusions = 0
         self.completed_tasks = 0
         self.min_separation_m = math.inf
@@ -599,16 +601,21 @@ class TrialEngine:
         if frame is None:
             return None
         self._check_intrusion(t, frame)
+        # the body as the geometry sees it: the hand capsules out to the fingertips (the predictor keeps the
+        # tracked joints it was trained on)
+        body = dataclasses.replace(frame, joints=reach_fingertips(frame.joints))
         if self.method == "proactive":
             forecast = self.predictor.update(frame)
             if self.anticipation is not None:
                 forecast = self.anticipation.apply(frame, forecast)
+            forecast = dataclasses.replace(forecast, joints=reach_fingertips(forecast.joints))
             if self.options.plan_margin_m > 0:
                 extra = self.options.plan_margin_m
                 forecast = dataclasses.replace(forecast, margins=forecast.margins + extra)
         else:
             margin = self.options.tracking_margin_m + self.options.plan_margin_m
-            forecast = HumanForecast.hold(frame, margin_m=margin)
+            forecast = HumanForecast.hold(body, margin_m=margin)
+        tracked, frame = frame, body
         decision = self.supervisor.on_frame(frame, forecast, t_now=t)
         self.decide_s.append(decision.decide_s)
         self.frame_to_decision_s = time.perf_counter() - c0  # validation + prediction + decision
@@ -621,13 +628,14 @@ class TrialEngine:
         if self.options.record_frames:
             self._frames_t.append(self.elapsed(t))
             self._frames_q.append(np.asarray(self.last_state.q, dtype=np.float32))
-            self._frames_sk.append(np.asarray(frame.joints, dtype=np.float32))
+            self._frames_sk.append(np.asarray(tracked.joints, dtype=np.float32))
         return decision
 
     def _check_intrusion(self, t: float, frame: HumanFrame) -> None:
         """A person who moved faster than a person can since the last frame appeared (or the tracker jumped
         to someone else): a protective stop, and the predictor starts over."""
-        prev = self.last_frame
+        prev = self._last_tracked
+        self._last_tracked = frame
         if prev is None or not frame.t > prev.t:
             return
         speed = float(np.linalg.norm(frame.joints - prev.joints, axis=1).max()) / (frame.t - prev.t)
@@ -646,7 +654,7 @@ class TrialEngine:
         mon = self.monitor
         assert mon is not None
         if self.truth is not None:
-            joints = np.asarray(self.truth(t), dtype=np.float64)
+            joints = reach_fingertips(np.asarray(self.truth(t), dtype=np.float64))
             prev = self._truth_prev
             before, dt = (joints, 0.0) if prev is None else (prev[1], t - prev[0])
             self._truth_prev = (t, joints)
