@@ -239,6 +239,7 @@ class TrialResult:
         sim_speedup: Simulated seconds per wall second (headless runs; 1 live).
         safety: The ground-truth monitor's verdict (None when the monitor was off).
         tracker_latency_s: The tracker latency the trial ran with (s; None: unknown, a live tracker).
+        time_budget_s: Where the trial's time went (:meth:`TrialEngine.time_budget`).
     """
 
     metrics: TrialMetrics
@@ -250,6 +251,7 @@ class TrialResult:
     sim_speedup: float = 1.0
     safety: MonitorTotals | None = None
     tracker_latency_s: float | None = None
+    time_budget_s: dict[str, float] | None = None
 
     def _worst_json(self) -> dict[str, Any] | None:
         worst = None if self.safety is None else self.safety.worst
@@ -282,6 +284,7 @@ class TrialResult:
             "tracker_latency_s": self.tracker_latency_s,
             "violations_in_intrusions": 0 if self.safety is None else self.safety.violations_in_intrusions,
             "worst_sample": self._worst_json(),
+            "time_budget_s": self.time_budget_s,
             "time_stopped_s": m.time_stopped_s,
             "time_moving_s": m.time_moving_s,
             "mean_speed_scale": m.mean_speed_scale,
@@ -795,6 +798,16 @@ class TrialEngine:
             frames_received=int(counters.get("accepted", 0)) + int(counters.get("rejected", 0)),
             frames_rejected=int(counters.get("rejected", 0)),
         )
+
+    def time_budget(self) -> dict[str, float]:
+        """Where the trial's time went: seconds per :data:`app.control.supervisor.TIME_BUDGET` part (they sum
+        to the trial's duration), and ``mean_scale_when_scaled``, the mean speed scale over
+        ``moving_scaled``."""
+        c = self.supervisor.counters
+        out = {k: round(v, 4) for k, v in c.budget_s.items()}
+        scaled = c.budget_s["moving_scaled"]
+        out["mean_scale_when_scaled"] = round(c.scaled_scale_s / scaled, 4) if scaled > 0 else 0.0
+        return out
 
     def frames(self) -> TrialFrames | None:
         if not self.options.record_frames or not self._frames_t:

@@ -277,4 +277,5 @@ def run_headless_trial(
         sim_speedup=metrics.duration_s / wall if wall > 0 else float("inf"),
         safety=None if engine.monitor is None else engine.monitor.totals(),
         tracker_latency_s=None if tracker_model is None else tracker_model.latency_s,
+        time_budget_s=engine.time_budget(),
     )

@@ -517,7 +517,14 @@ class Runtime:
         safety = None if engine.monitor is None else engine.monitor.totals()
         latency = self.settings.tracker_latency_s if self._truth is not None else None
         self.last_result = TrialResult(
-            metrics, events, engine.frames(), status, reason, safety=safety, tracker_latency_s=latency
+            metrics,
+            events,
+            engine.frames(),
+            status,
+            reason,
+            safety=safety,
+            tracker_latency_s=latency,
+            time_budget_s=engine.time_budget(),
         )
         if reason == "robot_fault":
             self._fault = "robot connection lost"

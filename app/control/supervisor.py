@@ -52,12 +52,13 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
+from app.control.counters import SupervisorCounters, SupervisorState
 from app.control.metrics import Method
 from app.control.trajectory_views import (
     Goal,
@@ -77,16 +78,6 @@ from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
 
-SupervisorState = Literal["idle", "nominal", "collision_avoidance", "stopped", "estop", "fault"]
-#: Every state a :class:`Supervisor` can be in.
-SUPERVISOR_STATES: tuple[SupervisorState, ...] = (
-    "idle",
-    "nominal",
-    "collision_avoidance",
-    "stopped",
-    "estop",
-    "fault",
-)
 SwitchReason = Literal["online_replan", "start", "resume"]
 
 _EPS_SCALE = 1e-6
@@ -251,25 +242,6 @@ class _Brake:
     emergency: _Active | None = None
     emergency_ready_t: float = math.inf
     emergency_tried: bool = False
-
-
-@dataclass
-class SupervisorCounters:
-    """Running totals of one trial."""
-
-    stop_replans: int = 0
-    online_replans: int = 0
-    deadline_misses: int = 0
-    emergency_plans: int = 0
-    plan_failures: int = 0
-    plans_computed: int = 0
-    planning_times_s: list[float] = field(default_factory=list)
-    stale_stops: int = 0
-    frames: int = 0
-    state_time_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(SUPERVISOR_STATES, 0.0))
-    #: time under way on a plan (scale above zero, brakes included) and the integral of the scale over it
-    moving_time_s: float = 0.0
-    scale_time_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -1045,6 +1017,31 @@ class Supervisor:
         if self._s > 1e-3 and self._active.under_way(self._tau):
             c.moving_time_s += dt
             c.scale_time_s += self._s * dt
+        part = self._budget_part()
+        c.budget_s[part] += dt
+        if part == "moving_scaled":
+            c.scaled_scale_s += self._s * dt
+
+    def _budget_part(self) -> str:
+        """The :data:`TIME_BUDGET` part of the present tick. Caller holds the lock."""
+        active = self._active
+        if self._estop or self._fault or self._stale:
+            return "stopped"
+        if self._brake is not None:
+            return "braking" if self._s > 1e-3 else "stopped"
+        if active.kind != "hold" and active.under_way(self._tau):
+            if self._s <= 1e-3:
+                return "stopped"  # held at zero speed by the governor
+            if float(active.profile.speed_at(self._tau).max()) <= 1e-6:
+                return "planned_wait"
+            return "moving_full" if self._s >= 1.0 - 1e-6 else "moving_scaled"
+        if self._goal is None:
+            return "idle"
+        if self._t < self._not_before:
+            return "gripper"
+        if self._state == "stopped":
+            return "stopped"
+        return "waiting_for_plan"
 
     def _emit(self, t: float, kind: str, payload: dict[str, Any]) -> None:
         if self.on_event is not None:

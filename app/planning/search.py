@@ -133,6 +133,10 @@ class RobotModel(Protocol):
     def human_capsules(self, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
 
+#: Slower timings of a path tried when its fitted trajectory fails verification (durations x factor).
+_STRETCH_FACTORS = (1.5, 2.5)
+
+
 @dataclass(frozen=True, slots=True)
 class PlannerConfig:
     """Settings of the time-variant search (see the module docstring for the policy they configure).
@@ -1475,6 +1479,18 @@ class Planner:
                 if viol is None:
                     traj = straight
         if viol is not None:
+            # the fitted spline peaks faster than the search's constant-speed moves, and the clearance grows
+            # with the speed: the same path, slower, asks for less (and is verified again)
+            for factor in _STRETCH_FACTORS:
+                t0 = float(waypoints.times[0])
+                times = t0 + (np.asarray(waypoints.times) - t0) * factor
+                slower = Plan(times=times, q=waypoints.q, nodes=waypoints.nodes)
+                retimed = self._fit(slower, qd0)
+                if retimed is None:
+                    continue
+                end = retimed.t_end + hold_s
+                if self._verify(retimed, forecast, retimed.t_start, end, floor_m=floor_m) is None:
+                    return retimed.to_plan(_map_nodes(slower, retimed)), retimed
             logger.debug("fitted trajectory violates at t=%.3f (%.3f..%.3f)", viol, traj.t_start, traj.t_end)
             return None
         return traj.to_plan(_map_nodes(waypoints, traj)), traj

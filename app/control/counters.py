@@ -1,0 +1,63 @@
+"""The supervisor's running totals of one trial: counts of replans and failures, planning times, time per
+state, and the trial's time budget (where the time went, :data:`TIME_BUDGET`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+SupervisorState = Literal["idle", "nominal", "collision_avoidance", "stopped", "estop", "fault"]
+#: Every state a :class:`~app.control.supervisor.Supervisor` can be in.
+SUPERVISOR_STATES: tuple[SupervisorState, ...] = (
+    "idle",
+    "nominal",
+    "collision_avoidance",
+    "stopped",
+    "estop",
+    "fault",
+)
+
+#: The parts of a trial's time budget (:attr:`SupervisorCounters.budget_s`), every servo tick in one of them:
+#:
+#: - ``moving_full``: under way on a plan at full speed (scale 1);
+#: - ``moving_scaled``: under way, slowed by the speed governor (scale between 0 and 1);
+#: - ``braking``: braking to rest after a stop decision;
+#: - ``stopped``: held still by the supervisor (after a stop, by the governor at scale 0, while the stream is
+#:   stale, E-stop, fault);
+#: - ``planned_wait``: a wait that the plan itself holds (the time-variant search waits for the person);
+#: - ``gripper``: at a station, gripping or releasing (the task's dwell before it may leave);
+#: - ``waiting_for_plan``: at rest with somewhere to go, and no safe plan yet;
+#: - ``idle``: nothing to do.
+TIME_BUDGET: tuple[str, ...] = (
+    "moving_full",
+    "moving_scaled",
+    "braking",
+    "stopped",
+    "planned_wait",
+    "gripper",
+    "waiting_for_plan",
+    "idle",
+)
+
+
+@dataclass
+class SupervisorCounters:
+    """Running totals of one trial."""
+
+    stop_replans: int = 0
+    online_replans: int = 0
+    deadline_misses: int = 0
+    emergency_plans: int = 0
+    plan_failures: int = 0
+    plans_computed: int = 0
+    planning_times_s: list[float] = field(default_factory=list)
+    stale_stops: int = 0
+    frames: int = 0
+    state_time_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(SUPERVISOR_STATES, 0.0))
+    #: time under way on a plan (scale above zero, brakes included) and the integral of the scale over it
+    moving_time_s: float = 0.0
+    scale_time_s: float = 0.0
+    #: where the time went (:data:`TIME_BUDGET` parts; they sum to the supervised time)
+    budget_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_BUDGET, 0.0))
+    #: the integral of the scale over ``moving_scaled`` time
+    scaled_scale_s: float = 0.0
