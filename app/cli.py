@@ -237,6 +237,13 @@ def study(
         typer.Option("--address", help="Ray cluster address (default RAY_ADDRESS; none: a local cluster)."),
     ] = None,
     settings_file: _SettingsFile = None,
+    population: Annotated[
+        Path | None,
+        typer.Option(
+            help="TOML file of the simulated participants (default HRC_POPULATION, else the shipped "
+            "app/assets/population.toml)."
+        ),
+    ] = None,
     url: _DbUrl = None,
 ) -> None:
     """Headless study: simulated participants x both methods, as Ray tasks or on a process pool, into the DB.
@@ -246,7 +253,7 @@ def study(
     """
     from app.study.runner import run_study
 
-    settings = _load_settings(settings_file)
+    settings = _load_settings(settings_file, population=population)
     repo = _open_study(url)
     try:
         result = run_study(

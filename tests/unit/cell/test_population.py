@@ -83,3 +83,32 @@ def test_simulate_takes_a_population_file_and_refuses_a_wrong_path(tmp_path: Pat
         ],
     )
     assert ok.exit_code == 0, ok.output
+
+
+def test_study_takes_a_population_file_and_refuses_a_wrong_path(tmp_path: Path) -> None:
+    import json
+
+    from typer.testing import CliRunner
+
+    from app.cli import app
+    from app.study.repository import open_repository
+
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    runner = CliRunner()
+    base = ["study", "--participants", "1", "--duration", "1", "--workers", "0", "--engine", "inline"]
+    missing = runner.invoke(
+        app, [*base, "--no-progress", "--url", url, "--population", str(tmp_path / "no.toml")]
+    )
+    assert missing.exit_code != 0 and "no.toml" in missing.output
+    ok = runner.invoke(
+        app, [*base, "--no-progress", "--url", url, "--population", str(DEFAULT_POPULATION_PATH)]
+    )
+    assert ok.exit_code == 0, ok.output
+    assert json.loads(ok.output.strip().splitlines()[-1])["completed"] == 2
+    repo = open_repository(url)
+    try:
+        trials = repo.list_trials()
+        assert len(trials) == 2
+        assert all(t.settings["population"] == str(DEFAULT_POPULATION_PATH) for t in trials)
+    finally:
+        repo.close()
