@@ -139,10 +139,11 @@ class GroundTruthMonitor:
         near_band_m: The capsules of the person within this of the nearest one to a part count for the
             directed speeds.
         fd_step_s: Time step of the robot's directed speed (finite difference along ``qd``).
-        intrusion_speed_mps: A true joint faster than this between two checks is an intrusion (a person
-            appearing, or a recording jumping): no person moves a joint at 5 m/s. The violation episode that
-            it starts (until the robot is at standstill or the separation recovers) is the intrusion's, not
-            the planner's: it is counted apart (``violations_in_intrusions``), never dropped.
+        intrusion_speed_mps: The true body (its median joint) faster than this between two checks is an
+            intrusion (a person appearing, or a recording jumping): no person's body moves at 5 m/s in a
+            cell. The violation episode that it starts (until the robot is at standstill or the separation
+            recovers) is the intrusion's, not the planner's: it is counted apart
+            (``violations_in_intrusions``), never dropped.
     """
 
     def __init__(
@@ -209,7 +210,8 @@ class GroundTruthMonitor:
         tick = 0.0 if self._last_t is None else max(float(t) - self._last_t, 0.0)
         self._last_t = float(t)
         self.checks += 1
-        if dt > 0 and float(np.linalg.norm(joints - before, axis=1).max()) / dt > self.intrusion_speed_mps:
+        body_speed = float(np.median(np.linalg.norm(joints - before, axis=1))) / dt if dt > 0 else 0.0
+        if body_speed > self.intrusion_speed_mps:
             self.intrusions += 1
             self._intrusion = True
         w_top = float(np.abs(qd).max())
