@@ -15,8 +15,7 @@ Safety is judged by the ground-truth monitor (:class:`app.safety.monitor.GroundT
 servo tick: against the *true* person where the caller has one (``truth``: the simulated operator or a
 replayed clip behind a tracker model), else against the tracker's frames (a real cell, where nothing
 better exists). A frame in which the person moved faster than a person can is an *intrusion* (someone
-appeared, or the tracker jumped to another person; judged on the median joint, so that a swinging limb
-is not one): a protective stop, counted apart.
+appeared, a joint jumped, or the tracker jumped to another person): a protective stop, counted apart.
 """
 
 from __future__ import annotations
@@ -46,7 +45,7 @@ from app.planning.collision import reach_fingertips
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import HumanFrame
 from app.safety.governor import SeparationModel, SpeedScaleLaw
-from app.safety.monitor import GroundTruthMonitor, MonitorTotals
+from app.safety.monitor import GroundTruthMonitor, MonitorTotals, is_intrusion
 from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
@@ -396,8 +395,8 @@ class EngineOptions:
         monitor: Judge the trial with the ground-truth monitor at every servo tick.
         servo_period_s: The robot's command period (s): one controller cycle of the reaction time ``T_r``.
         intrusion_speed_mps: A frame in which the body (its median joint) moved faster than this since the
-            previous frame is an intrusion: a person walks at up to 2 m/s and runs at 3-5 m/s (hands and feet
-            swing faster, hence the median), and the tracker's noise adds under 1 m/s between two frames.
+            previous frame, or any joint faster than twice this, is an intrusion
+            (:func:`app.safety.monitor.is_intrusion`).
         record_frames: Keep the frames for the study database.
         tracking_margin_m: Tracking error of a frame (m) (see :class:`SupervisorConfig`).
         plan_margin_m: Extra clearance (m) the plans keep from the forecast person (both methods alike): room
@@ -642,10 +641,9 @@ class TrialEngine:
         self._last_tracked = frame
         if prev is None or not frame.t > prev.t:
             return
-        # the body as a whole (the median joint): a swinging hand or a kicking foot moves faster than 5 m/s,
-        # a person's body does not, unless someone else came into view or the tracker jumped
-        speed = float(np.median(np.linalg.norm(frame.joints - prev.joints, axis=1))) / (frame.t - prev.t)
-        if speed <= self.options.intrusion_speed_mps:
+        speeds = np.linalg.norm(frame.joints - prev.joints, axis=1) / (frame.t - prev.t)
+        speed = float(speeds.max())
+        if not is_intrusion(speeds, body_mps=self.options.intrusion_speed_mps):
             return
         self.intrusions += 1
         log.warning("intrusion: the person moved at %.1f m/s between two frames; protective stop", speed)

@@ -40,12 +40,21 @@ import numpy as np
 from app.safety.ssm import SSMParams
 from app.safety.stopping import UR5E_STOP, StoppingModel
 
-__all__ = ["ISO13855_SPEEDS", "GroundTruthMonitor", "MonitorSample", "MonitorTotals"]
+__all__ = ["ISO13855_SPEEDS", "GroundTruthMonitor", "MonitorSample", "MonitorTotals", "is_intrusion"]
 
 #: ISO 13855's constant approach speeds (m/s): the body (walking) and a hand or arm reaching in.
 ISO13855_SPEEDS = {"body": 1.6, "arm": 2.0}
 #: Joints whose bones are the arm and the hand (ISO 13855's 2.0 m/s).
 _ARM_WORDS = ("shoulder-", "elbow", "wrist", "hand")
+
+
+def is_intrusion(joint_speeds_mps: np.ndarray, *, body_mps: float = 5.0) -> bool:
+    """Whether joint speeds (J,) (m/s) between two frames are beyond a person: the body (its median joint)
+    faster than ``body_mps`` (a person walks at up to 2 m/s and runs at 3-5 m/s), or any joint faster than
+    twice that (a hand in fast work reaches 2-3 m/s and in a throw up to about 10 m/s; beyond, a joint of the
+    skeleton jumped: a tracking or recording glitch, or another person)."""
+    v = np.asarray(joint_speeds_mps, dtype=np.float64)
+    return bool(float(np.median(v)) > body_mps or float(v.max()) > 2.0 * body_mps)
 
 
 class BodyGeometry(Protocol):
@@ -139,10 +148,10 @@ class GroundTruthMonitor:
         near_band_m: The capsules of the person within this of the nearest one to a part count for the
             directed speeds.
         fd_step_s: Time step of the robot's directed speed (finite difference along ``qd``).
-        intrusion_speed_mps: The true body (its median joint) faster than this between two checks is an
-            intrusion (a person appearing, or a recording jumping): no person's body moves at 5 m/s in a
-            cell. The violation episode that it starts (until the robot is at standstill or the separation
-            recovers) is the intrusion's, not the planner's: it is counted apart
+        intrusion_speed_mps: The true person moving like no person moves between two checks
+            (:func:`is_intrusion` with this body speed) is an intrusion: a person appearing, or a recording
+            or a tracker jumping. The violation episode that it starts (until the robot is at standstill or
+            the separation recovers) is the intrusion's, not the planner's: it is counted apart
             (``violations_in_intrusions``), never dropped.
     """
 
@@ -210,8 +219,9 @@ class GroundTruthMonitor:
         tick = 0.0 if self._last_t is None else max(float(t) - self._last_t, 0.0)
         self._last_t = float(t)
         self.checks += 1
-        body_speed = float(np.median(np.linalg.norm(joints - before, axis=1))) / dt if dt > 0 else 0.0
-        if body_speed > self.intrusion_speed_mps:
+        if dt > 0 and is_intrusion(
+            np.linalg.norm(joints - before, axis=1) / dt, body_mps=self.intrusion_speed_mps
+        ):
             self.intrusions += 1
             self._intrusion = True
         w_top = float(np.abs(qd).max())

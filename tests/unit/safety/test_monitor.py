@@ -122,3 +122,29 @@ def test_the_stopping_model() -> None:
     ) == pytest.approx(0.1113, abs=1e-4)
     with pytest.raises(ValueError, match="tracker_latency_s"):
         reaction_time_s(tracker_latency_s=-1.0, frame_period_s=0.03, processing_s=0.0, servo_period_s=0.0)
+
+
+def test_what_counts_as_an_intrusion() -> None:
+    from app.safety.monitor import is_intrusion
+
+    walking = np.full(NUM_JOINTS, 1.4)
+    assert not is_intrusion(walking)
+    swing = walking.copy()
+    swing[[8, 12]] = 7.0  # both hands in a fast swing
+    assert not is_intrusion(swing)
+    glitch = walking.copy()
+    glitch[12] = 18.0  # one joint jumps (a tracking or recording glitch)
+    assert is_intrusion(glitch)
+    assert is_intrusion(np.full(NUM_JOINTS, 6.0))  # the whole body moved 20 cm in a frame: someone else
+
+
+def test_a_true_jump_starts_an_intrusion_whose_violation_is_counted_apart(geometry) -> None:
+    mon = _monitor(geometry)
+    q, qd, person, direction = _scene(geometry, 0.15)
+    far = person + 0.8 * direction  # 0.8 m away 8 ms ago: someone appeared
+    first = mon.check(0.0, q, qd, person, far, 0.008)
+    assert first.violation
+    assert mon.intrusions == 1 and mon.violations == 0 and mon.violations_in_intrusions == 1
+    mon.check(0.008, q, np.zeros(6), person, person, 0.008)  # the robot at standstill: the episode ends
+    mon.check(0.016, q, qd, person, person, 0.008)  # moving again inside S_p: the planner's violation
+    assert mon.violations == 1 and mon.violations_in_intrusions == 1
