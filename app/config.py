@@ -14,7 +14,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 if TYPE_CHECKING:
@@ -317,6 +325,14 @@ class Settings(BaseSettings):
     def _population_file_exists(cls, value: Path | None) -> Path | None:
         if value is not None and not value.is_file():
             raise ValueError(f"population file {value} does not exist")
+        return value
+
+    @field_validator("hmp_weights", "hmp_quantiles")
+    @classmethod
+    def _model_file_exists(cls, value: Path | None, info: ValidationInfo) -> Path | None:
+        # a path that is given is used or refused, never replaced by the defaults
+        if value is not None and not value.is_file():
+            raise ValueError(f"{info.field_name} file {value} does not exist")
         return value
 
     def tracker_model(self) -> TrackerModel:

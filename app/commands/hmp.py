@@ -138,6 +138,13 @@ def eval_cmd(
         clip_set = load_clip_dir(directory, split=split or None)
     except ClipError as exc:
         raise _fail(str(exc)) from exc
+    if weights is not None:  # a path given is used or refused, never replaced by a baseline
+        from app.prediction.predictor import WeightsError, load_graphmixer
+
+        try:
+            load_graphmixer(weights)
+        except WeightsError as exc:
+            raise _fail(str(exc)) from exc
     predictor = MotionPredictor(kind="graphmixer", weights=weights)
     predictors = {
         "constant_velocity": lambda obs, H: predictor.predict_batch(obs, kind="constant_velocity")[:, :H],

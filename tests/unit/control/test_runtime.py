@@ -338,10 +338,15 @@ def test_the_predictor_follows_the_human_source_unless_the_settings_say_otherwis
     plain = Settings(_env_file=None)
     assert forecast_model(plain, "sim") == (SIM_OPERATOR_WEIGHTS, SIM_OPERATOR_QUANTILES)
     assert forecast_model(plain, "stream") == (None, None)  # real people: the shipped CMU network
+    (tmp_path / "w.pt").write_bytes(b"")
+    (tmp_path / "q.json").write_text("{}")
     own = Settings(_env_file=None, hmp_weights=tmp_path / "w.pt", hmp_quantiles=tmp_path / "q.json")
     assert forecast_model(own, "sim") == (tmp_path / "w.pt", tmp_path / "q.json")
     q_only = Settings(_env_file=None, hmp_quantiles=tmp_path / "q.json")
     assert forecast_model(q_only, "stream") == (None, tmp_path / "q.json")
+    # a path that is given is used or refused, never replaced by the defaults
+    with pytest.raises(ValueError, match=r"hmp_weights file .*nothere\.pt does not exist"):
+        Settings(_env_file=None, hmp_weights=tmp_path / "nothere.pt")
 
 
 class _Appearing:

@@ -260,6 +260,13 @@ def test_cli_train_and_eval(clip_dir: Path, tmp_path: Path) -> None:
     assert report["mpjpe_mm"]["constant_velocity"]["1000"] < report["mpjpe_mm"]["zero_velocity"]["1000"]
     r = runner.invoke(cli_app, ["hmp", "eval", "--clips", str(tmp_path / "missing")])
     assert r.exit_code == 2 and "does not exist" in r.output
+    # wrong weights are refused, never silently replaced by constant velocity
+    wrong = tmp_path / "wrong.pt"
+    r = runner.invoke(cli_app, ["hmp", "eval", "--clips", str(clip_dir), "--weights", str(wrong), "--json"])
+    assert r.exit_code != 0 and "wrong.pt" in r.output and "not found" in r.output
+    wrong.write_bytes(b"not a checkpoint")
+    r = runner.invoke(cli_app, ["hmp", "eval", "--clips", str(clip_dir), "--weights", str(wrong), "--json"])
+    assert r.exit_code != 0 and "cannot read Graph-Mixer weights" in r.output
 
 
 def test_cli_eval_without_clips_says_what_to_do(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
