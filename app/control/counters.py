@@ -61,3 +61,5 @@ class SupervisorCounters:
     budget_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_BUDGET, 0.0))
     #: the integral of the scale over ``moving_scaled`` time
     scaled_scale_s: float = 0.0
+    #: per plan that reached its goal: (planned duration (s), executed minus predicted arrival (s))
+    arrivals: list[tuple[float, float]] = field(default_factory=list)

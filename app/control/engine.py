@@ -240,6 +240,7 @@ class TrialResult:
         safety: The ground-truth monitor's verdict (None when the monitor was off).
         tracker_latency_s: The tracker latency the trial ran with (s; None: unknown, a live tracker).
         time_budget_s: Where the trial's time went (:meth:`TrialEngine.time_budget`).
+        arrival_error_s: Predicted against executed arrivals (:meth:`TrialEngine.arrival_error`).
     """
 
     metrics: TrialMetrics
@@ -252,6 +253,7 @@ class TrialResult:
     safety: MonitorTotals | None = None
     tracker_latency_s: float | None = None
     time_budget_s: dict[str, float] | None = None
+    arrival_error_s: dict[str, float | int | None] | None = None
 
     def _worst_json(self) -> dict[str, Any] | None:
         worst = None if self.safety is None else self.safety.worst
@@ -285,6 +287,7 @@ class TrialResult:
             "violations_in_intrusions": 0 if self.safety is None else self.safety.violations_in_intrusions,
             "worst_sample": self._worst_json(),
             "time_budget_s": self.time_budget_s,
+            "arrival_error_s": self.arrival_error_s,
             "time_stopped_s": m.time_stopped_s,
             "time_moving_s": m.time_moving_s,
             "mean_speed_scale": m.mean_speed_scale,
@@ -809,6 +812,21 @@ class TrialEngine:
         scaled = c.budget_s["moving_scaled"]
         out["mean_scale_when_scaled"] = round(c.scaled_scale_s / scaled, 4) if scaled > 0 else 0.0
         return out
+
+    def arrival_error(self) -> dict[str, float | int | None]:
+        """Each plan's predicted arrival against the executed one, over the plans that reached their goal:
+        ``median_abs`` and ``bias`` (executed minus predicted, s; positive: late), ``n``, and the median plan
+        duration (s) to compare them with."""
+        arrivals = np.asarray(self.supervisor.counters.arrivals, dtype=np.float64).reshape(-1, 2)
+        if arrivals.shape[0] == 0:
+            return {"n": 0, "median_abs": None, "bias": None, "median_plan_s": None}
+        err = arrivals[:, 1]
+        return {
+            "n": int(err.size),
+            "median_abs": round(float(np.median(np.abs(err))), 4),
+            "bias": round(float(np.mean(err)), 4),
+            "median_plan_s": round(float(np.median(arrivals[:, 0])), 4),
+        }
 
     def frames(self) -> TrialFrames | None:
         if not self.options.record_frames or not self._frames_t:

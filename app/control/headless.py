@@ -278,4 +278,5 @@ def run_headless_trial(
         safety=None if engine.monitor is None else engine.monitor.totals(),
         tracker_latency_s=None if tracker_model is None else tracker_model.latency_s,
         time_budget_s=engine.time_budget(),
+        arrival_error_s=engine.arrival_error(),
     )

@@ -525,6 +525,7 @@ class Runtime:
             safety=safety,
             tracker_latency_s=latency,
             time_budget_s=engine.time_budget(),
+            arrival_error_s=engine.arrival_error(),
         )
         if reason == "robot_fault":
             self._fault = "robot connection lost"

@@ -967,6 +967,10 @@ class Supervisor:
 
     def _arrive(self, t: float) -> None:
         active = self._active
+        # the plan's predicted arrival against the executed one (its timing is on the runtime clock)
+        self.counters.arrivals.append(
+            (float(active.traj.t_end - active.traj.t_start), float(t - active.traj.t_end))
+        )
         q_goal = np.asarray(active.traj.q(active.traj.t_end)).reshape(6)
         self._arrived = active.goal
         self._goal = None

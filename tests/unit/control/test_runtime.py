@@ -412,3 +412,30 @@ def test_a_person_who_appears_is_an_intrusion_that_stops_the_robot_in_the_models
     # a stop takes time (the model's deceleration, not zero); the supervisor plans its brake with the
     # path's fastest speeds over the brake, so it may take longer than the model from the current speed
     assert t_model <= rest[0] - stop.t <= 1.5 * t_model + 0.05
+
+
+def test_the_time_budget_sums_to_the_trial_and_arrivals_are_compared_with_the_plans(
+    stack: PlanningStack,
+) -> None:
+    from app.control.counters import TIME_BUDGET
+
+    res = run_headless_trial(
+        settings=Settings(),
+        method="reactive",
+        duration_s=12.0,
+        seed=4,
+        stack=stack,
+        tracker=TrackerModel.ideal(),
+    )
+    budget = res.time_budget_s
+    assert budget is not None and set(budget) == {*TIME_BUDGET, "mean_scale_when_scaled"}
+    assert sum(budget[k] for k in TIME_BUDGET) == pytest.approx(res.metrics.duration_s, abs=0.01)
+    assert budget["moving_full"] + budget["moving_scaled"] > 0
+    assert 0.0 < budget["mean_scale_when_scaled"] <= 1.0 or budget["moving_scaled"] == 0
+    arrivals = res.arrival_error_s
+    assert arrivals is not None and arrivals["n"] >= 1  # the first leg, to the pickup
+    assert arrivals["median_abs"] >= 0 and arrivals["median_plan_s"] > 0
+    # a robot slowed by the governor arrives after its plan said (never much before it)
+    assert arrivals["bias"] > -0.05
+    summary = res.summary()
+    assert summary["time_budget_s"] == budget and summary["arrival_error_s"] == arrivals
