@@ -129,7 +129,7 @@ def eval_cmd(
     import torch
 
     from app.prediction.data import ClipError, load_clip_dir, require_cmu_dir
-    from app.prediction.evaluate import HORIZONS_MS, evaluate_clips
+    from app.prediction.evaluate import HORIZONS_MS, evaluate_arbitrated, evaluate_clips
     from app.prediction.predictor import MotionPredictor
 
     torch.set_num_threads(1)
@@ -165,11 +165,16 @@ def eval_cmd(
         )
     except ValueError as exc:
         raise _fail(str(exc)) from exc
+    # the runtime's forecast: the candidates above arbitrated online, replayed frame by frame
+    forecast = evaluate_arbitrated(
+        clip_set, predictors, t_in=predictor.history, horizon=predictor.horizon, fps=predictor.fps
+    )
     report = {
         "clips": str(directory) + (f" ({split})" if split else ""),
         "windows": next(iter(results.values()))["windows"],
         "weights": str(weights or "shipped") if predictor.model is not None else None,
         "mpjpe_mm": {k: v["mpjpe_mm"] for k, v in results.items()},
+        "forecast": forecast,
     }
     if as_json:
         typer.echo(json.dumps(report))
@@ -178,6 +183,10 @@ def eval_cmd(
     typer.echo(f"{'predictor':<18}" + "".join(f"{ms:>8}" for ms in HORIZONS_MS))
     for kind, row in report["mpjpe_mm"].items():
         typer.echo(f"{kind:<18}" + "".join(f"{row[str(ms)]:>8.1f}" for ms in HORIZONS_MS))
+    typer.echo(f"{'forecast':<18}" + "".join(f"{forecast['mpjpe_mm'][str(ms)]:>8.1f}" for ms in HORIZONS_MS))
+    typer.echo(
+        f"{'  coverage':<18}" + "".join(f"{forecast['coverage'][str(ms)]:>8.3f}" for ms in HORIZONS_MS)
+    )
     if predictor.model is None:
         typer.echo("(no usable Graph-Mixer weights: baselines only)")
 

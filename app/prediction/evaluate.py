@@ -155,3 +155,69 @@ def evaluate_clips(
     for entry in results.values():
         entry["windows"] = int(data.shape[0])
     return results
+
+
+def evaluate_arbitrated(
+    clips: Sequence[Clip],
+    predictors: Mapping[str, Callable[[np.ndarray, int], np.ndarray]],
+    *,
+    t_in: int = 10,
+    horizon: int = 30,
+    fps: float = 30.0,
+    coverage: float = 0.95,
+    horizons_ms: Sequence[int] = HORIZONS_MS,
+) -> dict[str, object]:
+    """The arbitrated runtime forecast (:class:`app.prediction.arbitration.ForecastArbiter` over
+    ``predictors``, the preferred one first), replayed frame by frame through each clip as the runtime would
+    run it: at every frame from the ``t_in``-th on, each candidate forecasts from the last ``t_in`` frames,
+    the arbiter scores the forecasts made before against this frame and combines the new ones. Each clip is
+    a new person (the arbiter starts over).
+
+    Returns ``{"mpjpe_mm": {ms: ...}, "coverage": {ms: ...}, "coverage_target": ..., "forecasts": n,
+    "chosen": {candidate: share of the steps}}``: the MPJPE of the combined forecast and the fraction of
+    joints inside its margin, per horizon (margins interpolated like the poses).
+    """
+    from app.prediction.arbitration import ForecastArbiter
+
+    names = list(predictors)
+    err_sum = np.zeros(len(horizons_ms))
+    cov_sum = np.zeros(len(horizons_ms))
+    count = 0
+    chosen_counts = dict.fromkeys(names, 0)
+    for clip in clips:
+        pos = np.asarray(clip.positions, dtype=np.float64)
+        if pos.shape[0] < t_in + horizon:
+            continue
+        arbiter = ForecastArbiter(names, horizon=horizon, dt_s=1.0 / fps, coverage=coverage)
+        for i in range(t_in - 1, pos.shape[0] - horizon):
+            t = i / fps
+            arbiter.score(t, pos[i])
+            hist = pos[i - t_in + 1 : i + 1][None]
+            futures = {
+                n: np.concatenate([hist[:, -1:], fn(hist, horizon)], axis=1)[0]
+                for n, fn in predictors.items()
+            }
+            out = arbiter.combine(t, futures)
+            truth = pos[i : i + horizon + 1][None]
+            for j, ms in enumerate(horizons_ms):
+                p = interpolate_horizon(out.joints[None], ms / 1000.0, fps)[0]
+                g = interpolate_horizon(truth, ms / 1000.0, fps)[0]
+                m = float(np.interp(ms / 1000.0 * fps, np.arange(horizon + 1), out.margins))
+                d = np.linalg.norm(p - g, axis=1)
+                err_sum[j] += float(d.mean())
+                cov_sum[j] += float(np.mean(d <= m))
+            count += 1
+            for name in out.chosen[1:]:
+                chosen_counts[name] += 1
+    if count == 0:
+        raise ValueError(f"no clip is longer than {t_in + horizon} frames")
+    steps = sum(chosen_counts.values())
+    return {
+        "mpjpe_mm": {
+            str(ms): round(1000.0 * e / count, 1) for ms, e in zip(horizons_ms, err_sum, strict=True)
+        },
+        "coverage": {str(ms): round(c / count, 4) for ms, c in zip(horizons_ms, cov_sum, strict=True)},
+        "coverage_target": coverage,
+        "forecasts": count,
+        "chosen": {n: round(c / max(steps, 1), 3) for n, c in chosen_counts.items()},
+    }
