@@ -313,6 +313,15 @@ class Settings(BaseSettings):
         description="frame arrival to the robot's command (validation, forecast, decision; s): part of T_r; "
         "measure it with hrc bench loop",
     )
+    forecast_arbitration: bool = Field(
+        False,
+        description="proactive method: the forecast arbitrated online between the network and the "
+        "constant- and zero-velocity baselines per horizon, with adaptive conformal margins "
+        "(app.prediction.arbitration)",
+    )
+    forecast_coverage: float = Field(
+        0.95, gt=0.5, lt=1.0, description="target coverage of the arbitrated forecast's margins"
+    )
     # the simulated world (headless trials, studies, sweeps): never read by what decides
     population: Path | None = Field(
         None,

@@ -79,10 +79,14 @@ def make_predictor(
     tracking_margin_m: float = 0.02,
     weights: str | Path | None = None,
     quantiles: str | Path | None = None,
+    arbitrate: bool = False,
+    coverage: float = 0.95,
 ) -> Any | None:
     """The predictor of a method: a Graph-Mixer for ``proactive`` (``weights``, default the shipped one;
     constant velocity with a warning if they are missing), none for ``reactive`` (the current pose is held).
-    ``quantiles``: the error-quantile file of its margins (default: the one next to the weights)."""
+    ``quantiles``: the error-quantile file of its margins (default: the one next to the weights);
+    ``arbitrate``: the forecast arbitrated online with the baselines, its margins adaptive conformal ones
+    at ``coverage`` (``Settings.forecast_arbitration``, ``Settings.forecast_coverage``)."""
     if method == "reactive":
         return None
     from app.prediction.predictor import MotionPredictor
@@ -95,6 +99,8 @@ def make_predictor(
         tracking_margin_m=tracking_margin_m,
         growth_mps=BEYOND_HORIZON_GROWTH_MPS,
         max_margin_m=BEYOND_HORIZON_MAX_MARGIN_M,
+        arbitrate=arbitrate,
+        coverage=coverage,
     )
 
 
@@ -223,7 +229,12 @@ def run_headless_trial(
     if method == "proactive" and predictor is None:
         weights, quantiles = forecast_model(settings, source)
         predictor = make_predictor(
-            method, tracking_margin_m=options.tracking_margin_m, weights=weights, quantiles=quantiles
+            method,
+            tracking_margin_m=options.tracking_margin_m,
+            weights=weights,
+            quantiles=quantiles,
+            arbitrate=settings.forecast_arbitration,
+            coverage=settings.forecast_coverage,
         )
     clock = SimClock(0.0)
     q0 = np.asarray(cell.robot.home_q, dtype=np.float64)

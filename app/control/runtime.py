@@ -352,6 +352,8 @@ class Runtime:
                     tracking_margin_m=self.options.tracking_margin_m,
                     weights=weights,
                     quantiles=quantiles,
+                    arbitrate=self.settings.forecast_arbitration,
+                    coverage=self.settings.forecast_coverage,
                 )
             if not _warm_up_compiled(self.settings, self.cell, self._stack, self._predictor):
                 _warm_up(self._predictor, self.cell)  # the trial of the first start ran this predictor

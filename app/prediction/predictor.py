@@ -49,6 +49,7 @@ from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, PARENTS, HumanFrame
 
 if TYPE_CHECKING:
+    from app.prediction.arbitration import ForecastArbiter
     from app.prediction.graphmixer import GraphMixer
 
 log = logging.getLogger(__name__)
@@ -183,6 +184,10 @@ class MotionPredictor:
         jit: Run single-person forecasts through a compiled copy of the network (same numbers within
             1e-5, less overhead): the numba forward pass of :mod:`app.prediction.fastforward`, else ONNX
             Runtime if installed, else a traced, frozen torch module; batches run eagerly.
+        arbitrate: Hand on the forecast arbitrated online between the network and both baselines, with
+            adaptive conformal margins (:class:`app.prediction.arbitration.ForecastArbiter`) instead of the
+            network's forecast with its stored quantile margins.
+        coverage: The arbitrated forecast's target coverage (fraction of joints inside the margin).
     """
 
     def __init__(
@@ -202,6 +207,8 @@ class MotionPredictor:
         max_gap_s: float | None = None,
         max_speed_mps: float = 3.0,
         jit: bool = True,
+        arbitrate: bool = False,
+        coverage: float = 0.95,
     ) -> None:
         if kind not in KINDS:
             raise ValueError(f"unknown predictor kind {kind!r}; choose one of {', '.join(KINDS)}")
@@ -264,6 +271,21 @@ class MotionPredictor:
                     self.model = loaded.model
                     self.model_meta = loaded.meta
         self._margins = self._load_margins(quantiles, weights_path)
+        self.arbiter: ForecastArbiter | None = None
+        if arbitrate:
+            from app.prediction.arbitration import ForecastArbiter
+
+            names = ("constant_velocity", "zero_velocity")
+            if self.model is not None and self.effective_kind == "graphmixer":
+                names = ("graphmixer", *names)
+            self.arbiter = ForecastArbiter(
+                names,
+                horizon=self.horizon,
+                dt_s=self.dt_s,
+                coverage=coverage,
+                floor_m=max(self.tracking_margin_m, 1e-3),
+                prior_m=self._margins[names[0]],
+            )
 
     # ---------------------------------------------------------------- margins
     def _load_margins(self, quantiles: str | Path | None, weights_path: Path) -> dict[str, np.ndarray]:
@@ -309,8 +331,10 @@ class MotionPredictor:
 
     # ---------------------------------------------------------------- history
     def reset(self) -> None:
-        """Forget the history (e.g. when the tracked person changes)."""
+        """Forget the history (e.g. when the tracked person changes), and what the arbiter learned."""
         self._frames.clear()
+        if self.arbiter is not None:
+            self.arbiter.reset()
 
     @property
     def history_len(self) -> int:
@@ -366,6 +390,8 @@ class MotionPredictor:
             return False
         self._frames.append((t, joints))
         self.counters["frames"] += 1
+        if self.arbiter is not None:
+            self.arbiter.score(t, joints)
         return True
 
     def window(self) -> np.ndarray | None:
@@ -411,6 +437,8 @@ class MotionPredictor:
         if not self._frames:
             raise PredictorInputError("no frame observed yet; call update(frame) first")
         t_last, last = self._frames[-1]
+        if self.arbiter is not None and len(self._frames) >= 2:
+            return self._arbitrated()
         kind = self.effective_kind
         win = self.window() if kind == "graphmixer" else None
         future = None
@@ -441,6 +469,29 @@ class MotionPredictor:
             margins=self._margins[source],
             growth_mps=self.growth_mps,
             max_margin_m=self.max_margin_m,
+        )
+
+    def _arbitrated(self) -> HumanForecast:
+        """The forecast of the arbiter over the network (when loaded) and both baselines."""
+        assert self.arbiter is not None
+        t_last, last = self._frames[-1]
+        t_prev, prev = self._frames[-2]
+        step = (last - prev) * (self.dt_s / (t_last - t_prev))
+        cv = constant_velocity(np.stack([last - step, last])[None], self.horizon)[0]
+        futures = {"constant_velocity": cv, "zero_velocity": zero_velocity(last[None, None], self.horizon)[0]}
+        if "graphmixer" in self.arbiter.candidates:
+            win = self.window()
+            net = None if win is None else self.predict_batch(win[None], kind="graphmixer")[0]
+            futures["graphmixer"] = net if net is not None and np.all(np.isfinite(net)) else cv
+        out = self.arbiter.combine(t_last, {k: self._cap_speed(last, v) for k, v in futures.items()})
+        self.last_source = "arbitrated"
+        return HumanForecast(
+            t0=t_last,
+            times=t_last + self._steps_s,
+            joints=out.joints,
+            margins=out.margins,
+            growth_mps=self.growth_mps,
+            max_margin_m=max(self.max_margin_m, float(out.margins.max())),
         )
 
     def _cap_speed(self, last: np.ndarray, future: np.ndarray) -> np.ndarray:

@@ -71,3 +71,30 @@ def test_bad_arguments_are_refused() -> None:
     arbiter = ForecastArbiter(["a", "b"], horizon=H, dt_s=DT)
     with pytest.raises(ValueError, match="no forecast from"):
         arbiter.combine(0.0, {"a": np.zeros((H + 1, NUM_JOINTS, 3))})
+
+
+def test_the_predictor_hands_on_the_arbitrated_forecast_when_asked() -> None:
+    from app.prediction.predictor import MotionPredictor
+    from app.prediction.skeleton import HumanFrame
+
+    rng = np.random.default_rng(3)
+    walking = _walk(np.array([0.0, 0.5, 0.0]), 90, rng, noise=0.005)
+    plain = MotionPredictor(kind="graphmixer", tracking_margin_m=0.02)
+    arbitrated = MotionPredictor(kind="graphmixer", tracking_margin_m=0.02, arbitrate=True, coverage=0.9)
+    assert plain.arbiter is None and arbitrated.arbiter is not None
+    assert arbitrated.arbiter.candidates[-2:] == ("constant_velocity", "zero_velocity")
+    for i, pose in enumerate(walking):
+        fc = arbitrated.update(HumanFrame(i / 30, pose))
+        plain.update(HumanFrame(i / 30, pose))
+    assert arbitrated.last_source == "arbitrated"
+    assert fc.joints.shape == (arbitrated.horizon + 1, NUM_JOINTS, 3) and np.all(np.isfinite(fc.joints))
+    assert np.all(fc.margins >= 0.02) and fc.max_margin_m >= fc.margins.max()
+    # on a person walking straight, constant velocity has been right: the far steps take it
+    assert (
+        arbitrated.arbiter.combine(fc.t0, {name: fc.joints for name in arbitrated.arbiter.candidates}).chosen[
+            -1
+        ]
+        == "constant_velocity"
+    )
+    arbitrated.reset()
+    assert arbitrated.history_len == 0 and arbitrated.arbiter.scored.sum() == 0
