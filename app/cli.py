@@ -9,8 +9,9 @@ from __future__ import annotations
 import importlib
 import json
 import pkgutil
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -101,6 +102,18 @@ def _load_settings(path: Path | None, **given: object) -> Settings:
     except ValidationError as exc:
         msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise typer.BadParameter(msgs) from exc
+
+
+def _with_study(url: str | None, run: Callable[[StudyRepository], Any]) -> Any:
+    """``run(repo)`` on the study database at ``url``, closed afterwards; a ValueError (a bad argument of
+    the run) becomes a usage error that names it."""
+    repo = _open_study(url)
+    try:
+        return run(repo)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc)) from exc
+    finally:
+        repo.close()
 
 
 def _open_study(url: str | None) -> StudyRepository:
@@ -254,9 +267,9 @@ def study(
     from app.study.runner import run_study
 
     settings = _load_settings(settings_file, population=population)
-    repo = _open_study(url)
-    try:
-        result = run_study(
+    result = _with_study(
+        url,
+        lambda repo: run_study(
             settings=settings,
             participants=participants,
             duration_s=duration,
@@ -267,11 +280,8 @@ def study(
             record_frames=frames,
             engine=engine,
             address=address,
-        )
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
-    finally:
-        repo.close()
+        ),
+    )
     typer.echo(json.dumps(result.to_json()))
     if result.aborted:
         typer.echo(f"{result.aborted} trials aborted; see `hrc export` (trials.csv, abort_reason)", err=True)
@@ -332,9 +342,9 @@ def sweep_(
     if dry_run:
         typer.echo(json.dumps(describe_plan(parsed), indent=2))
         return
-    repo = _open_study(url)
-    try:
-        result = run_sweep(
+    result = _with_study(
+        url,
+        lambda repo: run_sweep(
             parsed,
             repo,
             engine=engine,
@@ -342,11 +352,8 @@ def sweep_(
             address=address,
             progress=progress,
             record_frames=frames,
-        )
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
-    finally:
-        repo.close()
+        ),
+    )
     typer.echo(json.dumps(result.to_json()))
     if result.failed:
         typer.echo(f"{result.failed} trials failed; run the sweep again to retry them", err=True)
