@@ -166,12 +166,15 @@ def evaluate_arbitrated(
     fps: float = 30.0,
     coverage: float = 0.95,
     horizons_ms: Sequence[int] = HORIZONS_MS,
+    gamma: float | None = None,
 ) -> dict[str, object]:
     """The arbitrated runtime forecast (:class:`app.prediction.arbitration.ForecastArbiter` over
     ``predictors``, the preferred one first), replayed frame by frame through each clip as the runtime would
     run it: at every frame from the ``t_in``-th on, each candidate forecasts from the last ``t_in`` frames,
     the arbiter scores the forecasts made before against this frame and combines the new ones. Each clip is
     a new person (the arbiter starts over).
+
+    ``gamma``: the arbiter's ACI step size (default: its own).
 
     Returns ``{"mpjpe_mm": {ms: ...}, "coverage": {ms: ...}, "coverage_target": ..., "forecasts": n,
     "chosen": {candidate: share of the steps}}``: the MPJPE of the combined forecast and the fraction of
@@ -188,7 +191,8 @@ def evaluate_arbitrated(
         pos = np.asarray(clip.positions, dtype=np.float64)
         if pos.shape[0] < t_in + horizon:
             continue
-        arbiter = ForecastArbiter(names, horizon=horizon, dt_s=1.0 / fps, coverage=coverage)
+        extra = {} if gamma is None else {"gamma": gamma}
+        arbiter = ForecastArbiter(names, horizon=horizon, dt_s=1.0 / fps, coverage=coverage, **extra)
         for i in range(t_in - 1, pos.shape[0] - horizon):
             t = i / fps
             arbiter.score(t, pos[i])
