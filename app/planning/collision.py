@@ -59,6 +59,7 @@ __all__ = [
     "capsule_distance",
     "fcl_box",
     "fcl_capsule",
+    "joint_axis_segments",
     "segment_box_distance",
     "segment_distance",
 ]
