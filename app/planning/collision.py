@@ -173,10 +173,10 @@ SELF_COLLISION_PAIRS: tuple[tuple[int, int], ...] = _self_collision_pairs()
 # ------------------------------------------------------------------------------------------ person geometry
 
 
-#: The 95th-percentile adult hand length (wrist crease to the tip of the middle finger), m: men's hand
-#: length in ANSUR II (US Army anthropometric survey, 2012) has its 95th percentile near 0.21 m (mean about
-#: 0.195 m), as do NASA-STD-3000's tables. The canonical ``*_hand`` joint is the knuckles (CMU ``fingers``,
-#: MediaPipe's index/pinky bases), so without this the hand capsule stops short of the fingertips.
+#: The 95th-percentile adult hand length (wrist crease to the tip of the middle finger), m: ANSUR II men's
+#: hand length has its 95th percentile at 210 mm (mean 193 mm; women's 199 mm; see :class:`HumanRadii` for
+#: the source). The canonical ``*_hand`` joint is the knuckles (CMU ``fingers``, MediaPipe's index/pinky
+#: bases), so without this the hand capsule stops short of the fingertips.
 HAND_LENGTH_P95_M = 0.21
 
 
@@ -199,28 +199,38 @@ def reach_fingertips(joints: np.ndarray, *, hand_radius_m: float | None = None) 
 
 @dataclass(frozen=True)
 class HumanRadii:
-    """Radii (m) of the person's capsules, grouped by body part.
+    """Radii (m) of the person's capsules, grouped by body part: each at the 95th percentile of the larger of
+    men and women in ANSUR II, the 2012 anthropometric survey of US Army personnel (C. C. Gordon et al.,
+    NATICK/TR-15/007, 2014; percentiles computed from its public data, 4,082 men and 1,986 women). A
+    circumference C counts as a circle of radius C / 2 pi, a breadth or a depth as a diameter.
 
     Attributes:
-        torso: Pelvis-spine and spine-chest.
-        shoulder: Chest to each shoulder.
-        neck: Chest-neck and neck-head.
-        head: The sphere around the head joint.
-        upper_arm, forearm, hand: Shoulder-elbow, elbow-wrist, wrist-hand (the hand capsule out to the
-            fingertips: :func:`reach_fingertips`).
-        hip, thigh, shin: Pelvis-hip, hip-knee, knee-ankle.
+        torso: Pelvis-spine and spine-chest: half the chest depth (P95 298 mm) and the waist depth (300 mm).
+        shoulder: Chest to each shoulder: more than the deltoid's reach beyond the acromion (half the
+            bideltoid less the biacromial breadth, P95 68 mm).
+        neck: Chest-neck and neck-head: neck circumference, P95 443 mm.
+        head: The sphere around the head joint: half the head length (P95 211 mm) and 4.5 mm for the joint's
+            offset from the head's centre.
+        upper_arm: Shoulder-elbow: flexed biceps circumference, P95 418 mm.
+        forearm: Elbow-wrist: flexed forearm circumference, P95 348 mm.
+        hand: Wrist-hand, the capsule out to the fingertips (:func:`reach_fingertips`,
+            :data:`HAND_LENGTH_P95_M`): half the hand breadth (P95 96 mm) and 12 mm for the thumb.
+        hip: Pelvis-hip: with the hip joints about 0.09 m either side of the pelvis, the capsules reach 0.20 m
+            out, half the hip breadth (P95 400 mm, women; men 387 mm).
+        thigh: Hip-knee: thigh circumference at the gluteal furrow, the thickest, P95 723 mm.
+        shin: Knee-ankle: calf circumference, P95 443 mm.
     """
 
-    torso: float = 0.14
+    torso: float = 0.15
     shoulder: float = 0.08
-    neck: float = 0.07
+    neck: float = 0.071
     head: float = 0.11
-    upper_arm: float = 0.06
-    forearm: float = 0.05
+    upper_arm: float = 0.067
+    forearm: float = 0.056
     hand: float = 0.06
     hip: float = 0.11
-    thigh: float = 0.08
-    shin: float = 0.06
+    thigh: float = 0.115
+    shin: float = 0.071
 
     def __post_init__(self) -> None:
         for f in fields(self):

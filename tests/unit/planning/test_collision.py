@@ -458,7 +458,7 @@ def test_self_collision_pairs_skip_touching_neighbours() -> None:
 
 
 def test_structural_minimum_distances_hold_everywhere(model: CollisionModel) -> None:
-    """Upper arm and forearm run in parallel planes 0.131 m apart: they never touch (radii 0.06 + 0.05)."""
+    """Upper arm and forearm run in parallel planes 0.131 m apart: they never touch (self radii 59, 50 mm)."""
     rng = np.random.default_rng(8)
     q = rng.uniform(model.kin.q_min, model.kin.q_max, size=(2000, 6))
     d = model.self_distances(q)
