@@ -99,15 +99,23 @@ class RobotMount(_Strict):
 
 class Tool(_Strict):
     """Tool geometry: the flange -> TCP transform, the gripper and the part it carries (its centre at the
-    TCP), and the capsule that must enclose both: from the flange toward the TCP, radius ``radius_m``, its
-    round end reaching down to the bottom of the part. The radius is checked to be at least half the open
-    gripper's width and half the part's diagonal across the gripper's axis."""
+    TCP), and the capsule that must enclose both, open: from the flange along the flange -> TCP direction,
+    radius ``radius_m``, its round end ``capsule_length_m`` from the flange. Checked when loaded: the radius
+    holds half the open gripper's width and half the part's diagonal across the axis, and the capsule reaches
+    past the fingertips and the bottom of the part (necessary, not sufficient; the default's enclosure of the
+    gripper's meshes is tested in ``tests/unit/planning/test_capsule_enclosure.py``)."""
 
     tcp_xyz: Vec3 = [0.0, 0.0, 0.15]
     tcp_rpy: Vec3 = [0.0, 0.0, 0.0]
-    radius_m: float = Field(0.08, gt=0, le=0.3)
+    radius_m: float = Field(0.076, gt=0, le=0.3)
+    capsule_length_m: float = Field(
+        0.182, gt=0, le=1.0, description="flange -> far end of the tool capsule along the tool axis (m)"
+    )
     gripper: str = Field("Robotiq 2F-85", description="the gripper, for the record")
-    gripper_open_width_m: float = Field(0.15, gt=0, le=0.6, description="outer width of the open gripper (m)")
+    gripper_open_width_m: float = Field(
+        0.149, gt=0, le=0.6, description="outer width of the open gripper (m)"
+    )
+    gripper_length_m: float = Field(0.161, gt=0, le=1.0, description="flange -> open fingertips (m)")
     part_size_m: PositiveVec3 = Field(
         [0.04, 0.04, 0.04], description="the carried part's box (m), its z along the gripper's axis"
     )
@@ -119,6 +127,13 @@ class Tool(_Strict):
             raise ValueError(
                 f"tool.radius_m = {self.radius_m} m does not enclose the {self.gripper} (open width "
                 f"{self.gripper_open_width_m} m) and the part {self.part_size_m}: it must be >= {need:.3f} m"
+            )
+        reach = max(self.gripper_length_m, float(np.linalg.norm(self.tcp_xyz)) + self.part_size_m[2] / 2)
+        if self.capsule_length_m < reach - 1e-9:
+            raise ValueError(
+                f"tool.capsule_length_m = {self.capsule_length_m} m does not enclose the {self.gripper} "
+                f"(fingertips {self.gripper_length_m} m from the flange) and the bottom of the part "
+                f"{self.part_size_m}: it must be >= {reach:.3f} m"
             )
         return self
 

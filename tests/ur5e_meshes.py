@@ -172,3 +172,46 @@ def hull_points(meshes: UR5eMeshes, q: np.ndarray) -> np.ndarray:
         for m in b.meshes:
             parts.append(hulls[m] @ R.T + p)
     return np.concatenate(parts)
+
+
+def _stl_vertices(path: Path) -> np.ndarray:
+    """The vertices (N, 3) of a binary STL file, in its units."""
+    data = path.read_bytes()
+    n = int(np.frombuffer(data[80:84], dtype="<u4")[0])
+    tri = np.dtype([("normal", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+    return np.frombuffer(data[84 : 84 + 50 * n], dtype=tri)["v"].reshape(-1, 3).astype(np.float64)
+
+
+def robotiq_2f85_open() -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo Menagerie's Robotiq 2F-85 (``robotiq_2f85``, same package), fully open (every joint at 0):
+    the vertices (N, 3) of its visual meshes and its pinch point (3,), in the frame of its mounting face
+    (z along the gripper, the face on the flange; m)."""
+    root = menagerie_dir().parent / "robotiq_2f85"
+    tree = ET.parse(root / "2f85.xml")
+    scale = 0.001  # the meshes' <default><mesh scale>
+    parts: list[np.ndarray] = []
+    pinch = np.zeros(3)
+
+    def walk(node: ET.Element, R0: np.ndarray, p0: np.ndarray) -> None:
+        nonlocal pinch
+        for body in node.findall("body"):
+            R = R0 @ _quat(body.get("quat"))
+            p = p0 + R0 @ np.array([float(v) for v in body.get("pos", "0 0 0").split()])
+            for g in body.findall("geom"):
+                if g.get("mesh") and g.get("class") == "visual":
+                    parts.append(_stl_vertices(root / "assets" / f"{g.get('mesh')}.stl") * scale @ R.T + p)
+            site = body.find("site")
+            if site is not None and site.get("name") == "pinch":
+                pinch = p + R @ np.array([float(v) for v in site.get("pos").split()])
+            walk(body, R, p)
+
+    world = tree.getroot().find("worldbody")
+    assert world is not None
+    walk(world, np.eye(3), np.zeros(3))
+    return np.unique(np.concatenate(parts), axis=0), pinch
+
+
+def block_corners(size: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The 8 corners (8, 3) of an axis-aligned box of ``size`` (3,) around ``centre`` (3,)."""
+    s = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+    return centre + s * np.asarray(size)

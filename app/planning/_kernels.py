@@ -252,6 +252,7 @@ def _segments_one(
     twist: np.ndarray,
     off_shoulder: float,
     off_forearm: float,
+    ext: np.ndarray,
     X: np.ndarray,
     Y: np.ndarray,
     Z: np.ndarray,
@@ -287,6 +288,12 @@ def _segments_one(
         SD[7, j] = P[6, j] - P[5, j]
         SA[8, j] = P[6, j]
         SD[8, j] = tcp - P[6, j]
+    for l in range(_NL):  # noqa: E741  (the extensions, as CollisionModel._robot_segments_cm_numpy)
+        f0 = ext[l, 0]
+        s = 1.0 + f0 + ext[l, 1]
+        for j in range(3):
+            SA[l, j] -= f0 * SD[l, j]
+            SD[l, j] *= s
 
 
 @_jit
@@ -299,11 +306,13 @@ def robot_segments(
     twist: np.ndarray,
     off_shoulder: float,
     off_forearm: float,
+    ext: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Robot capsule segments for configurations ``q`` (B, 6): starts and directions (9, 3, B) each (m).
 
     ``t_tcp`` (3,): the TCP in the flange frame (m); ``off_shoulder``/``off_forearm``: the offsets of the
-    upper-arm and forearm centre lines along the shoulder axis (m)."""
+    upper-arm and forearm centre lines along the shoulder axis (m); ``ext`` (9, 2): how far each segment
+    reaches beyond its joint-axis start and end, as fractions of its length."""
     B = q.shape[0]
     a = np.empty((_NL, 3, B))
     d = np.empty((_NL, 3, B))
@@ -314,7 +323,9 @@ def robot_segments(
     SA = np.empty((_NL, 3))
     SD = np.empty((_NL, 3))
     for k in range(B):
-        _segments_one(q, k, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, X, Y, Z, P, SA, SD)
+        _segments_one(
+            q, k, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ext, X, Y, Z, P, SA, SD
+        )
         for l in range(_NL):  # noqa: E741
             for j in range(3):
                 a[l, j, k] = SA[l, j]
@@ -668,6 +679,7 @@ def sample_separation_ok(
     twist: np.ndarray,
     off_shoulder: float,
     off_forearm: float,
+    ext: np.ndarray,
     ra: np.ndarray,
     ia: np.ndarray,
     ib: np.ndarray,
@@ -720,7 +732,7 @@ def sample_separation_ok(
                     continue
             if not have_segments:
                 _segments_one(
-                    q, s, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, X, Y, Z, P, SA, SD
+                    q, s, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ext, X, Y, Z, P, SA, SD
                 )
                 have_segments = True
             _pose_at(ts, times, joints, djoints, dtimes, pose[0])
@@ -891,6 +903,7 @@ def moves_separation_ok(
     twist: np.ndarray,
     off_shoulder: float,
     off_forearm: float,
+    ext: np.ndarray,
     ra: np.ndarray,
     ia: np.ndarray,
     ib: np.ndarray,
@@ -1038,6 +1051,7 @@ def moves_separation_ok(
                         twist,
                         off_shoulder,
                         off_forearm,
+                        ext,
                         X,
                         Y,
                         Z,
@@ -1111,6 +1125,7 @@ def trajectory_first_violation(
     twist: np.ndarray,
     off_shoulder: float,
     off_forearm: float,
+    ext: np.ndarray,
     ra: np.ndarray,
     ia: np.ndarray,
     ib: np.ndarray,
@@ -1158,9 +1173,11 @@ def trajectory_first_violation(
             if not (q0[0, j] >= q_lo[j] - 1e-9 and q0[0, j] <= q_hi[j] + 1e-9):
                 return k
         _hermite_q(tq1[k], k_times, k_q, k_qd, k_h, q1[0])
-        _segments_one(q0, 0, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, X, Y, Z, P, SA, SD)
         _segments_one(
-            q1, 0, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, X, Y, Z, P, SA1, SD1
+            q0, 0, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ext, X, Y, Z, P, SA, SD
+        )
+        _segments_one(
+            q1, 0, T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ext, X, Y, Z, P, SA1, SD1
         )
         finite = True
         step = 0.0

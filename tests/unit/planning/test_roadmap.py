@@ -117,6 +117,27 @@ def test_small_roadmap_edges_are_statically_free_at_fine_resolution(small, model
     assert not np.any(model.self_collision(q))
 
 
+def test_the_cache_key_follows_the_capsules(cell, monkeypatch) -> None:
+    """A roadmap cached for other capsules is stale: the robot's capsule constants (in code) and the tool's
+    capsule (in the cell) are part of the key."""
+    from app.planning import collision
+
+    key = roadmap_key(cell, SMALL)
+    assert roadmap_key(load_workcell(), SMALL) == key  # deterministic
+    changes = (
+        (collision.ROBOT_LINK_RADII, "wrist_1", 0.05),
+        (collision.ROBOT_LINK_EXTENSIONS, "elbow", (0.06, 0.0)),
+        (collision.SELF_COLLISION_RADII, "base", 0.07),
+    )
+    for table, name, value in changes:
+        with monkeypatch.context() as m:
+            m.setitem(table, name, value)
+            assert roadmap_key(cell, SMALL) != key, (name, value)
+        assert roadmap_key(cell, SMALL) == key
+    longer = cell.model_copy(update={"tool": cell.tool.model_copy(update={"capsule_length_m": 0.2})})
+    assert roadmap_key(longer, SMALL) != key
+
+
 def test_cache_is_reused_and_rebuilt_when_stale_or_corrupt(small, cell, model, monkeypatch, caplog) -> None:
     rm, cache = small
     path = cache / f"roadmap-{roadmap_key(cell, SMALL)}.npz"
