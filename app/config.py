@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Mapping
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -414,15 +415,24 @@ def load_settings_file(path: str | Path) -> dict[str, object]:
         raise SettingsFileError(f"cannot read the settings file {p}: {exc.strerror}") from exc
     except tomllib.TOMLDecodeError as exc:
         raise SettingsFileError(f"the settings file {p} is not valid TOML: {exc}") from exc
-    unknown = sorted(set(data) - set(Settings.model_fields))
+    return validate_overrides(f"the settings file {p}", data, error=SettingsFileError)
+
+
+def validate_overrides(
+    where: str, values: Mapping[str, object], *, error: type[ValueError] = ValueError
+) -> dict[str, object]:
+    """``values`` as :class:`Settings` overrides, checked: every key a setting (the unknown ones named) and
+    every value valid (the field and the reason); ``error(message)`` raised otherwise, the message starting
+    with ``where``. Shared by settings files, sweep specs and tuning specs."""
+    unknown = sorted(set(values) - set(Settings.model_fields))
     if unknown:
-        raise SettingsFileError(
-            f"the settings file {p}: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} not a "
-            f"setting (the fields of app.config.Settings, e.g. deadline_s, fetch_reaction_s)"
+        raise error(
+            f"{where}: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} not a setting "
+            f"(the fields of app.config.Settings, e.g. deadline_s, fetch_reaction_s)"
         )
     try:
-        Settings.model_validate(data)
+        Settings.model_validate(dict(values))
     except ValidationError as exc:
         msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise SettingsFileError(f"the settings file {p}: {msgs}") from None
-    return dict(data)
+        raise error(f"{where}: {msgs}") from None
+    return dict(values)

@@ -94,22 +94,9 @@ def _label(overrides: Mapping[str, Any]) -> str:
 
 
 def _validate_settings(where: str, values: Mapping[str, Any]) -> dict[str, Any]:
-    from pydantic import ValidationError
+    from app.config import validate_overrides
 
-    from app.config import Settings
-
-    unknown = sorted(set(values) - set(Settings.model_fields))
-    if unknown:
-        raise SweepSpecError(
-            f"{where}: {', '.join(unknown)} {'is' if len(unknown) == 1 else 'are'} not a setting "
-            f"(see app.config.Settings; e.g. deadline_s, frame_period_s, anticipate_fetch)"
-        )
-    try:
-        Settings.model_validate(dict(values))
-    except ValidationError as exc:
-        msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise SweepSpecError(f"{where}: {msgs}") from exc
-    return dict(values)
+    return validate_overrides(where, values, error=SweepSpecError)
 
 
 def parse_spec(data: Mapping[str, Any]) -> SweepSpec:
