@@ -294,6 +294,12 @@ class Settings(BaseSettings):
         description="proactive method: the forecast expects the person to fetch the block the robot has just "
         "placed (app.control.anticipation); false: the motion predictor's forecast alone, as in the paper",
     )
+    ssm_timing: bool = Field(
+        True,
+        description="SSM-aware timing: both methods time every plan with the speed scale the ISO/TS 15066 "
+        "governor is predicted to allow along it, from the method's forecast (app.planning.ssm_timing); "
+        "false: plans are timed at full speed and the governor slows them",
+    )
     fetch_reaction_s: float = Field(
         0.6,
         ge=0.0,

@@ -15,10 +15,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from app.jit import jit
 
 
-@njit(cache=True)
+@jit
 def track_substeps(
     q: np.ndarray,
     qd: np.ndarray,
@@ -108,7 +109,7 @@ def track_substeps(
 # ----------------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, inline="always")
+@jit(inline="always")
 def _rz(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     out = np.zeros((3, 3))
@@ -116,7 +117,7 @@ def _rz(a: float) -> np.ndarray:
     return out
 
 
-@njit(cache=True, inline="always")
+@jit(inline="always")
 def _ry(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     out = np.zeros((3, 3))
@@ -124,7 +125,7 @@ def _ry(a: float) -> np.ndarray:
     return out
 
 
-@njit(cache=True, inline="always")
+@jit(inline="always")
 def _mv(R: np.ndarray, x: float, y: float, z: float) -> np.ndarray:
     out = np.empty(3)
     for i in range(3):
@@ -132,13 +133,13 @@ def _mv(R: np.ndarray, x: float, y: float, z: float) -> np.ndarray:
     return out
 
 
-@njit(cache=True, inline="always")
+@jit(inline="always")
 def _unit3(v: np.ndarray) -> np.ndarray:
     n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     return v / n if n > 1e-12 else v
 
 
-@njit(cache=True)
+@jit
 def _two_link(
     a: np.ndarray, target: np.ndarray, l1: float, l2: float, pole: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -156,7 +157,7 @@ def _two_link(
     return a + n * x + _unit3(perp) * r, end
 
 
-@njit(cache=True)
+@jit
 def body_pose(
     posture: np.ndarray, lh: np.ndarray, rh: np.ndarray, sway: np.ndarray, dims: np.ndarray, out: np.ndarray
 ) -> None:

@@ -106,8 +106,11 @@ class BackupComputer:
         workers: int,
         timer: Callable[[], float] = time.perf_counter,
         profile_window_s: float = 0.6,
+        timing: Any = None,
     ) -> None:
         self.planner = planner
+        #: The governor's model for SSM-aware timing (:class:`app.safety.governor.GovernorModel`), or None.
+        self.timing = timing
         self.make_trajectory = make_trajectory
         self.geometry = geometry
         self.deadline_s = float(deadline_s)
@@ -125,6 +128,7 @@ class BackupComputer:
     def compute_raw(self, req: BackupRequest) -> PlanOutcome:
         """The plan with its measured compute time, not yet judged against the deadline."""
         t0 = self.timer()
+        extra = {} if self.timing is None else {"timing": self.timing}
         try:
             res = self.planner.plan(
                 q_start=req.q_start,
@@ -134,6 +138,7 @@ class BackupComputer:
                 workers=self.workers,
                 deadline_s=(req.deadline_s or self.deadline_s) if self.enforce_deadline else None,
                 qd0=req.qd_start,
+                **extra,
             )
             if not res.ok or res.plan is None:
                 return PlanOutcome("failed", compute_s=self.timer() - t0, reason=str(res.reason))

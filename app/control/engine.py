@@ -42,15 +42,22 @@ from app.control.metrics import Method, TrialEvent, TrialMetrics
 from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.task import TaskExecutive
 from app.planning.collision import reach_fingertips
+from app.planning.ssm_timing import part_speeds
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import HumanFrame
-from app.safety.governor import SeparationModel, SpeedScaleLaw
+from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw, directed_approach
 from app.safety.monitor import GroundTruthMonitor, MonitorTotals, is_intrusion
 from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
 
 TrialStatus = Literal["completed", "aborted"]
+
+#: The directed speed (m/s) that the supervisor measures on a still person, per metre of tracker noise per
+#: joint and axis over its speed window: for the SSM-aware timing's prediction of the governor
+#: (:class:`app.safety.governor.GovernorModel.speed_noise_mps`). Tuned on seeds 1000-1003: the median of the
+#: measured directed speed of the simulated operator at work, 0.33 m/s with 1 cm of noise over 0.1 s.
+SPEED_NOISE_GAIN = 3.3
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -84,35 +91,20 @@ class CellGeometry:
         self, q: np.ndarray, joints: np.ndarray, joints_before: np.ndarray, dt_s: float, *, band_m: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """Each part's separation (L,) to the person at ``joints`` and the person's *directed* speed (L,)
-        toward it: of the person's capsules within ``band_m`` of the nearest one to the part, the fastest
-        rate at which its distance to the part shrank since ``joints_before``, ``dt_s`` earlier.
-
-        ISO/TS 15066 5.5.4.2.3 asks for the operator's speed in the direction of the robot. Taking the
-        fastest shrink over every capsule near the part (not only the nearest pair) keeps the value from
-        jumping when the nearest pair changes; a limb that moves sideways or away does not count.
-        """
+        toward it since ``joints_before``, ``dt_s`` earlier
+        (:func:`app.safety.governor.directed_approach`)."""
         poses = np.stack([np.asarray(joints, dtype=np.float64), np.asarray(joints_before, dtype=np.float64)])
         d = self.pair_distances(q, poses)  # (2, L, M)
-        sep = d[0].min(axis=1)
-        approach = np.maximum(d[1] - d[0], 0.0) / max(float(dt_s), 1e-6)  # (L, M)
-        near = d[0] <= sep[:, None] + band_m
-        v_h = np.where(near, approach, 0.0).max(axis=1)
-        return sep, v_h
+        return directed_approach(d[0], d[1], dt_s, band_m=band_m)
 
     def separation(self, q: np.ndarray, joints: np.ndarray) -> float:
         """Minimum surface distance (m) robot-person for ``q`` (6,) and ``joints`` (J, 3)."""
         return float(self.part_separations(q, np.asarray(joints)[None]).min())
 
     def part_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-        """(K, L) speed (m/s) of each part for ``q``, ``qd`` (K, 6)."""
-        q = np.asarray(q, dtype=np.float64).reshape(-1, 6)
-        qd = np.asarray(qd, dtype=np.float64).reshape(-1, 6)
-        h = self.fd_step_s
-        a0, b0, _ = self.collision.robot_capsules(q)
-        a1, b1, _ = self.collision.robot_capsules(q + h * qd)
-        va = np.linalg.norm(a1 - a0, axis=-1)
-        vb = np.linalg.norm(b1 - b0, axis=-1)
-        return np.maximum(va, vb) / h
+        """(K, L) speed (m/s) of each part for ``q``, ``qd`` (K, 6)
+        (:func:`app.planning.ssm_timing.part_speeds`)."""
+        return part_speeds(self.collision, q, qd, fd_step_s=self.fd_step_s)
 
 
 @dataclass(frozen=True)
@@ -491,16 +483,6 @@ class TrialEngine:
             planner_workers=settings.planner_workers,
             tracking_margin_m=self.options.tracking_margin_m,
         )
-        computer = BackupComputer(
-            stack.planner,
-            stack.make_trajectory,
-            stack.geometry,
-            deadline_s=self.config.deadline_s,
-            workers=self.config.planner_workers,
-            timer=timer,
-        )
-        self.jobs = jobs_factory(computer, self.config)
-
         # T_r of this system (tracker latency, frame, processing, controller cycle) and the one stopping
         # model: the governor and the monitor use the same figures
         self.reaction_time_s = settings.reaction_time_s(self.options.servo_period_s)
@@ -511,6 +493,34 @@ class TrialEngine:
             human_accel_mps2=self.options.human_accel_mps2,
             stop_decel_mps2=UR5E_STOP.decel_mps2,
         )
+        # what the governor will do, for SSM-aware timing of plans: its separation model, brake, law and
+        # measurement, the frame as old as it gets before the next one arrives
+        cfg = self.config
+        law = SpeedScaleLaw(ssm)
+        self.governor_model = GovernorModel(
+            separation=self.separation,
+            brake_decel_mps2=cfg.brake_decel_mps2,
+            brake_joint_decel=cfg.brake_joint_decel,
+            tracking_margin_m=cfg.tracking_margin_m,
+            speed_window_s=cfg.human_speed_window_s,
+            sensing_age_s=settings.tracker_latency_s + settings.frame_period_s + settings.processing_time_s,
+            near_band_m=cfg.near_band_m,
+            speed_noise_mps=SPEED_NOISE_GAIN * settings.tracker_noise_m / cfg.human_speed_window_s,
+            lookahead_s=cfg.profile_window_s,
+            law=law,
+        )
+        computer = BackupComputer(
+            stack.planner,
+            stack.make_trajectory,
+            stack.geometry,
+            deadline_s=self.config.deadline_s,
+            workers=self.config.planner_workers,
+            timer=timer,
+            profile_window_s=self.config.profile_window_s,
+            timing=self.governor_model if settings.ssm_timing else None,
+        )
+        self.jobs = jobs_factory(computer, self.config)
+
         robot_state = robot.state()
         self.supervisor = Supervisor(
             planner=stack.planner,
@@ -518,7 +528,7 @@ class TrialEngine:
             jobs=self.jobs,
             make_trajectory=stack.make_trajectory,
             separation=self.separation,
-            speed_scale=SpeedScaleLaw(ssm),
+            speed_scale=law,
             config=self.config,
             q0=robot_state.q,
             t0=t0,

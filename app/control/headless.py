@@ -205,6 +205,11 @@ def run_headless_trial(
             noise=False,
         )
         tracker_model = tracker if tracker is not None else settings.tracker_model()
+        if (
+            tracker is not None
+        ):  # what the runtime assumes of its tracker (T_r, the timing's noise) is this one
+            update = {"tracker_latency_s": tracker.latency_s, "tracker_noise_m": tracker.noise_m}
+            settings = settings.model_copy(update=update)
         human = TrackedSource(truth, tracker_model, seed=seed)
     else:
         truth = human

@@ -62,6 +62,7 @@ class PlannerLike(Protocol):
         workers: int = 1,
         deadline_s: float | None = None,
         qd0: np.ndarray | None = None,
+        timing: Any = None,
     ) -> PlanResultLike: ...
 
     def emergency(

@@ -29,8 +29,9 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-import numba
 import numpy as np
+
+from app.jit import jit
 
 __all__ = [
     "align_rows",
@@ -53,19 +54,11 @@ logger = logging.getLogger(__name__)
 
 _TINY = 1e-18  # m^4: as app.planning.collision._TINY (parallel segments, points)
 _NL = 9  # robot capsules (app.planning.collision.ROBOT_LINKS)
-_warned_no_cache = False
 
 
 def _jit(fn: Callable[..., Any]) -> Any:
-    """``numba.njit(cache=True)``, or in-memory compilation where no cache location is writable."""
-    global _warned_no_cache
-    try:
-        return numba.njit(cache=True, fastmath=False, nogil=True)(fn)
-    except RuntimeError as exc:  # numba found no writable cache directory for this file
-        if not _warned_no_cache:
-            logger.warning("numba kernels compile in memory on every start (no cache location): %s", exc)
-            _warned_no_cache = True
-        return numba.njit(cache=False, fastmath=False, nogil=True)(fn)
+    """:func:`app.jit.jit` with the options of every planning kernel."""
+    return jit(fn, fastmath=False, nogil=True)
 
 
 def as_f64(x: Any) -> np.ndarray:
@@ -823,9 +816,18 @@ def _margin_at(t: float, times: np.ndarray, margins: np.ndarray, growth: float, 
 
 @_jit
 def _required(v: float, margin: float, prm: np.ndarray) -> float:
-    """:func:`app.safety.ssm.forecast_clearance` + the extra distance, capped at the floor (m); ``prm``
-    as in :func:`moves_separation_ok`."""
+    """:func:`app.safety.ssm.forecast_clearance` + the extra distance (+ the SSM-aware table where
+    ``prm`` carries one: :meth:`app.planning.search._Separation.ssm_extra`), capped at the floor (m);
+    ``prm`` as in :func:`moves_separation_ok`."""
     req = max(v, 0.0) * prm[2] + prm[3] + prm[4] + max(prm[5], margin)
+    n = prm.shape[0]
+    if n > 10:  # SSM-aware: the governor's extra clearance at speed v, tabulated from prm[9] every prm[8]
+        x = max(v, 0.0) / prm[8]
+        i = int(x)
+        if i >= n - 10:
+            req += prm[n - 1]
+        else:
+            req += prm[9 + i] + (x - i) * (prm[10 + i] - prm[9 + i])
     return min(req + prm[6], prm[7])
 
 

@@ -104,8 +104,10 @@ import numpy as np
 
 from app.planning import _kernels
 from app.planning.roadmap import NUM_BRANCHES, Roadmap
+from app.planning.ssm_timing import ssm_retime
 from app.planning.trajectory import Plan, Trajectory, TrajectoryError, fit_knots
 from app.prediction.skeleton import NUM_JOINTS
+from app.safety.governor import GovernorModel
 from app.safety.ssm import SSMParams, forecast_clearance
 
 if TYPE_CHECKING:
@@ -131,6 +133,8 @@ class RobotModel(Protocol):
     def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
     def human_capsules(self, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray: ...
 
 
 #: Slower timings of a path tried when its fitted trajectory fails verification (durations x factor).
@@ -164,6 +168,16 @@ class PlannerConfig:
             The slowest (0.08: a creep, about 0.25 rad/s per joint) lets the robot approach a station next
             to a hand that rests there, the way speed and separation monitoring would slow it at run time.
         goal_hold_s: After arriving at the goal the robot must be able to stand there this long (s).
+        ssm_aware_search: With the governor's model (``Planner.plan(timing=...)``), a move also needs the
+            separation that the governor needs to let it run at its speed
+            (:meth:`app.safety.governor.GovernorModel.extra_clearance`), beyond that of a creep: near the
+            person the search takes moves slower or goes round, and the arrival times it optimises are
+            those the robot will reach.
+        ssm_creep_mps: The part speed (m/s) up to which a move needs no more than today's clearance: the
+            speed at which the governor lets a robot creep past a person at work.
+        ssm_brake_decel_mps2: The deceleration (m/s^2) of a braking robot's fastest point for that table:
+            the governor brakes at 3 rad/s^2 per joint, about 1.5 m/s^2 at the 0.5 m from the moving joints
+            to the fastest point of a typical move of this cell.
         start_neighbors: Number of roadmap nodes the start configuration is connected to.
         check_step_rad: Largest joint step (rad) between configurations checked against the static scene.
         static_margin_m: Clearance (m) from the static scene for on-the-fly checks (as the roadmap's).
@@ -202,6 +216,9 @@ class PlannerConfig:
     max_branch_tries: int = 2
     heuristic_weight: float = 1.0
     slow_speed_fractions: tuple[float, ...] = (0.2, 0.08)
+    ssm_aware_search: bool = True
+    ssm_creep_mps: float = 0.15
+    ssm_brake_decel_mps2: float = 1.5
     goal_hold_s: float = 0.3
     start_neighbors: int = 8
     check_step_rad: float = 0.05
@@ -335,11 +352,15 @@ class _Separation:
         cap_ends: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
         robot_r: np.ndarray | None = None,
         kernel: tuple[object, ...] | None = None,
+        ssm_extra: tuple[float, np.ndarray] | None = None,
     ) -> None:
         self.model = model
         self.forecast = forecast
         self.ssm = ssm
         self.extra_m = extra_m
+        #: SSM-aware search: ``(dv, extra)``, the governor's extra clearance (m) at speeds ``i * dv``
+        #: (:meth:`app.safety.governor.GovernorModel.extra_clearance`), or None.
+        self.ssm_extra = ssm_extra
         self.offsets = offsets
         self.floor_m = floor_m
         self.samples = 0
@@ -406,6 +427,7 @@ class _Separation:
                     ssm.z_human_m,
                     extra_m,
                     math.inf if floor_m is None else floor_m,
+                    *(() if ssm_extra is None else (ssm_extra[0], *np.asarray(ssm_extra[1]).tolist())),
                 ],
                 dtype=np.float64,
             )
@@ -456,9 +478,17 @@ class _Separation:
             m = np.minimum(m + fc.growth_mps * np.maximum(t - self._times[-1], 0.0), self._cap)
         return m
 
-    def _required(self, v: np.ndarray, t: np.ndarray) -> np.ndarray:
-        req = forecast_clearance(v, self._margins(t), self.ssm) + self.extra_m
+    def _clearance(self, v: np.ndarray, margin: np.ndarray) -> np.ndarray:
+        """The separation (m) asked of the robot moving at ``v`` from a forecast pose of ``margin``."""
+        req = forecast_clearance(v, margin, self.ssm) + self.extra_m
+        if self.ssm_extra is not None:
+            dv, table = self.ssm_extra
+            grid = np.arange(table.shape[0]) * dv
+            req = req + np.interp(np.maximum(v, 0.0), grid, table)
         return req if self.floor_m is None else np.minimum(req, self.floor_m)
+
+    def _required(self, v: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return self._clearance(v, self._margins(t))
 
     def _poses(self, t: np.ndarray) -> np.ndarray:
         """Poses (n, J, 3) at times ``t`` (n,): :meth:`HumanForecast.poses_at`'s interpolation."""
@@ -486,9 +516,7 @@ class _Separation:
         # either end, or grown beyond the horizon at its end)
         m_hi = np.maximum(hi[:, 3], np.maximum(self._margins(t0 + lo_off), self._margins(t1 + hi_off)))
         hi = hi[:, :3]
-        req = forecast_clearance(v, m_hi, self.ssm) + self.extra_m
-        if self.floor_m is not None:
-            req = np.minimum(req, self.floor_m)
+        req = self._clearance(v, m_hi)
         g = np.maximum(np.maximum(lo[:, None] - cen, cen - hi[:, None]), 0.0)  # (M, L, 3)
         gap = np.sqrt(np.einsum("mlk,mlk->ml", g, g)) - rad
         return (gap < req[:, None]).any(axis=1)
@@ -1089,6 +1117,7 @@ class Planner:
         extra_m: float,
         offsets: tuple[float, ...] = (0.0,),
         floor_m: float | None = None,
+        ssm_extra: tuple[float, np.ndarray] | None = None,
     ) -> _Separation:
         return _Separation(
             self.collision,
@@ -1101,6 +1130,7 @@ class Planner:
             cap_ends=self._cap_ends,
             robot_r=self._robot_r,
             kernel=self._kernel_geometry,
+            ssm_extra=ssm_extra,
         )
 
     # ------------------------------------------------------------------------------------------ public
@@ -1114,6 +1144,7 @@ class Planner:
         workers: int = 1,
         deadline_s: float | None = None,
         qd0: np.ndarray | None = None,
+        timing: GovernorModel | None = None,
     ) -> PlanResult:
         """Plan from a configuration at a time to a station or node, safe against a forecast person.
 
@@ -1125,6 +1156,9 @@ class Planner:
             workers: States expanded per search step (1 = sequential A*; N > 1 = batched parallel A*).
             deadline_s: Compute-time budget (s); the query fails with reason ``"deadline"`` past it.
             qd0: Joint velocity (6,) at ``t_start`` (rad/s) of the motion being executed (default: at rest).
+            timing: The speed governor's model: when given (with a forecast), the path found is timed with
+                the scale the governor is predicted to allow along it (:mod:`app.planning.ssm_timing`)
+                and verified at that timing; the plan at full speed is the fallback.
 
         Returns:
             A :class:`PlanResult`; ``ok`` only with a trajectory verified against ``forecast``.
@@ -1156,8 +1190,14 @@ class Planner:
             attempts.append((-0.25 * s, 0.0, 0.5 * s, s))
         expanded = 0
         reason = "no plan"
+        ssm_extra = None
+        if timing is not None and forecast is not None and cfg.ssm_aware_search:
+            table = timing.extra_clearance(v_creep_mps=cfg.ssm_creep_mps, decel_mps2=cfg.ssm_brake_decel_mps2)
+            ssm_extra = (0.05, table)
         for offsets in attempts:
-            sep = self._separation(forecast, extra_m=cfg.corridor_margin_m, offsets=offsets)
+            sep = self._separation(
+                forecast, extra_m=cfg.corridor_margin_m, offsets=offsets, ssm_extra=ssm_extra
+            )
             waypoints, n_exp, reason = self._search(
                 q_start,
                 float(t_start),
@@ -1175,9 +1215,9 @@ class Planner:
             if cfg.shortcut and (deadline is None or self._timer() < deadline):
                 short = self._shortcut(waypoints, sep, hold_s=cfg.goal_hold_s)
                 if short is not None:  # verified like any plan; the search's own path is the fallback
-                    done = self._finish(short, qd0, forecast, hold_s=cfg.goal_hold_s)
+                    done = self._finish(short, qd0, forecast, hold_s=cfg.goal_hold_s, timing=timing)
             if done is None:
-                done = self._finish(waypoints, qd0, forecast, hold_s=cfg.goal_hold_s)
+                done = self._finish(waypoints, qd0, forecast, hold_s=cfg.goal_hold_s, timing=timing)
             if done is not None:
                 return PlanResult(True, done[0], "ok", expanded, self._timer() - t0, done[1])
             reason = "trajectory failed verification against the forecast"
@@ -1462,10 +1502,19 @@ class Planner:
         *,
         hold_s: float,
         floor_m: float | None = None,
+        timing: GovernorModel | None = None,
     ) -> tuple[Plan, Trajectory] | None:
         traj = self._fit(waypoints, qd0)
         if traj is None:
             return None
+        if timing is not None and forecast is not None:
+            # SSM-aware timing: the same path at the speed the governor will allow along it
+            slow = ssm_retime(traj, _map_nodes(waypoints, traj), forecast, self.collision, timing)
+            retimed = None if slow is None else self._fit(slow, qd0)
+            if retimed is not None:
+                end = retimed.t_end + hold_s
+                if self._verify(retimed, forecast, retimed.t_start, end, floor_m=floor_m) is None:
+                    return retimed.to_plan(_map_nodes(slow, retimed)), retimed
         viol = self._verify(traj, forecast, traj.t_start, traj.t_end + hold_s, floor_m=floor_m)
         if viol is not None and (qd0 is None or not np.any(np.asarray(qd0) != 0.0)):
             # the spline cuts a corner: stopping at every waypoint keeps the robot on the straight moves

@@ -18,12 +18,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from app.jit import jit
 
 __all__ = ["cap_speed", "forward", "vexp"]
 
-_OPTS = {"cache": True, "error_model": "numpy", "fastmath": {"reassoc", "contract"}}
-_EXACT = {"cache": True, "error_model": "numpy"}  # no fastmath: the NumPy reference's numbers
+_OPTS = {"error_model": "numpy", "fastmath": {"reassoc", "contract"}}
+_EXACT = {"error_model": "numpy"}  # no fastmath: the NumPy reference's numbers
 
 _F = np.float32
 _ZERO, _HALF, _ONE, _TWO = _F(0.0), _F(0.5), _F(1.0), _F(2.0)
@@ -37,7 +38,7 @@ _C1, _C2, _C3, _C4, _C5, _C6 = (_F(1.0 / math.factorial(k)) for k in range(1, 7)
 _MISH_E_CAP = _F(1e18)
 
 
-@njit(**_OPTS)
+@jit(**_OPTS)
 def vexp(x: np.ndarray, out: np.ndarray, bits: np.ndarray) -> None:
     """``out = exp(x)`` for flat float32 arrays (vectorised; ``bits`` is int32 scratch of the same size).
 
@@ -54,7 +55,7 @@ def vexp(x: np.ndarray, out: np.ndarray, bits: np.ndarray) -> None:
         out[i] *= scale[i]
 
 
-@njit(**_OPTS)
+@jit(**_OPTS)
 def _adjacency(pooled, w_embed, b_embed, base, d, k_first, A):
     """``A_k[n, m] = base[k, n, m] + softmax_m(e1_k[n] . e2_k[m])`` with ``e = pooled @ w_embed + b_embed``
     read as (N, 2, K, d) (the 1/sqrt(d) scale is in the weights), written ``A[n, m, k]`` (N, N, K) or, with
@@ -94,7 +95,7 @@ def _adjacency(pooled, w_embed, b_embed, base, d, k_first, A):
                     A[n, m, k] = row[m] * inv + base[k, n, m]
 
 
-@njit(**_OPTS)
+@jit(**_OPTS)
 def _norm_pools(h, eps, xhat, pool_t, pool_j):
     """``xhat = LN(h)`` (no scale or shift) for (T, J, C); its means over joints (T, C) and frames (J, C)."""
     T, J, C = h.shape
@@ -121,7 +122,7 @@ def _norm_pools(h, eps, xhat, pool_t, pool_j):
     pool_j *= _ONE / _F(T)
 
 
-@njit(**_OPTS)
+@jit(**_OPTS)
 def _mix_joints(A, xw, out):
     """``out[t] = A (N, N*K) @ xw[t]`` for ``xw`` (T, N*K, C'): mixing along the joints, one product per
     frame."""
@@ -131,7 +132,7 @@ def _mix_joints(A, xw, out):
         np.dot(Ar, xw[t], out[t])
 
 
-@njit(**_OPTS)
+@jit(**_OPTS)
 def forward(x, p, ints, fps):
     """Future poses (H, J, 3) in the world frame (float64) for one person's observed poses ``x`` (T, J, 3).
 
@@ -291,7 +292,7 @@ def forward(x, p, ints, fps):
     return res
 
 
-@njit(**_EXACT)
+@jit(**_EXACT)
 def cap_speed(last: np.ndarray, future: np.ndarray, dt: float, vmax: float) -> np.ndarray:
     """The forecast's joints (H + 1, J, 3): ``last`` (J, 3) then ``future`` (H, J, 3) with each joint's
     displacement from ``last`` capped at ``vmax * dt * (h + 1)`` (m) at step ``h``. The numbers of

@@ -15,12 +15,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from app.jit import jit
 
 __all__ = ["governed_scale", "law_scale", "max_scale"]
 
 
-@njit(cache=True, inline="always")
+@jit(inline="always")
 def _approach(v0: float, dt: float, v_max_h: float, accel: float) -> tuple[float, float]:
     """Worst-case approach distance (m) and speed (m/s) of a person ``dt`` (s) after moving at ``v0``."""
     if dt < 0.0:
@@ -34,7 +35,7 @@ def _approach(v0: float, dt: float, v_max_h: float, accel: float) -> tuple[float
     return dist, min(v0 + accel * dt, vmax)
 
 
-@njit(cache=True, inline="always")
+@jit(inline="always")
 def _sp(v_part: float, v_top: float, v_human: float, s0: float, t_r: float, decel: float) -> float:
     """``S_p`` (m) of a part at ``v_part`` on a robot whose fastest part moves at ``v_top``."""
     v_part = max(v_part, 0.0)
@@ -42,7 +43,7 @@ def _sp(v_part: float, v_top: float, v_human: float, s0: float, t_r: float, dece
     return s0 + max(v_human, 0.0) * (t_r + t_s) + v_part * (t_r + 0.5 * t_s)
 
 
-@njit(cache=True)
+@jit
 def _scale_ok(
     sc: float,
     d: np.ndarray,
@@ -69,7 +70,7 @@ def _scale_ok(
     return True
 
 
-@njit(cache=True)
+@jit
 def max_scale(
     d: np.ndarray,
     vh: np.ndarray,
@@ -123,7 +124,7 @@ def max_scale(
     return best
 
 
-@njit(cache=True, inline="always")
+@jit(inline="always")
 def _law_one(d: float, v_nom: float, v_h: float, law: np.ndarray) -> float:
     """ISO/TS 15066 speed-scaling law of one part (:func:`app.safety.ssm.speed_scale`); ``law``:
     ``(T_r + T_s, C + Z_d + Z_r, T_r + T_s / 2)``."""
@@ -137,7 +138,7 @@ def _law_one(d: float, v_nom: float, v_h: float, law: np.ndarray) -> float:
     return min(1.0, v_max / max(v_nom, 1e-300))
 
 
-@njit(cache=True)
+@jit
 def law_scale(d: np.ndarray, v_nom: np.ndarray, v_h: np.ndarray, law: np.ndarray) -> float:
     """The smallest scale of the speed-scaling law over parts (L,) (1 for none)."""
     out = 1.0
@@ -146,7 +147,7 @@ def law_scale(d: np.ndarray, v_nom: np.ndarray, v_h: np.ndarray, law: np.ndarray
     return out
 
 
-@njit(cache=True)
+@jit
 def governed_scale(
     sep_m: np.ndarray,
     x_h0: np.ndarray,

@@ -238,3 +238,145 @@ SCALE_GRID = np.linspace(0.0, 1.0, 41)
 _ENV_NV = 97
 #: Instants of a brake, as fractions of its duration (its end: the robot is at rest).
 BRAKE_INSTANTS = np.linspace(0.0, 1.0, 25)[:-1]
+
+
+# ----------------------------------------------------------------------------------------------------
+# The governor's speed scale predicted from a forecast (SSM-aware timing of plans)
+# ----------------------------------------------------------------------------------------------------
+
+
+def directed_approach(
+    d_now: np.ndarray, d_before: np.ndarray, dt_s: float, *, band_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each robot part's separation (L,) and the person's *directed* speed toward it (L,), from the surface
+    distances (L, M) of the robot's parts to the person's capsules now and ``dt_s`` earlier.
+
+    ISO/TS 15066 5.5.4.2.3 asks for the operator's speed in the direction of the robot. Of the person's
+    capsules within ``band_m`` of the nearest one to a part, the fastest rate at which the distance to the
+    part shrank counts (not only the nearest pair, so the value does not jump when the nearest pair
+    changes); a limb that moves sideways or away does not count. The supervisor measures the person with
+    it, and :class:`GovernorModel` predicts the governor from a forecast with it."""
+    d_now = np.asarray(d_now, dtype=np.float64)
+    sep = d_now.min(axis=-1)
+    approach = np.maximum(np.asarray(d_before, dtype=np.float64) - d_now, 0.0) / max(float(dt_s), 1e-6)
+    near = d_now <= sep[..., None] + band_m
+    return sep, np.where(near, approach, 0.0).max(axis=-1)
+
+
+@dataclass(frozen=True, slots=True)
+class GovernorModel:
+    """What the speed governor of the supervisor will do, as the planner predicts it (SSM-aware timing).
+
+    The governor (``Supervisor._governed_scale``) measures, at each frame, every robot part's separation
+    to the person less the tracking margin and the person's directed approach speed over a window; from
+    then on it assumes the person's worst case (:meth:`SeparationModel.human_approach`) and runs the path
+    at the largest scale from which braking keeps ``S_p`` (:meth:`SeparationModel.max_scale`). Given the
+    separation and the directed speed that a *forecast* says the person will have when the robot is at a
+    point of its path, :meth:`scale` returns the scale the governor will then allow, with the frame as old
+    as it gets at a decision (:attr:`sensing_age_s`). The planner stretches a path's timing by
+    it, so that a plan says when the robot will really arrive and the governor only corrects deviations.
+
+    Attributes:
+        separation: The governor's :class:`SeparationModel` (the same object as the supervisor's).
+        brake_decel_mps2: Deceleration of the robot's fastest point when braking (m/s^2).
+        brake_joint_decel: Largest joint deceleration when braking (rad/s^2).
+        tracking_margin_m: Subtracted from every separation, as the supervisor does.
+        speed_window_s: The window over which the supervisor measures the person's speed (s).
+        sensing_age_s: Age of the newest frame when the governor decides, from its capture, as old as it
+            gets before the next one arrives: tracker latency + a frame period + processing (s). (With
+            half a frame period, the typical age, the prediction runs about 15-25 % fast in the supervisor
+            test; with a whole one it is within 20 % either way.)
+        near_band_m: :func:`directed_approach`'s band (m).
+        speed_noise_mps: What the noise of the tracked joints adds to the measured directed speed of a
+            person (m/s): the governor measures the person's speed from two noisy frames, so it sees a
+            standing person approach at a few tenths of a metre per second; a forecast does not.
+        lookahead_s: The governor's look-ahead along the path (s): it brakes for the fastest speed of each
+            part over the next ``lookahead_s`` of path time (``SupervisorConfig.profile_window_s``).
+        law: The standard's speed-scaling law that the governor also applies (with the measured speed),
+            or None when it applies the braking envelope alone.
+        min_scale: The smallest scale a plan is timed with: where the forecast leaves the robot no speed
+            at all, the plan is timed as if it crept at this scale (the governor holds it until the
+            person has moved; a plan timed as standing still forever would never arrive).
+    """
+
+    separation: SeparationModel
+    brake_decel_mps2: float
+    brake_joint_decel: float
+    tracking_margin_m: float
+    speed_window_s: float
+    sensing_age_s: float
+    near_band_m: float = 0.25
+    speed_noise_mps: float = 0.0
+    lookahead_s: float = 0.6
+    law: SpeedScaleLaw | None = None
+    min_scale: float = 0.1
+
+    def __post_init__(self) -> None:
+        for name in ("brake_decel_mps2", "brake_joint_decel", "speed_window_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"GovernorModel.{name} must be finite and > 0, got {v}")
+        for name in ("tracking_margin_m", "sensing_age_s", "near_band_m", "lookahead_s", "speed_noise_mps"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"GovernorModel.{name} must be finite and >= 0, got {v}")
+        if not 0.0 < self.min_scale <= 1.0:
+            raise ValueError(f"GovernorModel.min_scale must be in (0, 1], got {self.min_scale}")
+
+    def extra_clearance(
+        self, *, v_creep_mps: float, decel_mps2: float, dv_mps: float = 0.05, v_max_mps: float = 3.0
+    ) -> np.ndarray:
+        """How much more separation (m) than a robot creeping at ``v_creep_mps`` the governor needs to let
+        a robot part move at each speed ``v = i * dv_mps`` up to ``v_max_mps`` (0 up to the creep speed),
+        braking at ``decel_mps2``, the person as the governor sees a still one (:attr:`speed_noise_mps`
+        after a frame of typical age). The planner adds it to the clearance it asks of a move at speed
+        ``v`` from the forecast person: a move near the person at full speed, which the governor would slow
+        to a crawl, fails the search's check, and the search takes it slower or goes round."""
+        vh0 = self.speed_noise_mps
+        _, v1 = self.separation.human_approach(vh0, 0.5 * self.speed_window_s + self.sensing_age_s)
+        d = np.arange(0.0, 4.0 + 1e-9, 0.005)
+        vmax = np.maximum.accumulate(
+            np.asarray(
+                self.separation.max_speed(
+                    d, v_human_mps=float(v1), decel_mps2=decel_mps2, v_cap_mps=v_max_mps
+                )
+            )
+        )
+        v = np.arange(0.0, v_max_mps + 1e-9, dv_mps)
+        need = d[np.minimum(np.searchsorted(vmax, v, side="left"), d.size - 1)]
+        creep = d[min(int(np.searchsorted(vmax, v_creep_mps, side="left")), d.size - 1)]
+        return np.where(v <= v_creep_mps, 0.0, np.maximum(need - creep, 0.0))
+
+    def brake_rate(self, v_top_mps: float, w_top_radps: float) -> float:
+        """How fast (1/s) a brake lowers the path scale of a path whose fastest point moves at
+        ``v_top_mps`` and fastest joint at ``w_top_radps`` at scale 1 (inf for a path at rest)."""
+        rate = math.inf
+        if v_top_mps > 1e-9:
+            rate = self.brake_decel_mps2 / v_top_mps
+        if w_top_radps > 1e-9:
+            rate = min(rate, self.brake_joint_decel / w_top_radps)
+        return rate
+
+    def scale(
+        self, sep_m: np.ndarray, v_human_mps: np.ndarray, v_parts_mps: np.ndarray, w_top_radps: float
+    ) -> float:
+        """The governor's scale in [0, 1] for parts (L,) at separations ``sep_m`` (as measured, before the
+        tracking margin), the person approaching each at ``v_human_mps`` (measured over the window), the
+        parts moving at ``v_parts_mps`` at scale 1 (over the governor's look-ahead) and the fastest joint at
+        ``w_top_radps``."""
+        v_parts = np.asarray(v_parts_mps, dtype=np.float64)
+        vtop = float(v_parts.max(initial=0.0))
+        if vtop <= 1e-4:
+            return 1.0
+        vh0 = np.asarray(v_human_mps, dtype=np.float64) + self.speed_noise_mps
+        half = 0.5 * self.speed_window_s
+        # from the middle of the speed window: the approach until the frame was taken is already in the
+        # measured separation, the rest of the frame's age is the worst case
+        x0, _ = self.separation.human_approach(vh0, half)
+        x1, v1 = self.separation.human_approach(vh0, half + self.sensing_age_s)
+        sep_lb = np.asarray(sep_m, dtype=np.float64) - self.tracking_margin_m - (x1 - x0)
+        rate = self.brake_rate(vtop, float(w_top_radps))
+        s = self.separation.max_scale(sep_lb, v_human_mps=v1, v_parts_mps=v_parts, rate=rate)
+        if self.law is not None:
+            s = min(s, max(self.law(sep_lb, v_parts, vh0), 0.0))
+        return s

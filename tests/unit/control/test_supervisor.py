@@ -6,8 +6,10 @@ Time is driven by hand (no clock, no sleeps): servo ticks at 100 Hz and frames a
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -754,3 +756,61 @@ def test_the_compiled_speed_scale_law_agrees_with_the_safety_module() -> None:
         want = float(np.min(speed_scale(d, v, params, v_human_mps=vh)))
         assert _kernels.law_scale(d, v, vh, law.kernel_params) == pytest.approx(want, abs=1e-12)
     assert law(np.zeros(0), np.zeros(0), np.zeros(0)) == 1.0
+
+
+class _PointCapsules:
+    """The point robot as the collision model of the SSM timing (one part, a person of points)."""
+
+    def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        q = np.asarray(q, dtype=float).reshape(-1, 6)
+        return q[:, None, :3].copy(), q[:, None, :3].copy(), np.zeros(1)
+
+    def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        return (np.linalg.norm(np.asarray(joints) - np.asarray(q)[:3], axis=-1) - R_HUMAN)[:, None, :]
+
+
+@pytest.mark.parametrize("strict", [False, True])
+@pytest.mark.parametrize("side_m", [0.3, 0.62, 0.75, 0.9])
+def test_the_ssm_timing_predicts_how_long_the_governor_takes_past_a_person(
+    side_m: float, strict: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The governor's model (app.safety.governor.GovernorModel), fed the person as they stand, predicts the
+    time the supervisor's governor really takes along a straight move past them, within 20 % (the governor
+    ramps up from rest at its ramp rate, picks scales from a grid and sees frames of varying age; the model
+    takes the oldest)."""
+    from app.planning.ssm_timing import predicted_scales
+    from app.safety.governor import GovernorModel
+
+    separation = SSM
+    if strict:  # a person assumed to speed up faster: the governor slows the robot far more
+        separation = dataclasses.replace(SSM, human_accel_mps2=30.0, human_speed_max_mps=3.0)
+        monkeypatch.setattr(sys.modules[__name__], "SSM", separation)
+    where = np.array([0.75, side_m, 0.0])
+    h = Harness(lambda t: person_at(where))
+    h.sup.set_goal("B")
+    h.run(40.0)
+    assert h.sup.take_arrival() == "B"
+    moving = [t for t, q, _, v in h.log if v > 1e-6]
+    measured = moving[-1] - moving[0]
+    cfg = h.config
+    model = GovernorModel(
+        separation=separation,
+        brake_decel_mps2=cfg.brake_decel_mps2,
+        brake_joint_decel=cfg.brake_joint_decel,
+        tracking_margin_m=cfg.tracking_margin_m,
+        speed_window_s=cfg.human_speed_window_s,
+        sensing_age_s=cfg.frame_period_s,  # frames arrive as taken: at most one frame period old
+        near_band_m=cfg.near_band_m,
+        lookahead_s=cfg.profile_window_s,
+        law=LAW,
+    )
+    # the path the supervisor ran (straight, or round the person where they stand in its way)
+    fc = HumanForecast.hold(HumanFrame(0.0, person_at(where)))
+    plan = FakePlanner(h.goals).plan(q_start=np.zeros(6), t_start=0.0, goal="B", forecast=fc).plan
+    traj = LinearTrajectory(plan.times, plan.q)
+    _, t, _ = predicted_scales(traj, fc, _PointCapsules(), model)
+    full = traj.t_end - traj.t_start
+    print(side_m, strict, t[-1], measured, full)
+    if strict and side_m < 0.8:
+        assert measured > 2.0 * full  # the governor slowed this move a lot ...
+    assert t[-1] == pytest.approx(measured, rel=0.2)  # ... and the prediction knew by how much

@@ -1,0 +1,103 @@
+"""SSM-aware timing of plans: a path timed with the speed scale the governor will really allow.
+
+The search times its moves at the robot's full joint speeds, but near a person the ISO/TS 15066 speed
+governor (:mod:`app.safety.governor`) slows the robot down, often to a small fraction of that. A plan timed at
+full speed says it arrives long before it does, and it is checked against the forecast person at instants
+when the robot will not be there. :func:`ssm_retime` walks along a fitted path, asks the forecast where the
+person will be when the robot gets to each point, predicts the governor's scale there
+(:meth:`app.safety.governor.GovernorModel.scale`, the same separation model, brake and worst-case person as
+the governor itself) and stretches the path's knot times by it. The planner fits and verifies the stretched
+plan against the forecast like any other (:meth:`app.planning.search.Planner.plan` with ``timing``); the robot
+then runs it at a scale near 1, and the governor only corrects where the person deviates from the forecast.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from app.planning.trajectory import Plan, Trajectory
+from app.safety.governor import GovernorModel, directed_approach
+
+__all__ = ["part_speeds", "predicted_scales", "ssm_retime"]
+
+#: Spacing (s of path time at full speed) of the points at which the governor's scale is predicted.
+STEP_S = 0.04
+
+
+def part_speeds(collision: Any, q: np.ndarray, qd: np.ndarray, *, fd_step_s: float = 1e-3) -> np.ndarray:
+    """(K, L) speed (m/s) of each robot part for configurations ``q`` and joint velocities ``qd`` (K, 6):
+    that of the faster end of the part's capsule axis (on a rigid link no point of the axis moves faster,
+    so it bounds the speed of the capsule's whole surface)."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 6)
+    qd = np.asarray(qd, dtype=np.float64).reshape(-1, 6)
+    a0, b0, _ = collision.robot_capsules(q)
+    a1, b1, _ = collision.robot_capsules(q + fd_step_s * qd)
+    va = np.linalg.norm(a1 - a0, axis=-1)
+    vb = np.linalg.norm(b1 - b0, axis=-1)
+    return np.maximum(va, vb) / fd_step_s
+
+
+def _ahead_max(x: np.ndarray, n: int) -> np.ndarray:
+    """Per row i the maximum of rows i..i+n (clipped at the end)."""
+    out = x.copy()
+    for k in range(1, n + 1):
+        out[:-k] = np.maximum(out[:-k], x[k:])
+    return out
+
+
+def predicted_scales(
+    traj: Trajectory, forecast: Any, collision: Any, model: GovernorModel, *, step_s: float = STEP_S
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Walk along ``traj`` at the governor's predicted scale.
+
+    Returns:
+        ``(tau, t, scale)``: path times (N + 1,) of the sample points on ``traj``'s own clock (its knots'
+        times, at full speed), the predicted wall time (N + 1,) at which the robot gets to each (the first is
+        ``traj.t_start``), and the scale (N,) predicted for the move from each point to the next.
+    """
+    t0, t1 = traj.t_start, traj.t_end
+    n = max(math.ceil((t1 - t0) / step_s), 1)
+    tau = np.linspace(t0, t1, n + 1)
+    q = traj.q(tau)
+    qd = traj.qd(tau)
+    ahead = max(round(model.lookahead_s / max((t1 - t0) / n, 1e-9)), 0)
+    v = _ahead_max(part_speeds(collision, q, qd), ahead)  # (N + 1, L) what the governor brakes for
+    w = _ahead_max(np.abs(qd).max(axis=1), ahead)
+    window = model.speed_window_s
+    t = np.empty(n + 1)
+    t[0] = t0
+    scales = np.empty(n)
+    for i in range(n):
+        joints, _ = forecast.poses_at(np.array([t[i], t[i] - window]))
+        d = collision.pair_distances(q[i], joints)  # (2, L, M)
+        sep, v_h = directed_approach(d[0], d[1], window, band_m=model.near_band_m)
+        s = model.scale(sep, v_h, np.maximum(v[i], v[i + 1]), float(max(w[i], w[i + 1])))
+        scales[i] = max(s, model.min_scale)
+        t[i + 1] = t[i] + (tau[i + 1] - tau[i]) / scales[i]
+    return tau, t, scales
+
+
+def ssm_retime(
+    traj: Trajectory,
+    nodes: np.ndarray,
+    forecast: Any,
+    collision: Any,
+    model: GovernorModel,
+    *,
+    step_s: float = STEP_S,
+) -> Plan | None:
+    """The knots of ``traj`` (with roadmap ``nodes``, one per knot) at the times the robot will reach them
+    under the governor's predicted scale (:func:`predicted_scales`); None when nothing changes (the
+    governor is predicted to allow full speed all the way). Fit and verify the result like any plan."""
+    tau, t, scales = predicted_scales(traj, forecast, collision, model, step_s=step_s)
+    if np.all(scales >= 1.0 - 1e-9):
+        return None
+    knots = traj.knot_times
+    times = np.interp(knots, tau, t)
+    times = np.maximum.accumulate(times)
+    if np.any(np.diff(times) <= 0):
+        return None
+    return Plan(times=times, q=traj.knot_q, nodes=np.asarray(nodes, dtype=np.int64))

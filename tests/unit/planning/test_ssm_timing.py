@@ -1,0 +1,152 @@
+"""SSM-aware timing: a plan timed with the speed scale the governor will allow along it.
+
+The governor's model (:class:`app.safety.governor.GovernorModel`) predicts the supervisor's scale from a
+forecast; :func:`app.planning.ssm_timing.ssm_retime` stretches a path by it, and the search
+(``PlannerConfig.ssm_aware_search``) asks of a fast move the clearance that the governor needs to let it run
+fast. The UR5e tests use the real collision model; the search tests the point robot of ``test_search``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.config import load_workcell
+from app.planning.collision import CollisionModel
+from app.planning.search import Planner
+from app.planning.ssm_timing import predicted_scales, ssm_retime
+from app.planning.trajectory import Trajectory
+from app.prediction.forecast import HumanForecast
+from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+from app.safety.governor import GovernorModel, SeparationModel
+from tests.unit.planning.test_search import R_HUMAN, R_ROBOT, PointRobot, config, person, q_of, roadmap
+
+SEPARATION = SeparationModel(
+    s0_m=0.11, t_reaction_s=0.11, stop_decel_mps2=3.0, human_speed_max_mps=2.0, human_accel_mps2=8.0
+)
+
+
+def governor(**kw: object) -> GovernorModel:
+    base = dict(
+        separation=SEPARATION,
+        brake_decel_mps2=3.0,
+        brake_joint_decel=3.0,
+        tracking_margin_m=0.02,
+        speed_window_s=0.1,
+        sensing_age_s=0.09,
+        lookahead_s=0.6,
+    )
+    base.update(kw)
+    return GovernorModel(**base)  # type: ignore[arg-type]
+
+
+@pytest.fixture(scope="module")
+def ur5e() -> CollisionModel:
+    return CollisionModel(load_workcell())
+
+
+def _base_turn(duration_s: float) -> Trajectory:
+    """The UR5e at home turning its base by 1 rad at rest at both ends."""
+    q0 = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+    q1 = q0.copy()
+    q1[0] = -1.0
+    t = np.linspace(0.0, duration_s, 5)
+    s = 0.5 - 0.5 * np.cos(np.pi * t / duration_s)  # smooth from rest to rest
+    q = q0 + s[:, None] * (q1 - q0)
+    qd = (0.5 * np.pi / duration_s) * np.sin(np.pi * t / duration_s)[:, None] * (q1 - q0)
+    return Trajectory(t, q, qd)
+
+
+def _standing(at: np.ndarray) -> HumanForecast:
+    joints = (
+        np.tile(np.asarray(at, dtype=float), (NUM_JOINTS, 1)) + np.linspace(0.0, 1e-3, NUM_JOINTS)[:, None]
+    )
+    return HumanForecast.hold(HumanFrame(0.0, joints))
+
+
+def test_nobody_near_leaves_the_plan_at_full_speed(ur5e: CollisionModel) -> None:
+    traj = _base_turn(1.0)
+    fc = _standing(np.array([6.0, 0.0, 0.5]))
+    _, t, scales = predicted_scales(traj, fc, ur5e, governor())
+    assert np.all(scales == 1.0)
+    assert t[-1] == pytest.approx(traj.t_end)
+    assert ssm_retime(traj, np.full(5, -1), fc, ur5e, governor()) is None
+
+
+def test_a_person_beside_the_path_stretches_it_and_the_governor_then_keeps_the_new_timing(
+    ur5e: CollisionModel,
+) -> None:
+    traj = _base_turn(1.0)
+    model = governor()
+    fc = _standing(np.array([0.9, -0.3, 0.2]))  # in front of the arm, beside the turn
+    slow = ssm_retime(traj, np.full(5, -1), fc, ur5e, model)
+    assert slow is not None
+    assert slow.duration > 1.5 * traj.duration  # the governor would slow this turn a lot
+    # the same path at the new timing: the governor (predicted by the same model) lets it run, give or take
+    # the scale grid's 2.5 % steps and the look-ahead's coarser view of a faster/slower neighbourhood
+    retimed = Trajectory(slow.times, slow.q, traj.knot_qd * (traj.duration / slow.duration))
+    _, _, again = predicted_scales(retimed, fc, ur5e, model)
+    assert np.median(again) >= 0.9
+    # a floor: where no speed at all is safe the plan is timed at the smallest scale, never forever
+    _, _, none_safe = predicted_scales(traj, _standing(np.array([0.3, -0.2, 0.4])), ur5e, model)
+    assert none_safe.min() == model.min_scale
+
+
+def test_the_extra_clearance_is_zero_up_to_the_creep_and_grows_with_speed() -> None:
+    extra = governor(speed_noise_mps=0.3).extra_clearance(v_creep_mps=0.15, decel_mps2=1.5)
+    v = np.arange(extra.size) * 0.05
+    assert np.all(extra[v <= 0.15] == 0.0)
+    assert np.all(np.diff(extra) >= 0.0)
+    assert extra[v.searchsorted(1.0)] > 0.5  # at 1 m/s the governor needs half a metre more than a creep
+
+
+def test_a_noisier_person_or_an_older_frame_slows_the_prediction(ur5e: CollisionModel) -> None:
+    traj = _base_turn(1.0)
+    fc = _standing(np.array([1.0, -0.3, 0.2]))
+    base = predicted_scales(traj, fc, ur5e, governor())[1][-1]
+    assert predicted_scales(traj, fc, ur5e, governor(speed_noise_mps=0.3))[1][-1] > base
+    assert predicted_scales(traj, fc, ur5e, governor(sensing_age_s=0.2))[1][-1] > base
+
+
+def test_governor_model_rejects_bad_settings() -> None:
+    with pytest.raises(ValueError, match="min_scale"):
+        governor(min_scale=0.0)
+    with pytest.raises(ValueError, match="speed_window_s"):
+        governor(speed_window_s=0.0)
+    with pytest.raises(ValueError, match="sensing_age_s"):
+        governor(sensing_age_s=-0.1)
+
+
+class PairedPointRobot(PointRobot):
+    """The point robot of ``test_search`` with the per-part distances of the SSM timing."""
+
+    def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        d = np.linalg.norm(np.asarray(joints) - np.asarray(q)[:3], axis=-1)  # (P, J)
+        return (d - R_ROBOT - R_HUMAN)[:, None, :]
+
+
+def test_the_search_goes_round_a_person_where_creeping_past_would_arrive_later() -> None:
+    # short way s - m - g (2 s at full speed) passes 0.3 m from a person standing beside m; the long way
+    # s - d1 - d2 - g (4.4 s) stays 0.9 m away
+    rm = roadmap(
+        [(0.0, 0.0), (0.5, 0.0), (1.0, 0.0), (0.0, 0.8), (1.0, 0.8)],
+        [(0, 1), (1, 2), (0, 3), (3, 4), (4, 2)],
+        s=0,
+        g=2,
+    )
+    fc = person([0.0], [(0.5, -0.5)])
+    robot = PairedPointRobot()
+    model = governor(tracking_margin_m=0.0, lookahead_s=0.2)
+    plain = Planner(rm, robot, config=config(shortcut=False, ssm_aware_search=False))
+    aware = Planner(rm, robot, config=config(shortcut=False, ssm_brake_decel_mps2=3.0))
+    a = plain.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc, timing=model)
+    b = aware.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc, timing=model)
+    assert a.ok and b.ok, (a.reason, b.reason)
+    assert [n for n in a.plan.nodes.tolist() if n >= 0] == [0, 1, 2]
+    assert [n for n in b.plan.nodes.tolist() if n >= 0] == [0, 3, 4, 2]
+    # both plans carry the timing the governor will allow: the long way arrives first
+    assert b.plan.t_end < a.plan.t_end
+    # and at that timing the governor would not slow either of them much further
+    for res in (a, b):
+        _, _, again = predicted_scales(res.trajectory, fc, robot, model)
+        assert np.median(again) >= 0.9
