@@ -34,6 +34,9 @@ machine disturb much less.
   requirement in an independent check: sampled at 100 Hz, joint limits, and the surface distance (from
   :meth:`CollisionModel.distance_to_human_paired`) against :func:`app.safety.ssm.forecast_clearance` for
   the robot speed obtained by differentiating the trajectory's capsule points numerically. It must be 0.
+* ``threads``: whether threads help on this machine: queries per second of independent ``parallel_plan``
+  queries sharing one planner, in one thread and in ``os.cpu_count()`` threads (throughput for a caller
+  with several queries at once; a single query is not split over threads). Processes are not measured.
 * ``by_source``: the figures per kind of person (``synthetic``, ``recorded``).
 * ``scaling``: ``{"p50", "p95", "n"}`` of the parallel plan time (successful queries) on roadmaps of about
   1k, 4k and 16k nodes (built and cached on first use, which takes minutes; ``--quick`` reports only those
@@ -264,6 +267,32 @@ def _calls(planner: Any, qr: Any) -> dict[str, Callable[[], Any]]:
     }
 
 
+def _threads(planner: Any, queries: Sequence[Any]) -> dict[str, Any]:
+    """Throughput of independent ``parallel_plan`` queries on one shared planner: in one thread, then in
+    ``os.cpu_count()`` threads (the compiled kernels release the GIL; the search's Python bookkeeping holds
+    it). Says whether threads would help a caller with several queries at once; one query's latency is not
+    shortened by them."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    n_threads = max(os.cpu_count() or 1, 2)
+    calls = [_calls(planner, qr)["parallel_plan"] for qr in queries]
+    t0 = time.perf_counter()
+    for call in calls:
+        call()
+    one = time.perf_counter() - t0
+    with ThreadPoolExecutor(n_threads) as pool:
+        t0 = time.perf_counter()
+        list(pool.map(lambda call: call(), calls))
+        many = time.perf_counter() - t0
+    return {
+        "threads": n_threads,
+        "queries": len(calls),
+        "queries_per_s_1_thread": round(len(calls) / one, 1),
+        f"queries_per_s_{n_threads}_threads": round(len(calls) / many, 1),
+        "speedup": round(one / many, 2),
+    }
+
+
 def _scaling(
     cell: Any, model: Any, queries: Sequence[Any], *, quick: bool, progress: bool
 ) -> tuple[dict[str, Any], dict[str, int | None]]:
@@ -374,6 +403,8 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                 checked += 1
         if progress and (i + 1) % 10 == 0:
             _log(progress, f"  {i + 1}/{len(queries)}")
+    _log(progress, "threads ...")
+    threads = _threads(planner, queries[: (12 if quick else 60)])
     scaling, scaling_nodes = _scaling(cell, model, queries, quick=quick, progress=progress)
     kinds = [qr.source.split(":")[0] for qr in queries]
     by_source: dict[str, dict[str, Any]] = {}
@@ -400,6 +431,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
         "trajectories_checked": checked,
         "by_source": by_source,
         "parallel_kind": PARALLEL_KIND,
+        "threads": threads,
         "timing": "each query timed once per configuration, configurations interleaved per query",
         "workers": WORKERS,
         "deadline_s": DEADLINE_S,

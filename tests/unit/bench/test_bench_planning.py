@@ -108,4 +108,5 @@ def test_quick_run_prints_every_key() -> None:
     assert set(out["failures"]) == set(bp.CONFIGS)
     assert out["violations"] == 0
     assert "one thread" in out["parallel_kind"]
+    assert out["threads"]["queries"] == 12 and out["threads"]["threads"] >= 2
     assert 0.0 <= out["success_rate"] <= 1.0
