@@ -27,7 +27,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -312,6 +312,9 @@ class Snapshot:
         estopped: E-stop latched.
         trial_elapsed_s: Seconds since the trial started, or None.
         trial_duration_s: The trial's planned duration, or None.
+        time_budget: Where the running trial's time went so far (:meth:`TrialEngine.time_budget`: seconds
+            per part of :data:`app.control.counters.TIME_BUDGET`, and ``mean_scale_when_scaled``); empty
+            without a trial.
     """
 
     t: float
@@ -333,6 +336,7 @@ class Snapshot:
     estopped: bool = False
     trial_elapsed_s: float | None = None
     trial_duration_s: float | None = None
+    time_budget: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name in ("q", "p_world_tcp", "skeleton", "forecast", "plan_tcp", "backup_tcp"):
@@ -374,6 +378,7 @@ class Snapshot:
             "estopped": bool(self.estopped),
             "trial_elapsed_s": num(self.trial_elapsed_s),
             "trial_duration_s": num(self.trial_duration_s),
+            "time_budget": {k: round(float(v), 3) for k, v in self.time_budget.items()},
         }
 
 

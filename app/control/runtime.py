@@ -776,6 +776,7 @@ class Runtime:
             backup_tcp=self._tcp_path(st.backup),
             trial_elapsed_s=engine.elapsed(t),
             trial_duration_s=engine.duration_s,
+            time_budget=engine.time_budget(),
             **base,
         )
 

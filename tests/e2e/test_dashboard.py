@@ -148,6 +148,14 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
     assert first["method"] == order[0] and first["participant_id"] == participant["id"]
     expect(page.get_by_test_id("trial-pill")).to_contain_text(f"trial #{first['id']}", timeout=UI_TIMEOUT_MS)
     expect(page.get_by_test_id("trial-time")).to_contain_text("of 4 s", timeout=UI_TIMEOUT_MS)
+    # where the trial's time goes, live: one row per part of the time budget, their sum the time so far
+    expect(page.get_by_test_id("budget-waiting_for_plan")).to_contain_text(" s", timeout=UI_TIMEOUT_MS)
+    rows = page.get_by_test_id("time-budget").locator("dd")
+    expect(rows).to_have_count(8)
+    wait_until(
+        lambda: float(page.get_by_test_id("budget-total").inner_text().split(" s")[0]) > 0.5,
+        "the time budget to count the trial's time",
+    )
     wait_until(lambda: live_state.inner_text() != state_before, "the supervisor state to change in the page")
     wait_until(
         lambda: server.api("GET", f"/api/trials/{first['id']}").json()["status"] != "running",

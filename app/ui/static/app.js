@@ -317,8 +317,9 @@
       if (ended) setTimeout(() => refreshTrials().catch(() => {}), 1500);
     }
 
-    // counters
+    // counters and where the trial's time went
     renderCounters(s.counters || {});
+    renderBudget(s.time_budget || {});
     // planning times
     const plans = Array.isArray(s.planning_ms) ? s.planning_ms.filter((v) => Number.isFinite(v)) : [];
     const key = plans.join(",");
@@ -349,6 +350,62 @@
       const v = counters[dd.dataset.counter];
       dd.textContent = typeof v === "number" && !Number.isInteger(v) ? v.toFixed(2) : String(v);
     }
+  }
+
+  // the parts of the time budget (app.control.counters.TIME_BUDGET), in the order they are shown
+  const BUDGET_PARTS = [
+    ["moving_full", "moving, full speed", "#2e7d32"],
+    ["moving_scaled", "moving, slowed", "#66bb6a"],
+    ["braking", "braking", "#ffa000"],
+    ["stopped", "held still", "#d32f2f"],
+    ["planned_wait", "planned wait", "#7e57c2"],
+    ["gripper", "gripper", "#8d6e63"],
+    ["waiting_for_plan", "waiting for a plan", "#1e88e5"],
+    ["idle", "idle", "#b0bec5"],
+  ];
+
+  function renderBudget(budget) {
+    const bar = $("budget-bar");
+    const dl = $("time-budget");
+    const total = BUDGET_PARTS.reduce((acc, [k]) => acc + (Number(budget[k]) || 0), 0);
+    if (!(total > 0)) {
+      bar.textContent = "";
+      dl.textContent = "";
+      dl.dataset.built = "";
+      $("budget-total").textContent = "no trial running";
+      return;
+    }
+    if (dl.dataset.built !== "1") {
+      bar.textContent = "";
+      dl.textContent = "";
+      for (const [k, label, color] of BUDGET_PARTS) {
+        const seg = document.createElement("span");
+        seg.dataset.part = k;
+        seg.style.background = color;
+        seg.title = label;
+        bar.append(seg);
+        const dt = document.createElement("dt");
+        const sw = document.createElement("span");
+        sw.className = "budget-swatch";
+        sw.style.background = color;
+        dt.append(sw, document.createTextNode(label));
+        const dd = document.createElement("dd");
+        dd.dataset.part = k;
+        dd.setAttribute("data-testid", `budget-${k}`);
+        dl.append(dt, dd);
+      }
+      dl.dataset.built = "1";
+    }
+    for (const seg of bar.querySelectorAll("span")) {
+      seg.style.width = `${(100 * (Number(budget[seg.dataset.part]) || 0)) / total}%`;
+    }
+    for (const dd of dl.querySelectorAll("dd")) {
+      const v = Number(budget[dd.dataset.part]) || 0;
+      dd.textContent = `${v.toFixed(1)} s`;
+    }
+    const scaled = Number(budget.mean_scale_when_scaled);
+    const slowed = Number.isFinite(scaled) && scaled > 0 ? ` · slowed to ${Math.round(scaled * 100)}% on average` : "";
+    $("budget-total").textContent = `${total.toFixed(1)} s${slowed}`;
   }
 
   function quantile(sorted, q) {
