@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
@@ -69,6 +70,8 @@ class PlanOutcome:
         profile: Its speed profile (when ``ok``).
         plan: The planner's plan (when ``ok``).
         reason: The planner's reason or the error message.
+        arrival_s: When the planner predicts the robot to arrive (s, runtime clock; with SSM-aware timing,
+            under the speed governor), or None for the trajectory's end.
     """
 
     status: OutcomeStatus
@@ -77,6 +80,7 @@ class PlanOutcome:
     profile: SpeedProfile | None = None
     plan: Any = None
     reason: str = ""
+    arrival_s: float | None = None
 
 
 class PlanJobs(Protocol):
@@ -148,7 +152,16 @@ class BackupComputer:
             log.exception("backup plan for frame %d raised", req.key)
             return PlanOutcome("error", compute_s=self.timer() - t0, reason=f"{type(exc).__name__}: {exc}")
         dt = self.timer() - t0
-        return PlanOutcome("ok", compute_s=dt, traj=traj, profile=prof, plan=res.plan, reason=str(res.reason))
+        arrival = getattr(res, "arrival_s", None)
+        return PlanOutcome(
+            "ok",
+            compute_s=dt,
+            traj=traj,
+            profile=prof,
+            plan=res.plan,
+            reason=str(res.reason),
+            arrival_s=None if arrival is None else float(arrival),
+        )
 
     def judge(
         self, out: PlanOutcome, compute_s: float | None, *, deadline_s: float | None = None
@@ -160,7 +173,7 @@ class BackupComputer:
         limit = self.deadline_s if deadline_s is None else float(deadline_s)
         if out.status in ("ok", "failed") and (c > limit or out.reason == "deadline"):
             return PlanOutcome("deadline_miss", compute_s=c, reason=f"{c * 1e3:.1f} ms > D ({out.reason})")
-        return PlanOutcome(out.status, c, out.traj, out.profile, out.plan, out.reason)
+        return dataclasses.replace(out, compute_s=c)
 
 
 class InlinePlanJobs:

@@ -206,6 +206,7 @@ class _Active:
     complete: bool
     goal: Goal | None
     checked_seq: int
+    arrival_s: float | None = None  # the planner's predicted arrival (runtime clock); None: traj.t_end
 
     def under_way(self, tau: float) -> bool:
         """A plan (not a hold) with path left after path time ``tau``."""
@@ -940,7 +941,7 @@ class Supervisor:
         assert out.traj is not None and out.profile is not None
         tau_new = out.traj.t_start + max(self._tau - pend.tau_branch, 0.0)
         pid = self._new_plan_id()
-        self._active = _Active(out.traj, out.profile, pid, "plan", True, self._goal, self._seq)
+        self._active = _Active(out.traj, out.profile, pid, "plan", True, self._goal, self._seq, out.arrival_s)
         self._tau = tau_new
         self._generation += 1
         if pend.reason == "online_replan":
@@ -968,9 +969,8 @@ class Supervisor:
     def _arrive(self, t: float) -> None:
         active = self._active
         # the plan's predicted arrival against the executed one (its timing is on the runtime clock)
-        self.counters.arrivals.append(
-            (float(active.traj.t_end - active.traj.t_start), float(t - active.traj.t_end))
-        )
+        predicted = active.traj.t_end if active.arrival_s is None else active.arrival_s
+        self.counters.arrivals.append((float(predicted - active.traj.t_start), float(t - predicted)))
         q_goal = np.asarray(active.traj.q(active.traj.t_end)).reshape(6)
         self._arrived = active.goal
         self._goal = None

@@ -104,7 +104,7 @@ import numpy as np
 
 from app.planning import _kernels
 from app.planning.roadmap import NUM_BRANCHES, Roadmap
-from app.planning.ssm_timing import ssm_retime
+from app.planning.ssm_timing import PredictedTiming
 from app.planning.trajectory import Plan, Trajectory, TrajectoryError, fit_knots
 from app.prediction.skeleton import NUM_JOINTS
 from app.safety.governor import GovernorModel
@@ -269,6 +269,8 @@ class PlanResult:
         expanded: States expanded by the search(es).
         compute_s: Wall time of the query (s).
         trajectory: The verified trajectory (the same as ``Trajectory.from_plan(plan)``) or None.
+        arrival_s: When the robot is predicted to arrive (s, runtime clock): with ``Planner.plan(timing=...)``
+            under the speed governor (the timing the plan was verified at), else the trajectory's end.
     """
 
     ok: bool
@@ -277,6 +279,7 @@ class PlanResult:
     expanded: int
     compute_s: float
     trajectory: Trajectory | None = None
+    arrival_s: float | None = None
 
 
 def _profile_samples(
@@ -1159,9 +1162,10 @@ class Planner:
             workers: States expanded per search step (1 = sequential A*; N > 1 = batched parallel A*).
             deadline_s: Compute-time budget (s); the query fails with reason ``"deadline"`` past it.
             qd0: Joint velocity (6,) at ``t_start`` (rad/s) of the motion being executed (default: at rest).
-            timing: The speed governor's model: when given (with a forecast), the path found is timed with
-                the scale the governor is predicted to allow along it (:mod:`app.planning.ssm_timing`)
-                and verified at that timing; the plan at full speed is the fallback.
+            timing: The speed governor's model: when given (with a forecast), the path found is verified
+                at the timing the governor is predicted to give it (:mod:`app.planning.ssm_timing`: the
+                person where they will be when the robot really gets there), and ``arrival_s`` is that
+                timing's arrival; the plan keeps its full-speed timing for the robot to execute.
 
         Returns:
             A :class:`PlanResult`; ``ok`` only with a trajectory verified against ``forecast``.
@@ -1222,7 +1226,7 @@ class Planner:
             if done is None:
                 done = self._finish(waypoints, qd0, forecast, hold_s=cfg.goal_hold_s, timing=timing)
             if done is not None:
-                return PlanResult(True, done[0], "ok", expanded, self._timer() - t0, done[1])
+                return PlanResult(True, done[0], "ok", expanded, self._timer() - t0, done[1], done[2])
             reason = "trajectory failed verification against the forecast"
             if deadline is not None and self._timer() > deadline:
                 reason = "deadline"
@@ -1298,7 +1302,7 @@ class Planner:
         if waypoints is not None:
             done = self._finish(waypoints, qd0, held, hold_s=hold_s, floor_m=floor)
             if done is not None:
-                return PlanResult(True, done[0], "ok", expanded, self._timer() - t0, done[1])
+                return PlanResult(True, done[0], "ok", expanded, self._timer() - t0, done[1], done[2])
             reason = "trajectory failed verification"
         return PlanResult(False, None, reason, expanded, self._timer() - t0)
 
@@ -1506,28 +1510,32 @@ class Planner:
         hold_s: float,
         floor_m: float | None = None,
         timing: GovernorModel | None = None,
-    ) -> tuple[Plan, Trajectory] | None:
+    ) -> tuple[Plan, Trajectory, float] | None:
+        """The search's waypoints as a verified trajectory: the fitted spline, else straight moves that stop
+        at each waypoint, else the spline slower; with the predicted arrival (s, runtime clock).
+
+        With ``timing`` (and a forecast) each candidate is verified at the timing the governor is predicted
+        to give it (:class:`app.planning.ssm_timing.PredictedTiming`), and the arrival is the predicted
+        one; without, at its own timing."""
+
+        def check(traj: Trajectory) -> tuple[float | None, float]:
+            view: Any = traj
+            if timing is not None and forecast is not None:
+                view = PredictedTiming.of(traj, forecast, self.collision, timing)
+            end = view.t_end + hold_s
+            return self._verify(view, forecast, view.t_start, end, floor_m=floor_m), view.t_end
+
         traj = self._fit(waypoints, qd0)
         if traj is None:
             return None
-        if timing is not None and forecast is not None:
-            # SSM-aware timing: the same path at the speed the governor will allow along it
-            slow = ssm_retime(traj, _map_nodes(waypoints, traj), forecast, self.collision, timing)
-            retimed = None if slow is None else self._fit(slow, qd0)
-            if retimed is not None:
-                end = retimed.t_end + hold_s
-                if self._verify(retimed, forecast, retimed.t_start, end, floor_m=floor_m) is None:
-                    return retimed.to_plan(_map_nodes(slow, retimed)), retimed
-        viol = self._verify(traj, forecast, traj.t_start, traj.t_end + hold_s, floor_m=floor_m)
+        viol, arrival = check(traj)
         if viol is not None and (qd0 is None or not np.any(np.asarray(qd0) != 0.0)):
             # the spline cuts a corner: stopping at every waypoint keeps the robot on the straight moves
             # the search checked (slower, so it is verified again)
             logger.debug("fitted trajectory violates at t=%.3f; trying straight moves", viol)
             straight = self._fit_stops(waypoints)
             if straight is not None:
-                viol = self._verify(
-                    straight, forecast, straight.t_start, straight.t_end + hold_s, floor_m=floor_m
-                )
+                viol, arrival = check(straight)
                 if viol is None:
                     traj = straight
         if viol is not None:
@@ -1540,12 +1548,12 @@ class Planner:
                 retimed = self._fit(slower, qd0)
                 if retimed is None:
                     continue
-                end = retimed.t_end + hold_s
-                if self._verify(retimed, forecast, retimed.t_start, end, floor_m=floor_m) is None:
-                    return retimed.to_plan(_map_nodes(slower, retimed)), retimed
+                viol_r, arrival_r = check(retimed)
+                if viol_r is None:
+                    return retimed.to_plan(_map_nodes(slower, retimed)), retimed, arrival_r
             logger.debug("fitted trajectory violates at t=%.3f (%.3f..%.3f)", viol, traj.t_start, traj.t_end)
             return None
-        return traj.to_plan(_map_nodes(waypoints, traj)), traj
+        return traj.to_plan(_map_nodes(waypoints, traj)), traj, arrival
 
     def _fit_stops(self, plan: Plan) -> Trajectory | None:
         """A trajectory at rest at every waypoint: each segment a straight joint move with zero end

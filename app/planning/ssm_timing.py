@@ -3,12 +3,13 @@
 The search times its moves at the robot's full joint speeds, but near a person the ISO/TS 15066 speed
 governor (:mod:`app.safety.governor`) slows the robot down, often to a small fraction of that. A plan timed at
 full speed says it arrives long before it does, and it is checked against the forecast person at instants
-when the robot will not be there. :func:`ssm_retime` walks along a fitted path, asks the forecast where the
-person will be when the robot gets to each point, predicts the governor's scale there
+when the robot will not be there. :func:`predicted_scales` walks along a fitted path, asks the forecast where
+the person will be when the robot gets to each point, and predicts the governor's scale there
 (:meth:`app.safety.governor.GovernorModel.scale`, the same separation model, brake and worst-case person as
-the governor itself) and stretches the path's knot times by it. The planner fits and verifies the stretched
-plan against the forecast like any other (:meth:`app.planning.search.Planner.plan` with ``timing``); the robot
-then runs it at a scale near 1, and the governor only corrects where the person deviates from the forecast.
+the governor itself). The planner verifies the path at that timing (:class:`PredictedTiming`) against
+the forecast (:meth:`app.planning.search.Planner.plan` with ``timing``) and reports the predicted arrival;
+the robot executes the path at its full-speed timing under the governor, so it can still go faster than
+predicted where the person turns out farther away.
 """
 
 from __future__ import annotations
@@ -18,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from app.planning.trajectory import Plan, Trajectory
+from app.planning.trajectory import Trajectory
 from app.safety.governor import GovernorModel, directed_approach
 
-__all__ = ["part_speeds", "predicted_scales", "ssm_retime"]
+__all__ = ["PredictedTiming", "part_speeds", "predicted_scales"]
 
 #: Spacing (s of path time at full speed) of the points at which the governor's scale is predicted.
 STEP_S = 0.04
@@ -80,24 +81,58 @@ def predicted_scales(
     return tau, t, scales
 
 
-def ssm_retime(
-    traj: Trajectory,
-    nodes: np.ndarray,
-    forecast: Any,
-    collision: Any,
-    model: GovernorModel,
-    *,
-    step_s: float = STEP_S,
-) -> Plan | None:
-    """The knots of ``traj`` (with roadmap ``nodes``, one per knot) at the times the robot will reach them
-    under the governor's predicted scale (:func:`predicted_scales`); None when nothing changes (the
-    governor is predicted to allow full speed all the way). Fit and verify the result like any plan."""
-    tau, t, scales = predicted_scales(traj, forecast, collision, model, step_s=step_s)
-    if np.all(scales >= 1.0 - 1e-9):
-        return None
-    knots = traj.knot_times
-    times = np.interp(knots, tau, t)
-    times = np.maximum.accumulate(times)
-    if np.any(np.diff(times) <= 0):
-        return None
-    return Plan(times=times, q=traj.knot_q, nodes=np.asarray(nodes, dtype=np.int64))
+class PredictedTiming:
+    """A trajectory as the robot will run it under the governor: at wall time ``t`` the robot is at path time
+    ``tau(t)`` of ``traj``, from :func:`predicted_scales`.
+
+    The planner verifies a plan through it against the forecast person (where they will be when the robot
+    really gets to each point), while the robot executes ``traj`` itself: the governor may then run it faster
+    than predicted where the person turns out farther away, up to the path's full speed. It offers what the
+    planner's check reads of a trajectory (``q``, ``t_start``, ``t_end``, ``sample``) and names the
+    trajectory it warps (``base_trajectory``, ``path_times``), so the compiled check evaluates ``traj``'s
+    knots at the warped times.
+    """
+
+    def __init__(self, traj: Trajectory, tau: np.ndarray, t: np.ndarray) -> None:
+        if tau.shape != t.shape or tau.ndim != 1 or tau.size < 2 or np.any(np.diff(t) <= 0):
+            raise ValueError("PredictedTiming needs increasing wall times, one per path time")
+        self.traj = traj
+        self._tau = np.asarray(tau, dtype=np.float64)
+        self._t = np.asarray(t, dtype=np.float64)
+
+    @classmethod
+    def of(
+        cls, traj: Trajectory, forecast: Any, collision: Any, model: GovernorModel, *, step_s: float = STEP_S
+    ) -> PredictedTiming:
+        tau, t, _ = predicted_scales(traj, forecast, collision, model, step_s=step_s)
+        return cls(traj, tau, t)
+
+    @property
+    def base_trajectory(self) -> Trajectory:
+        return self.traj
+
+    def path_times(self, t: Any) -> np.ndarray:
+        """Path times of ``traj`` at wall times ``t`` (held at the ends)."""
+        return np.interp(np.asarray(t, dtype=np.float64), self._t, self._tau)
+
+    @property
+    def t_start(self) -> float:
+        return float(self._t[0])
+
+    @property
+    def t_end(self) -> float:
+        return float(self._t[-1])
+
+    @property
+    def duration(self) -> float:
+        return self.t_end - self.t_start
+
+    def q(self, t: Any) -> np.ndarray:
+        return self.traj.q(self.path_times(t))
+
+    def sample(self, dt_s: float, *, t_from: float | None = None, t_to: float | None = None) -> np.ndarray:
+        a = self.t_start if t_from is None else float(t_from)
+        b = self.t_end if t_to is None else float(t_to)
+        if b <= a:
+            return np.array([a])
+        return np.linspace(a, b, math.ceil((b - a) / dt_s) + 1)

@@ -1,9 +1,11 @@
-"""SSM-aware timing: a plan timed with the speed scale the governor will allow along it.
+"""SSM-aware timing: a plan verified at the timing the speed governor will give it.
 
 The governor's model (:class:`app.safety.governor.GovernorModel`) predicts the supervisor's scale from a
-forecast; :func:`app.planning.ssm_timing.ssm_retime` stretches a path by it, and the search
-(``PlannerConfig.ssm_aware_search``) asks of a fast move the clearance that the governor needs to let it run
-fast. The UR5e tests use the real collision model; the search tests the point robot of ``test_search``.
+forecast; :func:`app.planning.ssm_timing.predicted_scales` walks a path at it, the planner verifies the path
+at that timing (:class:`app.planning.ssm_timing.PredictedTiming`) and reports the predicted arrival, and the
+search (``PlannerConfig.ssm_aware_search``) asks of a fast move the clearance that the governor needs to let
+it run fast. The UR5e tests use the real collision model; the search tests the point robot of
+``test_search``.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import pytest
 from app.config import load_workcell
 from app.planning.collision import CollisionModel
 from app.planning.search import Planner
-from app.planning.ssm_timing import predicted_scales, ssm_retime
+from app.planning.ssm_timing import PredictedTiming, predicted_scales
 from app.planning.trajectory import Trajectory
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
@@ -70,24 +72,31 @@ def test_nobody_near_leaves_the_plan_at_full_speed(ur5e: CollisionModel) -> None
     _, t, scales = predicted_scales(traj, fc, ur5e, governor())
     assert np.all(scales == 1.0)
     assert t[-1] == pytest.approx(traj.t_end)
-    assert ssm_retime(traj, np.full(5, -1), fc, ur5e, governor()) is None
+    view = PredictedTiming.of(traj, fc, ur5e, governor())
+    assert view.t_end == pytest.approx(traj.t_end)
+    ts = np.linspace(0.0, 1.0, 11)
+    assert np.allclose(view.q(ts), traj.q(ts))
 
 
-def test_a_person_beside_the_path_stretches_it_and_the_governor_then_keeps_the_new_timing(
+def test_a_person_beside_the_path_slows_the_predicted_timing_along_the_same_path(
     ur5e: CollisionModel,
 ) -> None:
     traj = _base_turn(1.0)
     model = governor()
     fc = _standing(np.array([0.9, -0.3, 0.2]))  # in front of the arm, beside the turn
-    slow = ssm_retime(traj, np.full(5, -1), fc, ur5e, model)
-    assert slow is not None
-    assert slow.duration > 1.5 * traj.duration  # the governor would slow this turn a lot
-    # the same path at the new timing: the governor (predicted by the same model) lets it run, give or take
-    # the scale grid's 2.5 % steps and the look-ahead's coarser view of a faster/slower neighbourhood
-    retimed = Trajectory(slow.times, slow.q, traj.knot_qd * (traj.duration / slow.duration))
-    _, _, again = predicted_scales(retimed, fc, ur5e, model)
-    assert np.median(again) >= 0.9
-    # a floor: where no speed at all is safe the plan is timed at the smallest scale, never forever
+    tau, t, scales = predicted_scales(traj, fc, ur5e, model)
+    assert t[-1] - t[0] > 1.5 * traj.duration  # the governor would slow this turn a lot
+    assert np.all(np.diff(t) >= np.diff(tau) - 1e-12)  # never faster than the path's own timing
+    view = PredictedTiming.of(traj, fc, ur5e, model)
+    assert view.t_end == pytest.approx(t[-1])
+    # the same path: at the predicted wall time of each point the view is where the trajectory is at its
+    # own time
+    assert np.allclose(view.q(t), traj.q(tau), atol=1e-9)
+    assert view.base_trajectory is traj and np.allclose(view.path_times(t), tau)
+    # slowest where the person is nearest
+    sep = np.array([ur5e.pair_distances(q, fc.joints[:1])[0].min() for q in traj.q(tau[:-1])])
+    assert scales[np.argmin(sep)] <= np.median(scales)
+    # a floor: where no speed at all is safe the path is timed at the smallest scale, never forever
     _, _, none_safe = predicted_scales(traj, _standing(np.array([0.3, -0.2, 0.4])), ur5e, model)
     assert none_safe.min() == model.min_scale
 
@@ -144,9 +153,13 @@ def test_the_search_goes_round_a_person_where_creeping_past_would_arrive_later()
     assert a.ok and b.ok, (a.reason, b.reason)
     assert [n for n in a.plan.nodes.tolist() if n >= 0] == [0, 1, 2]
     assert [n for n in b.plan.nodes.tolist() if n >= 0] == [0, 3, 4, 2]
-    # both plans carry the timing the governor will allow: the long way arrives first
-    assert b.plan.t_end < a.plan.t_end
-    # and at that timing the governor would not slow either of them much further
+    # both report the arrival the governor will allow: the long way arrives first, though its own timing
+    # (at full speed) is longer
+    assert b.arrival_s < a.arrival_s
+    assert b.trajectory.t_end > a.trajectory.t_end
     for res in (a, b):
-        _, _, again = predicted_scales(res.trajectory, fc, robot, model)
-        assert np.median(again) >= 0.9
+        _, t, _ = predicted_scales(res.trajectory, fc, robot, model)
+        assert res.arrival_s == pytest.approx(t[-1])
+    # without the governor's model the arrival is the trajectory's own end
+    c = plain.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc)
+    assert c.arrival_s == pytest.approx(c.trajectory.t_end)
