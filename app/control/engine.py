@@ -403,7 +403,7 @@ class EngineOptions:
             for the speed governor, which slows a robot that passes close to a person.
         human_accel_mps2, human_speed_max_mps: The person's worst case for the speed governor (see
             :class:`~app.safety.governor.SeparationModel`): how fast their speed may change between
-            frames and during a brake, and their fastest approach.
+            frames and during a brake, and their fastest approach (None: ``Settings.human_speed_max_mps``).
         pick_dwell_s, place_dwell_s: Gripper times (s).
     """
 
@@ -413,7 +413,7 @@ class EngineOptions:
     record_frames: bool = True
     tracking_margin_m: float = 0.02
     human_accel_mps2: float = 8.0
-    human_speed_max_mps: float = 2.0
+    human_speed_max_mps: float | None = None
     plan_margin_m: float = 0.0
     pick_dwell_s: float = 0.4
     place_dwell_s: float = 0.4
@@ -494,7 +494,11 @@ class TrialEngine:
         ssm = dataclasses.replace(stack.ssm, t_reaction_s=self.reaction_time_s)
         self.separation = separation or SeparationModel.from_ssm(
             ssm,
-            human_speed_max_mps=self.options.human_speed_max_mps,
+            human_speed_max_mps=(
+                settings.human_speed_max_mps
+                if self.options.human_speed_max_mps is None
+                else self.options.human_speed_max_mps
+            ),
             human_accel_mps2=self.options.human_accel_mps2,
             stop_decel_mps2=UR5E_STOP.decel_mps2,
         )
