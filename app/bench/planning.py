@@ -201,6 +201,23 @@ def count_violations(traj: Any, forecast: Any, model: Any, ssm: Any, *, hold_s: 
     return int(np.any(d < forecast_clearance(v, margins, ssm) - 1e-9))
 
 
+def _governor_model(ssm: Any) -> Any:
+    """The speed governor of a trial under the default settings, as the planner predicts it (the runtime's
+    SSM-aware timing, ``HRC_SSM_TIMING``)."""
+    from app.config import Settings
+    from app.control.engine import EngineOptions, governor_model, supervisor_config
+
+    settings, options = Settings(), EngineOptions()
+    return governor_model(settings, ssm, supervisor_config(settings, "proactive", options), options)
+
+
+def _as_executed(res: Any, forecast: Any, model: Any, timing: Any) -> Any:
+    """The trajectory of a plan at the timing it was verified at (the governor's predicted one)."""
+    from app.planning.ssm_timing import PredictedTiming
+
+    return PredictedTiming.of(res.trajectory, forecast, model, timing)
+
+
 def _timed(fn: Callable[[], Any]) -> tuple[Any, float, float]:
     """``fn()``'s result and the wall-clock and thread CPU time (s) of that one call."""
     c0 = time.thread_time()
@@ -253,12 +270,13 @@ def _warm_goals(planner: Any, queries: Sequence[Any]) -> None:
             planner.plan(q_start=qr.q_start, t_start=qr.t_start, goal=qr.goal, forecast=None)
 
 
-def _calls(planner: Any, qr: Any) -> dict[str, Callable[[], Any]]:
-    """The timed call of every configuration on one query."""
+def _calls(planner: Any, qr: Any, timing: Any = None) -> dict[str, Callable[[], Any]]:
+    """The timed call of every configuration on one query (the time-variant ones with the governor's model
+    ``timing``: the SSM-aware timing of the runtime)."""
     common = {"q_start": qr.q_start, "t_start": qr.t_start, "goal": qr.goal, "deadline_s": DEADLINE_S}
     return {
-        "plan": lambda: planner.plan(**common, forecast=qr.forecast, workers=1),
-        "parallel_plan": lambda: planner.plan(**common, forecast=qr.forecast, workers=WORKERS),
+        "plan": lambda: planner.plan(**common, forecast=qr.forecast, workers=1, timing=timing),
+        "parallel_plan": lambda: planner.plan(**common, forecast=qr.forecast, workers=WORKERS, timing=timing),
         "static": lambda: planner.plan(**common, forecast=None, workers=1),
         "parallel_static": lambda: planner.plan(**common, forecast=None, workers=WORKERS),
         "emergency": lambda: planner.emergency(
@@ -275,7 +293,8 @@ def _threads(planner: Any, queries: Sequence[Any]) -> dict[str, Any]:
     from concurrent.futures import ThreadPoolExecutor
 
     n_threads = max(os.cpu_count() or 1, 2)
-    calls = [_calls(planner, qr)["parallel_plan"] for qr in queries]
+    timing = _governor_model(planner.config.ssm)
+    calls = [_calls(planner, qr, timing)["parallel_plan"] for qr in queries]
     t0 = time.perf_counter()
     for call in calls:
         call()
@@ -308,11 +327,12 @@ def _scaling(
             nodes[name] = None
             continue
         planner = Planner(got[0], model)
+        timing = _governor_model(planner.config.ssm)
         sub = queries[: (6 if quick else 20)]
         _warm_goals(planner, sub)
         runs = []
         for qr in sub:
-            res, w, c = _timed(_calls(planner, qr)["parallel_plan"])
+            res, w, c = _timed(_calls(planner, qr, timing)["parallel_plan"])
             runs.append(Run(w, c, bool(res.ok), res.reason, res.expanded))
         scaling[name] = successful_ms(runs)
         nodes[name] = got[0].num_nodes
@@ -340,6 +360,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
     )
     generous_deadline_s = 5.0 if quick else GENEROUS_DEADLINE_S
     ssm = planner.config.ssm
+    timing = _governor_model(ssm)
     n_syn = 12 if quick else 60
     queries = reference_queries(cell, rm, n=n_syn, seed=7)
     if not quick and (CMU_DIR / "index.json").is_file():
@@ -354,7 +375,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
     violations = 0
     checked = 0
     for i, qr in enumerate(queries):
-        calls = _calls(planner, qr)
+        calls = _calls(planner, qr, timing)
         order = CONFIGS[i % len(CONFIGS) :] + CONFIGS[: i % len(CONFIGS)]
         results: dict[str, Any] = {}
         for name in order:
@@ -363,8 +384,9 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
             runs[name].append(Run(w, c, bool(res.ok), res.reason, res.expanded))
         for name in ("plan", "parallel_plan"):
             if results[name].ok:
+                executed = _as_executed(results[name], qr.forecast, model, timing)
                 violations += count_violations(
-                    results[name].trajectory, qr.forecast, model, ssm, hold_s=planner.config.goal_hold_s
+                    executed, qr.forecast, model, ssm, hold_s=planner.config.goal_hold_s
                 )
                 checked += 1
         if results["plan"].ok or results["parallel_plan"].ok:
@@ -377,12 +399,17 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                 forecast=qr.forecast,
                 workers=1,
                 deadline_s=generous_deadline_s,
+                timing=timing,
             )
             undecided = reason_key(res.reason) == "deadline" or res.reason.startswith("no plan within")
             generous.append(True if res.ok else (None if undecided else False))
             if res.ok:
                 violations += count_violations(
-                    res.trajectory, qr.forecast, model, ssm, hold_s=planner.config.goal_hold_s
+                    _as_executed(res, qr.forecast, model, timing),
+                    qr.forecast,
+                    model,
+                    ssm,
+                    hold_s=planner.config.goal_hold_s,
                 )
                 checked += 1
         em = results["emergency"]
@@ -433,6 +460,8 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
         "parallel_kind": PARALLEL_KIND,
         "threads": threads,
         "timing": "each query timed once per configuration, configurations interleaved per query",
+        "ssm_timing": "on: the time-variant searches verify each plan at the timing the speed governor is "
+        "predicted to give it (the runtime's default), and the 100 Hz check checks it at that timing",
         "workers": WORKERS,
         "deadline_s": DEADLINE_S,
         "generous": {"workers": 1, "max_expansions": GENEROUS_EXPANSIONS, "deadline_s": generous_deadline_s},

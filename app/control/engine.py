@@ -422,6 +422,57 @@ class EngineOptions:
 EventListener = Callable[[TrialEvent], None]
 
 
+def supervisor_config(settings: Settings, method: Method, options: EngineOptions) -> SupervisorConfig:
+    """The supervisor's configuration for a trial of ``method`` under ``settings``."""
+    return SupervisorConfig(
+        method=method,
+        deadline_s=settings.deadline_s,
+        frame_period_s=settings.frame_period_s,
+        planner_workers=settings.planner_workers,
+        tracking_margin_m=options.tracking_margin_m,
+    )
+
+
+def governor_model(
+    settings: Settings,
+    ssm: Any,
+    config: SupervisorConfig,
+    options: EngineOptions,
+    *,
+    separation: SeparationModel | None = None,
+) -> GovernorModel:
+    """The speed governor of a trial, as the planner predicts it (:class:`GovernorModel`): its separation
+    model (``T_r`` of these settings, the one stopping model, the person's worst case), brake and
+    speed-scaling law, and what it measures (the frame as old as it gets before the next one arrives, the
+    directed speed that the tracker's noise gives a still person). ``ssm``: the planner's
+    :class:`app.safety.ssm.SSMParams`; ``separation`` replaces the separation model (tests)."""
+    ssm = dataclasses.replace(ssm, t_reaction_s=settings.reaction_time_s(options.servo_period_s))
+    if separation is None:
+        v_max = (
+            settings.human_speed_max_mps
+            if options.human_speed_max_mps is None
+            else options.human_speed_max_mps
+        )
+        separation = SeparationModel.from_ssm(
+            ssm,
+            human_speed_max_mps=v_max,
+            human_accel_mps2=options.human_accel_mps2,
+            stop_decel_mps2=UR5E_STOP.decel_mps2,
+        )
+    return GovernorModel(
+        separation=separation,
+        brake_decel_mps2=config.brake_decel_mps2,
+        brake_joint_decel=config.brake_joint_decel,
+        tracking_margin_m=config.tracking_margin_m,
+        speed_window_s=config.human_speed_window_s,
+        sensing_age_s=settings.tracker_latency_s + settings.frame_period_s + settings.processing_time_s,
+        near_band_m=config.near_band_m,
+        speed_noise_mps=SPEED_NOISE_GAIN * settings.tracker_noise_m / config.human_speed_window_s,
+        lookahead_s=config.profile_window_s,
+        law=SpeedScaleLaw(ssm),
+    )
+
+
 class TrialEngine:
     """One trial of the cell: see the module docstring.
 
@@ -481,43 +532,17 @@ class TrialEngine:
         self.options = options or EngineOptions()
         self.on_event = on_event
         self.events: list[TrialEvent] = []
-        self.config = SupervisorConfig(
-            method=method,
-            deadline_s=settings.deadline_s,
-            frame_period_s=settings.frame_period_s,
-            planner_workers=settings.planner_workers,
-            tracking_margin_m=self.options.tracking_margin_m,
-        )
+        self.config = supervisor_config(settings, method, self.options)
         # T_r of this system (tracker latency, frame, processing, controller cycle) and the one stopping
-        # model: the governor and the monitor use the same figures
+        # model: the governor and the monitor use the same figures; and what the governor will do, for the
+        # SSM-aware timing of plans (the same separation model and law as the supervisor's)
         self.reaction_time_s = settings.reaction_time_s(self.options.servo_period_s)
-        ssm = dataclasses.replace(stack.ssm, t_reaction_s=self.reaction_time_s)
-        self.separation = separation or SeparationModel.from_ssm(
-            ssm,
-            human_speed_max_mps=(
-                settings.human_speed_max_mps
-                if self.options.human_speed_max_mps is None
-                else self.options.human_speed_max_mps
-            ),
-            human_accel_mps2=self.options.human_accel_mps2,
-            stop_decel_mps2=UR5E_STOP.decel_mps2,
+        self.governor_model = governor_model(
+            settings, stack.ssm, self.config, self.options, separation=separation
         )
-        # what the governor will do, for SSM-aware timing of plans: its separation model, brake, law and
-        # measurement, the frame as old as it gets before the next one arrives
-        cfg = self.config
-        law = SpeedScaleLaw(ssm)
-        self.governor_model = GovernorModel(
-            separation=self.separation,
-            brake_decel_mps2=cfg.brake_decel_mps2,
-            brake_joint_decel=cfg.brake_joint_decel,
-            tracking_margin_m=cfg.tracking_margin_m,
-            speed_window_s=cfg.human_speed_window_s,
-            sensing_age_s=settings.tracker_latency_s + settings.frame_period_s + settings.processing_time_s,
-            near_band_m=cfg.near_band_m,
-            speed_noise_mps=SPEED_NOISE_GAIN * settings.tracker_noise_m / cfg.human_speed_window_s,
-            lookahead_s=cfg.profile_window_s,
-            law=law,
-        )
+        self.separation = self.governor_model.separation
+        law = self.governor_model.law
+        ssm = law.params  # the planner's SSM parameters with this system's T_r
         computer = BackupComputer(
             stack.planner,
             stack.make_trajectory,
