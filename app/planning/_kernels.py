@@ -678,7 +678,7 @@ def sample_separation_ok(
     ib: np.ndarray,
     rh: np.ndarray,
 ) -> tuple[np.ndarray, int]:
-    """The planner's sample check (:meth:`app.planning.search._Separation.check`) in one pass.
+    """The planner's sample check (:meth:`app.planning.search.separation._Separation.check`) in one pass.
 
     Sample ``s`` (configuration ``q[s]`` (6,)) passes when for every time offset ``o`` its surface distance
     to the forecast pose at ``t[o, s]`` is at least ``req[o, s]`` (m). Broad phase (``use_spheres``): a
@@ -765,7 +765,8 @@ def _window_box(
 ) -> None:
     """The box (``lo`` (3,), ``hi`` (4,): upper corner and the largest margin) that contains the person over
     ``[t0, t1]``, from the sparse table of unions ``lo_tab`` (K, H, 3) / ``hi_tab`` (K, H, 4) (level k holds
-    the unions over the index ranges [i, i + 2^k)); :meth:`app.planning.search._Separation._boxes`."""
+    the unions over the index ranges [i, i + 2^k));
+    :meth:`app.planning.search.separation._Separation._boxes`."""
     H = times.shape[0]
     i0 = min(max(_pose_index(times, t0) - 1, 0), H - 1)
     i1 = max(min(_searchsorted_left(times, t1), H - 1), i0)
@@ -807,7 +808,8 @@ def _interp(x: float, xp: np.ndarray, fp: np.ndarray) -> float:
 
 @_jit
 def _margin_at(t: float, times: np.ndarray, margins: np.ndarray, growth: float, cap: float) -> float:
-    """The forecast's margin (m) at time ``t`` (:meth:`app.planning.search._Separation._margins`)."""
+    """The forecast's margin (m) at time ``t``
+    (:meth:`app.planning.search.separation._Separation._margins`)."""
     m = _interp(t, times, margins)
     if growth > 0.0:
         m = min(m + growth * max(t - times[times.shape[0] - 1], 0.0), cap)
@@ -835,8 +837,8 @@ def _required(v: float, margin: float, prm: np.ndarray) -> float:
 def _profile_sample(
     s: float, s_prev: float, u0: float, L: float, dur: float, f: float, A: float, end_rest: bool
 ) -> tuple[float, float]:
-    """One sample of :func:`app.planning.search._profile_samples`: path fraction at profile time ``s`` and
-    the largest path speed over ``[s_prev, s]``."""
+    """One sample of :func:`app.planning.search.profiles._profile_samples`: path fraction at profile time
+    ``s`` and the largest path speed over ``[s_prev, s]``."""
     t1 = (f - u0) / A
     if s <= t1:
         pos = (u0 + 0.5 * A * s) * s
@@ -914,8 +916,8 @@ def moves_separation_ok(
     """The planner's move check (:meth:`app.planning.search.Planner._moves_ok`) in one pass.
 
     Move ``k`` runs straight in joint space from ``q_a[k]`` to ``target[k]`` (6,), departing at ``t_dep[k]``
-    and lasting ``h[k]`` s; its path-speed profile (:func:`app.planning.search._profile_samples`) has entry
-    speed ``u0``, path length ``Lp``, cruise speed ``f`` and ends at rest where ``end_rest``; where
+    and lasting ``h[k]`` s; its path-speed profile (:func:`app.planning.search.profiles._profile_samples`) has
+    entry speed ``u0``, path length ``Lp``, cruise speed ``f`` and ends at rest where ``end_rest``; where
     ``hold[k]`` the robot must then stand at the target for ``hold_s``. Robot geometry at the start: capsule
     end points ``pts_a`` (M, P, 3) and bounding spheres ``cen_a`` (M, L, 3) / ``rad_a`` (M, L); at the target:
     row ``rows[k]`` of the tables ``pts_tab``/``cen_tab``/``rad_tab``. ``lever`` (6,) bounds how far a
@@ -1242,8 +1244,8 @@ def trajectory_first_violation(
 
 
 # ------------------------------------------------------------------------------------ search bookkeeping
-# The search's state records (:class:`app.planning.search._Run`) as the kernels see them: one row per field
-# of three packed arrays (float, int, bool) and one column per state.
+# The search's state records (:class:`app.planning.search.run._Run`) as the kernels see them: one row per
+# field of three packed arrays (float, int, bool) and one column per state.
 REC_T, REC_U, REC_U0, REC_DEP, REC_FC, REC_L, REC_H, REC_PEAK, REC_WAIT_OK = range(9)
 REC_NODE, REC_BRANCH, REC_PARENT, REC_ROW, REC_SPEC_CHILD = range(5)
 REC_END, REC_SAME, REC_ACCEPTED, REC_QSET = range(4)
@@ -1252,8 +1254,8 @@ _EPS_T = 1e-9
 
 @_jit
 def _profile3(u0: float, L: float, f: float, A: float, end_rest: bool) -> tuple[float, float, float]:
-    """Duration, exit and peak path speed of one move (:func:`app.planning.search._profile_arrays`, the same
-    formulas in the same order)."""
+    """Duration, exit and peak path speed of one move (:func:`app.planning.search.profiles._profile_arrays`,
+    the same formulas in the same order)."""
     u0sq = u0 * u0
     two_al = 2.0 * A * L
     if not end_rest:
@@ -1292,7 +1294,7 @@ def _record_move(
     n0: int,
 ) -> int:
     """Time one move and record it as state ``n`` if it can improve its node and passes the prune (the
-    per-move body of :meth:`app.planning.search._Run.moves`); returns the next free state."""
+    per-move body of :meth:`app.planning.search.run._Run.moves`); returns the next free state."""
     if not math.isfinite(L):
         return n
     goal = int(ctx[0])
@@ -1359,7 +1361,7 @@ def children_moves(
     alts: np.ndarray,
     n0: int,
 ) -> tuple[int, np.ndarray, np.ndarray]:
-    """:meth:`app.planning.search._Run.children` (then ``moves``): the moves from the states ``sids`` to
+    """:meth:`app.planning.search.run._Run.children` (then ``moves``): the moves from the states ``sids`` to
     all roadmap neighbours (nearest branch, cruise speed ``f``; a speculative chain's move is not made
     twice), recorded from state ``n0`` on in the same order. Returns (next free state, keys, arrival
     times) of the recorded states. ``ctx``: ``goal`` (-2: none), path acceleration, shortest move,
@@ -1413,7 +1415,7 @@ def alternative_moves(
     alts: np.ndarray,
     n0: int,
 ) -> tuple[int, np.ndarray, np.ndarray]:
-    """:meth:`app.planning.search._Run.alternatives` (then ``moves``): for each failed nearest-branch move
+    """:meth:`app.planning.search.run._Run.alternatives` (then ``moves``): for each failed nearest-branch move
     the alternatives ``kinds`` (A, 4) = (kind, option, cruise speed, wait steps), alternative-major as
     there, recorded from state ``n0`` on. Returns as :func:`children_moves`."""
     fl = np.empty(failed.shape[0], dtype=np.int64)
@@ -1485,7 +1487,7 @@ def check_prepare(
     goal: int,
     hold_default: bool,
 ) -> tuple[np.ndarray, ...]:
-    """The per-batch set-up of :meth:`app.planning.search._Run.check` for the states ``batch`` (M,).
+    """The per-batch set-up of :meth:`app.planning.search.run._Run.check` for the states ``batch`` (M,).
 
     Returns ``target`` (M, 6): the state's branch aligned next to its parent's configuration (or its
     precomputed configuration), ``same`` (M,): the roadmap's static edge check covers the move (the record's
@@ -1571,7 +1573,7 @@ def check_prepare(
 def check_store(
     batch: np.ndarray, ok: np.ndarray, target: np.ndarray, q: np.ndarray, status: np.ndarray
 ) -> None:
-    """The end of :meth:`app.planning.search._Run.check`: the configurations of the moves that passed and
+    """The end of :meth:`app.planning.search.run._Run.check`: the configurations of the moves that passed and
     every move's status (1 passed, 2 failed)."""
     for k in range(batch.shape[0]):
         s = batch[k]
@@ -1786,7 +1788,7 @@ def speculate_chain(
     q: np.ndarray,
     n0: int,
 ) -> tuple[int, np.ndarray, np.ndarray]:
-    """:meth:`app.planning.search._Run.speculate`: the lookahead chain of up to ``max_len`` moves from the
+    """:meth:`app.planning.search.run._Run.speculate`: the lookahead chain of up to ``max_len`` moves from the
     unchecked state ``sid`` along ``nxt`` (per node branch, the option row of the static shortest path's
     next move, or -1), recorded from state ``n0`` on (the capacity is the caller's). ``ctx`` as in
     :func:`children_moves`. Returns (next free state, keys, arrival times)."""
@@ -1944,8 +1946,8 @@ def wait_samples(
     prm: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The samples of standing still at each state of ``todo`` for :func:`sample_separation_ok` (as
-    :meth:`app.planning.search._Run._check_waits` builds them): every ``step`` s after its arrival, ``n_w``
-    of them, at rest. Returns ``(q (S, 6), t (n_off, S), req (n_off, S), cen (S, L, 3), rad (S, L), ts
+    :meth:`app.planning.search.run._Run._check_waits` builds them): every ``step`` s after its arrival,
+    ``n_w`` of them, at rest. Returns ``(q (S, 6), t (n_off, S), req (n_off, S), cen (S, L, 3), rad (S, L), ts
     (n, n_w))`` with ``S = n * n_w``; ``req`` is :func:`_required` at speed 0 and the margin at each time."""
     n = todo.shape[0]
     NL = cen_tab.shape[1]

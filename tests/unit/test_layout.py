@@ -66,7 +66,7 @@ PENDING: dict[str, set[str]] = {
         "app.planning.kinematics.from_workcell",
         "app.prediction.predictor._cap_speed_reference",
     },
-    "module_lines": {"app.planning._kernels", "app.planning.search"},
+    "module_lines": {"app.planning._kernels"},
 }
 
 

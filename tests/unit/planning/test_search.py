@@ -388,7 +388,7 @@ def test_a_hand_resting_beside_the_goal_makes_the_robot_creep_in() -> None:
 
 
 def test_profile_samples_bound_the_path_speed_between_samples() -> None:
-    from app.planning.search import _profile_arrays, _profile_samples
+    from app.planning.search.profiles import _profile_arrays, _profile_samples
 
     rng = np.random.default_rng(2)
     A = 2.0

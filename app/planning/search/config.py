@@ -1,0 +1,187 @@
+"""The planner's settings (:class:`PlannerConfig`), its result (:class:`PlanResult`) and what it needs from
+the collision model (:class:`RobotModel`)."""
+
+from __future__ import annotations
+
+import inspect
+import math
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from app.planning.trajectory import Plan, Trajectory
+from app.safety.ssm import SSMParams
+
+_TWO_PI = 2.0 * math.pi
+_EPS_T = 1e-9
+
+
+class RobotModel(Protocol):
+    """What the planner needs from the collision model (:class:`app.planning.collision.CollisionModel`)."""
+
+    def distance_to_human_paired(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray: ...
+
+    def in_static_collision(self, q: np.ndarray, *, margin_m: float = 0.0) -> np.ndarray: ...
+
+    def self_collision(self, q: np.ndarray) -> np.ndarray: ...
+
+    def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def human_capsules(self, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+
+    def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray: ...
+
+
+#: Slower timings of a path tried when its fitted trajectory fails verification (durations x factor).
+_STRETCH_FACTORS = (1.5, 2.5)
+
+
+@dataclass(frozen=True, slots=True)
+class PlannerConfig:
+    """Settings of the time-variant search (see the module docstring for the policy they configure).
+
+    Attributes:
+        ssm: ISO/TS 15066 parameters (``S_r``, ``S_s``, ``C``, ``Z_d``, ``Z_r`` are required around the
+            forecast person; ``S_h`` is replaced by the forecast).
+        speed_fraction: Cruise path speed as a fraction of the joint velocity limits (the largest joint moves
+            at ``speed_fraction * QD_MAX``).
+        accel_fraction: Fraction of the joint acceleration limits the edge timing plans with (the rest is
+            room for the spline fit at corners).
+        min_edge_s: Shortest duration of a move (s).
+        sample_dt_s: Largest time step between checked instants of a move (s); its end is always checked.
+            The search's check is a filter: every returned trajectory is verified every ``verify_dt_s``.
+        corridor_margin_m: Extra clearance (m) that absorbs the spline's deviation from the straight moves.
+        speed_factor: Robot speed for ``S_r + S_s`` = chord speed of the arm's points x this factor (>= 1:
+            the spline's peak speed on a segment exceeds its average, and arcs are longer than chords).
+        wait_step_s, max_wait_s: Waiting at a node (nearest branch only): step and longest wait (s);
+            ``max_wait_s = 0`` disables it.
+        max_branch_tries: How many IK branches of a successor are tried (nearest first).
+        heuristic_weight: ``w`` of the key ``t + w h``: 1 is A* (time-optimal among the checked moves);
+            ``w > 1`` is weighted A* (plans at most ``w`` times longer, usually far fewer expansions).
+        slow_speed_fractions: When every branch is blocked at the cruise speed, the nearest one is tried
+            again at these lower cruise speeds (a slower robot needs less ``S_r + S_s``) before waiting.
+            The slowest (0.08: a creep, about 0.25 rad/s per joint) lets the robot approach a station next
+            to a hand that rests there, the way speed and separation monitoring would slow it at run time.
+        goal_hold_s: After arriving at the goal the robot must be able to stand there this long (s).
+        ssm_aware_search: With the governor's model (``Planner.plan(timing=...)``), a move also needs the
+            separation that the governor needs to let it run at its speed
+            (:meth:`app.safety.governor.GovernorModel.extra_clearance`), beyond that of a creep: near the
+            person the search takes moves slower or goes round, and the arrival times it optimises are
+            those the robot will reach. Off by default: in the shipped cell the drop stations lie inside the
+            governor's creep zone of the working person, the search then finds no plan for long spells,
+            and on the tuning seeds 1000-1003 (120 s) the robot waited 77-97 s per trial for a plan and
+            completed fewer tasks (0.25 and 0 against 0.5 per method).
+        ssm_creep_mps: The part speed (m/s) up to which a move needs no more than today's clearance: the
+            speed at which the governor lets a robot creep past a person at work.
+        ssm_brake_decel_mps2: The deceleration (m/s^2) of a braking robot's fastest point for that table:
+            the governor brakes at 3 rad/s^2 per joint, about 1.5 m/s^2 at the 0.5 m from the moving joints
+            to the fastest point of a typical move of this cell.
+        start_neighbors: Number of roadmap nodes the start configuration is connected to.
+        check_step_rad: Largest joint step (rad) between configurations checked against the static scene.
+        static_margin_m: Clearance (m) from the static scene for on-the-fly checks (as the roadmap's).
+        max_expansions: Bound on expanded states per search.
+        probe_after_expansions: After this many expansions without a plan the search checks whether the
+            goal can still be entered once the forecast person holds still (:meth:`Planner._approach_probe`);
+            when it cannot, states that could only arrive later are dropped (a clear, early failure).
+        max_plan_s: Plans that cannot reach the goal within this long (s, by the admissible heuristic) are
+            not searched for (the supervisor replans every frame; a longer detour is not worth the time).
+        verify_dt_s: Time step (s) of the fitted trajectory's verification.
+        fallback_slack_s: Extra time window (s) of the time-robust re-search after a failed verification.
+        emergency_hold_s: An emergency plan's final configuration must be safe this long (s).
+        lever_arm_m: Upper bound (m) on the distance of any point of the robot from any joint axis: a
+            joint move by ``dq`` moves no point further than ``sum(|dq|) * lever_arm_m`` (used by the
+            broad phase that skips exact distance checks far from the person; 1.3 m covers the UR5e with
+            a 0.15 m tool).
+        q_min, q_max, qd_max, qdd_max: Joint limits (6,) (rad, rad/s, rad/s^2); None: the UR5e's.
+        shortcut: Shorten the found path before the trajectory is fitted (:meth:`Planner._shortcut`):
+            runs of waypoints become one straight joint move where that move is statically free and keeps
+            the forecast clearance; the result is verified like any plan, the unshortened path is the
+            fallback.
+        shortcut_rounds: Bound on the vectorised checks of shortcut candidates (each checks every shortcut
+            from one waypoint); one more call then checks the move straight to the goal and the rest of the
+            search's waypoints, re-timed.
+    """
+
+    ssm: SSMParams = field(default_factory=SSMParams)
+    speed_fraction: float = 0.5
+    accel_fraction: float = 0.8
+    min_edge_s: float = 0.02
+    sample_dt_s: float = 0.08
+    corridor_margin_m: float = 0.02
+    speed_factor: float = 1.3
+    wait_step_s: float = 0.1
+    max_wait_s: float = 0.6
+    max_branch_tries: int = 2
+    heuristic_weight: float = 1.0
+    slow_speed_fractions: tuple[float, ...] = (0.2, 0.08)
+    ssm_aware_search: bool = False
+    ssm_creep_mps: float = 0.15
+    ssm_brake_decel_mps2: float = 1.5
+    goal_hold_s: float = 0.3
+    start_neighbors: int = 8
+    check_step_rad: float = 0.05
+    static_margin_m: float = 0.0
+    max_expansions: int = 20000
+    probe_after_expansions: int = 80
+    max_plan_s: float = 8.0
+    verify_dt_s: float = 0.01
+    fallback_slack_s: float = 0.3
+    emergency_hold_s: float = 0.3
+    lever_arm_m: float = 1.3
+    q_min: tuple[float, ...] | None = None
+    q_max: tuple[float, ...] | None = None
+    qd_max: tuple[float, ...] | None = None
+    qdd_max: tuple[float, ...] | None = None
+    shortcut: bool = True
+    shortcut_rounds: int = 3
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.speed_fraction <= 1.0:
+            raise ValueError(f"PlannerConfig.speed_fraction must be in (0, 1], got {self.speed_fraction}")
+        if not 0.0 < self.accel_fraction <= 1.0:
+            raise ValueError(f"PlannerConfig.accel_fraction must be in (0, 1], got {self.accel_fraction}")
+        for name in ("sample_dt_s", "verify_dt_s", "check_step_rad", "wait_step_s"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"PlannerConfig.{name} must be > 0, got {getattr(self, name)}")
+        if self.shortcut_rounds < 1:
+            raise ValueError(f"PlannerConfig.shortcut_rounds must be >= 1, got {self.shortcut_rounds}")
+        if self.max_branch_tries < 1 or self.start_neighbors < 1:
+            raise ValueError("PlannerConfig.max_branch_tries and start_neighbors must be >= 1")
+        if self.heuristic_weight < 1.0:
+            raise ValueError(f"PlannerConfig.heuristic_weight must be >= 1, got {self.heuristic_weight}")
+        if self.speed_factor < 1.0:
+            raise ValueError(f"PlannerConfig.speed_factor must be >= 1, got {self.speed_factor}")
+
+
+@dataclass(frozen=True, slots=True)
+class PlanResult:
+    """The outcome of a planning query.
+
+    Attributes:
+        ok: Whether a verified plan was found.
+        plan: The plan (knots of the verified trajectory, ``plan.qd`` set) or None.
+        reason: ``"ok"`` / ``"stay"`` (emergency: standing still is safe) or why it failed.
+        expanded: States expanded by the search(es).
+        compute_s: Wall time of the query (s).
+        trajectory: The verified trajectory (the same as ``Trajectory.from_plan(plan)``) or None.
+        arrival_s: When the robot is predicted to arrive (s, runtime clock): with ``Planner.plan(timing=...)``
+            under the speed governor (the timing the plan was verified at), else the trajectory's end.
+    """
+
+    ok: bool
+    plan: Plan | None
+    reason: str
+    expanded: int
+    compute_s: float
+    trajectory: Trajectory | None = None
+    arrival_s: float | None = None
+
+
+def _paired_options(model: RobotModel) -> set[str]:
+    """The keyword options of ``model.distance_to_human_paired`` (``segments``, ``links``, ``capsules``)."""
+    try:
+        params = inspect.signature(model.distance_to_human_paired).parameters
+    except (TypeError, ValueError):
+        return set()
+    return {name for name in ("segments", "links", "capsules") if name in params}
