@@ -113,6 +113,30 @@ def train_cmd(
     typer.echo(f"model card: {result.card}; error quantiles: {result.quantiles}")
 
 
+def _margin_prior(predictor, weights: Path | None, *, coverage: float):
+    """The arbiter's prior margins for the preferred candidate: its stored error quantile at the coverage
+    target (the quantile file next to the weights), or ``(None, None)`` (the arbiter's flat prior)."""
+    from app.prediction.arbitration import prior_margins
+    from app.prediction.predictor import DEFAULT_WEIGHTS, load_quantiles, quantiles_path
+
+    kind = "graphmixer" if predictor.model is not None else "constant_velocity"
+    path = quantiles_path(weights or DEFAULT_WEIGHTS)
+    if not path.is_file():
+        return None, None
+    try:
+        data = load_quantiles(path)
+        prior = prior_margins(
+            data["kinds"][kind],
+            coverage=coverage,
+            fps=predictor.fps,
+            src_fps=float(data["fps"]),
+            horizon=predictor.horizon,
+        )
+    except (KeyError, ValueError, OSError) as exc:
+        raise _fail(f"cannot use the error quantiles {path} as the margins' prior: {exc}") from exc
+    return prior, f"{path.name} ({kind})"
+
+
 @hmp_app.command("eval")
 def eval_cmd(
     clips: Annotated[
@@ -165,10 +189,20 @@ def eval_cmd(
         )
     except ValueError as exc:
         raise _fail(str(exc)) from exc
-    # the runtime's forecast: the candidates above arbitrated online, replayed frame by frame
+    # the runtime's forecast: the candidates above arbitrated online, replayed frame by frame; the margins
+    # start from the coverage-target error quantile stored with the weights (measured on clips the network
+    # was not trained on, never on these)
+    prior, prior_source = _margin_prior(predictor, weights, coverage=0.95)
     forecast = evaluate_arbitrated(
-        clip_set, predictors, t_in=predictor.history, horizon=predictor.horizon, fps=predictor.fps
+        clip_set,
+        predictors,
+        t_in=predictor.history,
+        horizon=predictor.horizon,
+        fps=predictor.fps,
+        coverage=0.95,
+        prior_m=prior,
     )
+    forecast["margin_prior"] = prior_source
     report = {
         "clips": str(directory) + (f" ({split})" if split else ""),
         "windows": next(iter(results.values()))["windows"],
