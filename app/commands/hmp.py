@@ -7,6 +7,7 @@ Heavy modules (torch, the data loaders) are imported inside the command bodies s
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -61,7 +62,14 @@ def train_cmd(
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
 ) -> None:
     """Train the Graph-Mixer on clips (CMU train split + your own); write weights, quantiles, model card."""
-    from app.prediction.data import DEFAULT_VAL_CLIPS, ClipError, load_clip_dir, require_cmu_dir, split_clips
+    from app.prediction.data import (
+        DEFAULT_VAL_CLIPS,
+        ClipError,
+        check_disjoint,
+        load_clip_dir,
+        require_cmu_dir,
+        split_clips,
+    )
     from app.prediction.graphmixer import GraphMixerConfig
     from app.prediction.predictor import DEFAULT_WEIGHTS
     from app.prediction.train import TrainConfig, train
@@ -77,7 +85,13 @@ def train_cmd(
             raise ClipError(
                 f"none of the validation clips {', '.join(names)} is in {base_dir}; pass --val-clips"
             )
-        extra = [c for d in (extra_clips or []) for c in load_clip_dir(d)]
+        # clips of other folders keyed by their folder too: names repeat across folders
+        extra = [
+            dataclasses.replace(c, split=(d / c.split).as_posix())
+            for d in (extra_clips or [])
+            for c in load_clip_dir(d)
+        ]
+        check_disjoint(train=[*train_clips, *extra], validation=val, test=test)
     except ClipError as exc:
         raise _fail(str(exc)) from exc
     cfg = TrainConfig(
@@ -92,7 +106,7 @@ def train_cmd(
         model=GraphMixerConfig(channels=channels, blocks=blocks),
     )
     note = f"Clip folder: {base_dir.name}" + (
-        f"; extra clips: {', '.join(c.name for c in extra)}" if extra else ""
+        f"; extra clips: {', '.join(c.label for c in extra)}" if extra else ""
     )
     result = train(
         [*train_clips, *extra],
