@@ -127,6 +127,26 @@ def train_cmd(
     typer.echo(f"model card: {result.card}; error quantiles: {result.quantiles}")
 
 
+def _sim_operator_clips(count: int, seed: int, duration_s: float) -> tuple[str, list]:
+    """Simulated operators of the configured cell at work (participant seeds ``seed`` .. ``seed + count -
+    1``) as clips of the ``sim`` split, and a line that says what they are."""
+    from app.cell.recording import simulated_operator_sequences
+    from app.config import Settings
+    from app.prediction.data import Clip
+
+    cell = Settings().load_workcell()
+    sequences = simulated_operator_sequences(cell, participants=count, duration_s=duration_s, seed=seed)
+    clips = [
+        Clip(name=f"sim_operator_{seed + i}", positions=seq, action="work", split="sim")
+        for i, seq in enumerate(sequences)
+    ]
+    last = seed + count - 1
+    label = f"simulated operators of cell {cell.name!r}: seeds {seed}..{last}, {duration_s:g} s each"
+    if seed <= 1999 and last >= 1000:
+        label += " (includes tuning seeds 1000-1999: not a held-out evaluation)"
+    return label, clips
+
+
 def _margin_prior(predictor, weights: Path | None, *, coverage: float):
     """The arbiter's prior margins for the preferred candidate: its stored error quantile at the coverage
     target (the quantile file next to the weights), or ``(None, None)`` (the arbiter's flat prior)."""
@@ -161,9 +181,23 @@ def eval_cmd(
         Path | None, typer.Option(help="Graph-Mixer weights; default: the shipped ones.")
     ] = None,
     stride: Annotated[int, typer.Option(help="Stride between evaluation windows.")] = 1,
+    sim_operators: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            help="Evaluate on this many simulated operators of the configured cell instead of clips (a "
+            "held-out source: seeds 1000-1999 are the tuning seeds, report on others).",
+        ),
+    ] = 0,
+    sim_seed: Annotated[int, typer.Option(help="Seed of the first simulated operator.")] = 1,
+    sim_duration: Annotated[
+        float, typer.Option(min=2.0, help="Seconds recorded per simulated operator.")
+    ] = 60.0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
-    """MPJPE (mm) at 80..1000 ms of the Graph-Mixer and both baselines on clips (default: CMU test split)."""
+    """MPJPE (mm) at 80..1000 ms of the Graph-Mixer and both baselines on clips (default: CMU test split) or
+    on simulated operators (``--sim-operators N``), and of the arbitrated forecast with its margins'
+    coverage."""
     import torch
 
     from app.prediction.data import ClipError, load_clip_dir, require_cmu_dir
@@ -172,8 +206,12 @@ def eval_cmd(
 
     torch.set_num_threads(1)
     try:
-        directory = require_cmu_dir(clips)
-        clip_set = load_clip_dir(directory, split=split or None)
+        if sim_operators > 0:
+            directory, clip_set = _sim_operator_clips(sim_operators, sim_seed, sim_duration)
+            split = ""
+        else:
+            directory = require_cmu_dir(clips)
+            clip_set = load_clip_dir(directory, split=split or None)
     except ClipError as exc:
         raise _fail(str(exc)) from exc
     if weights is not None:  # a path given is used or refused, never replaced by a baseline
