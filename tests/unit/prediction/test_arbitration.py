@@ -202,3 +202,19 @@ def test_prior_margins_take_the_cold_start_level_of_the_stored_quantiles() -> No
     )
     with pytest.raises(ValueError, match="no stored error quantile"):
         prior_margins({"max_p95": [0.0]}, coverage=0.95, fps=10.0, src_fps=10.0, horizon=2)
+
+
+def test_the_far_steps_follow_the_near_steps_only_on_clear_evidence() -> None:
+    rng = np.random.default_rng(9)
+    still = _walk(np.zeros(3), 16, rng)
+    # near steps scored, far steps not yet: "hold" has been exact, the preferred "network" off by 0.3 m
+    candidates = {"network": lambda p, q: _hold(p, q) + 0.3, "hold": _hold}
+    kwargs = {"horizon": H, "dt_s": DT}
+    plain = _run(ForecastArbiter(["network", "hold"], transfer_ratio=0.0, **kwargs), still, candidates)[-1]
+    transfer = _run(ForecastArbiter(["network", "hold"], **kwargs), still, candidates)[-1]  # default 0.5
+    assert plain.chosen[1] == "hold" and plain.chosen[H] == "network"
+    assert transfer.chosen[1:] == ("hold",) * H
+    # a candidate only slightly better at the near steps does not take the far ones
+    close = {"network": lambda p, q: _hold(p, q) + 0.01, "hold": lambda p, q: _hold(p, q) + 0.008}
+    out = _run(ForecastArbiter(["network", "hold"], transfer_ratio=0.5, **kwargs), still, close)[-1]
+    assert out.chosen[1] == "hold" and out.chosen[H] == "network"
