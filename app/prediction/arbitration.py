@@ -21,7 +21,6 @@ hundred small array operations per frame).
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -132,7 +131,14 @@ class ForecastArbiter:
         self._count = np.zeros(n, dtype=np.int64)
         self._head = np.zeros(n, dtype=np.int64)
         self._alpha_t = np.full(n, self.alpha)
-        self._pending: deque[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = deque()
+        # forecasts waiting to be scored, in a ring of slots (allocated at the first combine); a slot is
+        # scored while its forecast's horizon has not passed
+        self._slots = 4 * n
+        self._t0 = np.full(self._slots, np.nan)
+        self._futures: np.ndarray | None = None  # (slots, C, n, J, 3)
+        self._combined: np.ndarray | None = None  # (slots, n, J, 3)
+        self._margins_at = np.zeros((self._slots, n))
+        self._next_slot = 0
         self.covered = np.zeros(n)  # joints inside the margin, per step, since the start
         self.scored = np.zeros(n)  # joints scored, per step
 
@@ -143,25 +149,40 @@ class ForecastArbiter:
     # ------------------------------------------------------------------------------------------------
     def score(self, t: float, joints: np.ndarray) -> None:
         """Score the stored forecasts against the frame ``joints`` (J, 3) seen at ``t`` (s)."""
+        if self._futures is None or self._combined is None:
+            return
         joints = np.asarray(joints, dtype=np.float64)
-        while self._pending and t - self._pending[0][0] > (self.horizon + 0.5) * self.dt_s:
-            self._pending.popleft()
         if self._joint_err is None:
             self._joint_err = np.zeros((self.horizon + 1, self.window, joints.shape[0]))
-        for t0, futures, combined, margins in self._pending:
-            k = round((t - t0) / self.dt_s)
-            if k < 1 or k > self.horizon or abs(t - t0 - k * self.dt_s) > 0.25 * self.dt_s:
-                continue
-            h = self._head[k]
-            self._cand_err[:, k, h] = np.linalg.norm(futures[:, k] - joints, axis=-1).mean(axis=-1)
-            per_joint = np.linalg.norm(combined[k] - joints, axis=-1)
-            self._joint_err[k, h] = per_joint
-            self._head[k] = (h + 1) % self.window
-            self._count[k] = min(self._count[k] + 1, self.window)
-            miss = float(np.mean(per_joint > margins[k]))
-            self.covered[k] += per_joint.size * (1.0 - miss)
-            self.scored[k] += per_joint.size
-            self._alpha_t[k] = min(max(self._alpha_t[k] + self.gamma * (self.alpha - miss), 0.0), 1.0)
+        with np.errstate(invalid="ignore"):
+            lag = (t - self._t0) / self.dt_s
+            k_all = np.rint(lag)
+            due = (k_all >= 1) & (k_all <= self.horizon) & (np.abs(lag - k_all) <= 0.25)
+        slots = np.flatnonzero(due)
+        if slots.size == 0:
+            return
+        ks = k_all[slots].astype(np.int64)
+        cand = np.linalg.norm(self._futures[slots, :, ks] - joints, axis=-1).mean(axis=-1)  # (V, C)
+        per_joint = np.linalg.norm(self._combined[slots, ks] - joints, axis=-1)  # (V, J)
+        miss = np.mean(per_joint > self._margins_at[slots, ks][:, None], axis=1)
+        if np.unique(ks).size == ks.size:
+            self._record(ks, cand, per_joint, miss)
+        else:  # two forecasts due at one step (forecasts made twice per frame): one at a time
+            for i in range(ks.size):
+                self._record(ks[i : i + 1], cand[i : i + 1], per_joint[i : i + 1], miss[i : i + 1])
+
+    def _record(self, ks: np.ndarray, cand: np.ndarray, per_joint: np.ndarray, miss: np.ndarray) -> None:
+        """Store scores at the distinct steps ``ks`` and move the ACI levels there."""
+        assert self._joint_err is not None
+        h = self._head[ks]
+        self._cand_err[:, ks, h] = cand.T
+        self._joint_err[ks, h] = per_joint
+        self._head[ks] = (h + 1) % self.window
+        self._count[ks] = np.minimum(self._count[ks] + 1, self.window)
+        size = per_joint.shape[1]
+        self.covered[ks] += size * (1.0 - miss)
+        self.scored[ks] += size
+        self._alpha_t[ks] = np.clip(self._alpha_t[ks] + self.gamma * (self.alpha - miss), 0.0, 1.0)
 
     def combine(self, t0: float, futures: Mapping[str, np.ndarray]) -> ArbitratedForecast:
         """Combine the candidates' forecasts (each (H + 1, J, 3), step 0 the frame at ``t0``) by their recent
@@ -186,7 +207,17 @@ class ForecastArbiter:
         idx[0] = 0
         joints = stored[idx, np.arange(n)]
         margins = self.margins()
-        self._pending.append((float(t0), stored, joints, margins))
+        if self._futures is None or self._futures.shape[1:] != stored.shape:
+            self._futures = np.zeros((self._slots, *stored.shape))
+            self._combined = np.zeros((self._slots, *joints.shape))
+            self._t0[:] = np.nan
+        assert self._combined is not None
+        slot = self._next_slot
+        self._t0[slot] = float(t0)
+        self._futures[slot] = stored
+        self._combined[slot] = joints
+        self._margins_at[slot] = margins
+        self._next_slot = (slot + 1) % self._slots
         return ArbitratedForecast(
             joints=joints, margins=margins, chosen=tuple(self.candidates[i] for i in idx)
         )
