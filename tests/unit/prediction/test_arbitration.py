@@ -82,6 +82,10 @@ def test_the_predictor_hands_on_the_arbitrated_forecast_when_asked() -> None:
     plain = MotionPredictor(kind="graphmixer", tracking_margin_m=0.02)
     arbitrated = MotionPredictor(kind="graphmixer", tracking_margin_m=0.02, arbitrate=True, coverage=0.9)
     assert plain.arbiter is None and arbitrated.arbiter is not None
+    # the arbiter starts from the stored quantile at its cold-start level (p99 for a 90-99 % target)
+    p95 = plain.margins_for("graphmixer")
+    assert np.all(arbitrated.arbiter.prior_m[1:] >= p95[1:] - 1e-9)
+    assert arbitrated.arbiter.prior_m[-1] > p95[-1]
     assert arbitrated.arbiter.candidates[-2:] == ("constant_velocity", "zero_velocity")
     for i, pose in enumerate(walking):
         fc = arbitrated.update(HumanFrame(i / 30, pose))
