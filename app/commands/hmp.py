@@ -159,13 +159,7 @@ def _margin_prior(predictor, weights: Path | None, *, coverage: float):
         return None, None
     try:
         data = load_quantiles(path)
-        prior = prior_margins(
-            data["kinds"][kind],
-            coverage=coverage,
-            fps=predictor.fps,
-            src_fps=float(data["fps"]),
-            horizon=predictor.horizon,
-        )
+        prior = prior_margins(data, kind, coverage=coverage, fps=predictor.fps, horizon=predictor.horizon)
     except (KeyError, ValueError, OSError) as exc:
         raise _fail(f"cannot use the error quantiles {path} as the margins' prior: {exc}") from exc
     return prior, f"{path.name} ({kind})"

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -258,12 +259,17 @@ class ForecastArbiter:
 
 
 def prior_margins(
-    quantiles: Mapping[str, Sequence[float]], *, coverage: float, fps: float, src_fps: float, horizon: int
+    doc: Mapping[str, Any], kind: str, *, coverage: float, fps: float, horizon: int
 ) -> np.ndarray:
-    """The arbiter's prior (H + 1,) (m) for a ``coverage`` target: the stored error quantile (``{"p50":
-    [...], "p95": ...}``, per step at ``src_fps``, step 0 first) at the smallest stored level not below
-    ``1 - (1 - coverage) / COLD_START_MISS_FACTOR`` (the largest stored level if none is), on the ``fps``
-    grid (linear interpolation; held beyond the stored steps)."""
+    """The arbiter's prior (H + 1,) (m) for a ``coverage`` target, from a quantile file's content ``doc``
+    (``{"fps": ..., "kinds": {kind: {"p50": [...], "p95": ...}}}``, per step at its ``fps``, step 0 first):
+    the stored error quantile of ``kind`` at the smallest stored level not below ``1 - (1 - coverage) /
+    COLD_START_MISS_FACTOR`` (the largest stored level if none is), on the ``fps`` grid (linear
+    interpolation; held beyond the stored steps)."""
+    if kind not in doc.get("kinds", {}):
+        raise ValueError(f"no stored error quantiles of {kind!r}")
+    quantiles: Mapping[str, Sequence[float]] = doc["kinds"][kind]
+    src_fps = float(doc["fps"])
     level = 1.0 - (1.0 - coverage) / COLD_START_MISS_FACTOR
     levels = sorted(int(k[1:]) for k in quantiles if k[0] == "p" and k[1:].isdigit())
     if not levels:

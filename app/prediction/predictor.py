@@ -295,16 +295,14 @@ class MotionPredictor:
         margins."""
         from app.prediction.arbitration import prior_margins
 
-        data = self._quantile_data
-        if data is None or not any(k.startswith("p") for k in data["kinds"].get(kind, {})):
+        if self._quantile_data is None:
             return self._margins[kind]
-        prior = prior_margins(
-            data["kinds"][kind],
-            coverage=coverage,
-            fps=self.fps,
-            src_fps=float(data["fps"]),
-            horizon=self.horizon,
-        )
+        try:
+            prior = prior_margins(
+                self._quantile_data, kind, coverage=coverage, fps=self.fps, horizon=self.horizon
+            )
+        except ValueError:
+            return self._margins[kind]
         return prior + self.tracking_margin_m
 
     def _load_margins(self, quantiles: str | Path | None, weights_path: Path) -> dict[str, np.ndarray]:

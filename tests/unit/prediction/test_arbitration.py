@@ -196,16 +196,16 @@ def test_prior_margins_take_the_cold_start_level_of_the_stored_quantiles() -> No
     from app.prediction.arbitration import prior_margins
 
     stored = {"p50": [0.0, 0.1, 0.2], "p95": [0.0, 0.3, 0.6], "p99": [0.0, 0.5, 1.0], "max_p95": [0, 9, 9]}
+    doc = {"fps": 10.0, "kinds": {"net": stored, "none": {"max_p95": [0.0]}}}
     # 95 % target: the p99 row (a new person), on a grid twice as fine, held beyond the stored steps
     np.testing.assert_allclose(
-        prior_margins(stored, coverage=0.95, fps=20.0, src_fps=10.0, horizon=6),
-        [0.0, 0.25, 0.5, 0.75, 1.0, 1.0, 1.0],
+        prior_margins(doc, "net", coverage=0.95, fps=20.0, horizon=6), [0.0, 0.25, 0.5, 0.75, 1.0, 1.0, 1.0]
     )
-    np.testing.assert_allclose(
-        prior_margins(stored, coverage=0.5, fps=10.0, src_fps=10.0, horizon=2), [0.0, 0.3, 0.6]
-    )
+    np.testing.assert_allclose(prior_margins(doc, "net", coverage=0.5, fps=10.0, horizon=2), [0.0, 0.3, 0.6])
     with pytest.raises(ValueError, match="no stored error quantile"):
-        prior_margins({"max_p95": [0.0]}, coverage=0.95, fps=10.0, src_fps=10.0, horizon=2)
+        prior_margins(doc, "none", coverage=0.95, fps=10.0, horizon=2)
+    with pytest.raises(ValueError, match="no stored error quantiles of 'other'"):
+        prior_margins(doc, "other", coverage=0.95, fps=10.0, horizon=2)
 
 
 def test_the_far_steps_follow_the_near_steps_only_on_clear_evidence() -> None:
