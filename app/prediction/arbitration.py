@@ -5,8 +5,10 @@ worse than holding the pose still. At run time nobody knows in advance which cas
 past tells: every forecast made ``h`` seconds ago can be scored against the frame that has just arrived.
 :class:`ForecastArbiter` keeps, per candidate (the network, constant velocity, zero velocity, ...) and per
 horizon step, the mean joint error of its recent forecasts over a sliding window, and hands on, per horizon
-step, the candidate whose recent error is lowest. Until a candidate has been scored ``min_scores`` times at
-a step, the first candidate in the order given (the network) is taken.
+step, the candidate whose recent error is lowest. Until the candidates have been scored ``min_scores`` times
+at a step, the first candidate in the order given (the network) is taken there, unless another has been
+clearly better at the longest step scored enough (``transfer_ratio``): a step ``k`` frames ahead is scored
+only ``k`` frames after its forecast, so the far steps learn last.
 
 The margins come from adaptive conformal inference (ACI; Gibbs and Candès, "Adaptive conformal inference
 under distribution shift", NeurIPS 2021): per horizon step the margin is the ``1 - alpha_t`` quantile of the
@@ -14,6 +16,9 @@ recent joint errors of the arbitrated forecast, and after every scored forecast 
 ``gamma * (alpha - miss)``, where ``miss`` is the fraction of joints that fell outside the margin. The
 margins widen on motion the forecast gets wrong and shrink on motion it gets right, and the fraction of
 joints inside them tracks the target coverage ``1 - alpha`` (default 95 %) over time, whatever the motion.
+A new person starts from a prior (:func:`prior_margins`: a stored error quantile of the network on clips it
+was not trained on), which stays a floor through the first ``warmup`` scores of a step, widened by the ratio
+of scored quantile to prior at the longest step scored enough.
 
 Pure computation over numpy arrays; cheap enough to run at the camera rate beside the planner (a few
 hundred small array operations per frame).
