@@ -5,7 +5,8 @@ through the path the predictor uses, named by ``single_person_backend``: ``numba
 ``torch-traced`` or ``torch``), ``infer_ms_by_backend`` (the network alone timed through each path that is
 available here, ``torch`` being eager ``predict_batch``; interleaved, so that all see the same machine
 load), ``update_ms``
-(the whole ``MotionPredictor.update``: repair, resampling, network, forecast object), ``mpjpe_mm``
+(the whole ``MotionPredictor.update``: repair, resampling, network, forecast object), ``update_arbitrated_ms``
+(the same with ``arbitrate=True``: network, both baselines, arbitration and adaptive margins), ``mpjpe_mm``
 {graphmixer, constant_velocity, zero_velocity} each {"80": ..., "1000": ...} on every window of the CMU test
 split (``null`` with a ``note`` if the clips are not on this machine), ``params``, the aims' ratios, and
 ``reference_workload_ms`` (a fixed numpy workload timed the same way: its p95/p50 ratio shows how much of the
@@ -96,6 +97,16 @@ def run(*, quick: bool = False, progress: bool = True) -> dict:
         if k >= predictor.history:
             samples.append(time.perf_counter() - t)
     result["update_ms"] = _percentiles(samples)
+    # the same with the arbiter on: the network, both baselines, the arbitration and the adaptive margins
+    arbitrated = MotionPredictor(kind="graphmixer", arbitrate=True)
+    samples = []
+    for k in range(repeats + arbitrated.horizon + arbitrated.history):
+        frame = HumanFrame(t=k / arbitrated.fps, joints=base + np.array([0.03 * k, 0.0, 0.0]))
+        t = time.perf_counter()
+        arbitrated.update(frame)
+        if k >= arbitrated.history + arbitrated.horizon:  # every step scored: the full per-frame work
+            samples.append(time.perf_counter() - t)
+    result["update_arbitrated_ms"] = _percentiles(samples)
     result["params"] = count_parameters(predictor.model) if predictor.model is not None else 0
     # the same number of repetitions of a fixed numpy workload: how noisy this machine's timing is right now
     a = rng.random((160, 160))

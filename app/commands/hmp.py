@@ -7,6 +7,7 @@ Heavy modules (torch, the data loaders) are imported inside the command bodies s
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -61,7 +62,14 @@ def train_cmd(
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
 ) -> None:
     """Train the Graph-Mixer on clips (CMU train split + your own); write weights, quantiles, model card."""
-    from app.prediction.data import DEFAULT_VAL_CLIPS, ClipError, load_clip_dir, require_cmu_dir, split_clips
+    from app.prediction.data import (
+        DEFAULT_VAL_CLIPS,
+        ClipError,
+        check_disjoint,
+        load_clip_dir,
+        require_cmu_dir,
+        split_clips,
+    )
     from app.prediction.graphmixer import GraphMixerConfig
     from app.prediction.predictor import DEFAULT_WEIGHTS
     from app.prediction.train import TrainConfig, train
@@ -77,7 +85,13 @@ def train_cmd(
             raise ClipError(
                 f"none of the validation clips {', '.join(names)} is in {base_dir}; pass --val-clips"
             )
-        extra = [c for d in (extra_clips or []) for c in load_clip_dir(d)]
+        # clips of other folders keyed by their folder too: names repeat across folders
+        extra = [
+            dataclasses.replace(c, split=(d / c.split).as_posix())
+            for d in (extra_clips or [])
+            for c in load_clip_dir(d)
+        ]
+        check_disjoint(train=[*train_clips, *extra], validation=val, test=test)
     except ClipError as exc:
         raise _fail(str(exc)) from exc
     cfg = TrainConfig(
@@ -92,7 +106,7 @@ def train_cmd(
         model=GraphMixerConfig(channels=channels, blocks=blocks),
     )
     note = f"Clip folder: {base_dir.name}" + (
-        f"; extra clips: {', '.join(c.name for c in extra)}" if extra else ""
+        f"; extra clips: {', '.join(c.label for c in extra)}" if extra else ""
     )
     result = train(
         [*train_clips, *extra],
@@ -113,6 +127,44 @@ def train_cmd(
     typer.echo(f"model card: {result.card}; error quantiles: {result.quantiles}")
 
 
+def _sim_operator_clips(count: int, seed: int, duration_s: float) -> tuple[str, list]:
+    """Simulated operators of the configured cell at work (participant seeds ``seed`` .. ``seed + count -
+    1``) as clips of the ``sim`` split, and a line that says what they are."""
+    from app.cell.recording import simulated_operator_sequences
+    from app.config import Settings
+    from app.prediction.data import Clip
+
+    cell = Settings().load_workcell()
+    sequences = simulated_operator_sequences(cell, participants=count, duration_s=duration_s, seed=seed)
+    clips = [
+        Clip(name=f"sim_operator_{seed + i}", positions=seq, action="work", split="sim")
+        for i, seq in enumerate(sequences)
+    ]
+    last = seed + count - 1
+    label = f"simulated operators of cell {cell.name!r}: seeds {seed}..{last}, {duration_s:g} s each"
+    if seed <= 1999 and last >= 1000:
+        label += " (includes tuning seeds 1000-1999: not a held-out evaluation)"
+    return label, clips
+
+
+def _margin_prior(predictor, weights: Path | None, *, coverage: float):
+    """The arbiter's prior margins for the preferred candidate: its stored error quantile at the coverage
+    target (the quantile file next to the weights), or ``(None, None)`` (the arbiter's flat prior)."""
+    from app.prediction.arbitration import prior_margins
+    from app.prediction.predictor import DEFAULT_WEIGHTS, load_quantiles, quantiles_path
+
+    kind = "graphmixer" if predictor.model is not None else "constant_velocity"
+    path = quantiles_path(weights or DEFAULT_WEIGHTS)
+    if not path.is_file():
+        return None, None
+    try:
+        data = load_quantiles(path)
+        prior = prior_margins(data, kind, coverage=coverage, fps=predictor.fps, horizon=predictor.horizon)
+    except (KeyError, ValueError, OSError) as exc:
+        raise _fail(f"cannot use the error quantiles {path} as the margins' prior: {exc}") from exc
+    return prior, f"{path.name} ({kind})"
+
+
 @hmp_app.command("eval")
 def eval_cmd(
     clips: Annotated[
@@ -123,9 +175,23 @@ def eval_cmd(
         Path | None, typer.Option(help="Graph-Mixer weights; default: the shipped ones.")
     ] = None,
     stride: Annotated[int, typer.Option(help="Stride between evaluation windows.")] = 1,
+    sim_operators: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            help="Evaluate on this many simulated operators of the configured cell instead of clips (a "
+            "held-out source: seeds 1000-1999 are the tuning seeds, report on others).",
+        ),
+    ] = 0,
+    sim_seed: Annotated[int, typer.Option(help="Seed of the first simulated operator.")] = 1,
+    sim_duration: Annotated[
+        float, typer.Option(min=2.0, help="Seconds recorded per simulated operator.")
+    ] = 60.0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
-    """MPJPE (mm) at 80..1000 ms of the Graph-Mixer and both baselines on clips (default: CMU test split)."""
+    """MPJPE (mm) at 80..1000 ms of the Graph-Mixer and both baselines on clips (default: CMU test split) or
+    on simulated operators (``--sim-operators N``), and of the arbitrated forecast with its margins'
+    coverage."""
     import torch
 
     from app.prediction.data import ClipError, load_clip_dir, require_cmu_dir
@@ -134,8 +200,12 @@ def eval_cmd(
 
     torch.set_num_threads(1)
     try:
-        directory = require_cmu_dir(clips)
-        clip_set = load_clip_dir(directory, split=split or None)
+        if sim_operators > 0:
+            directory, clip_set = _sim_operator_clips(sim_operators, sim_seed, sim_duration)
+            split = ""
+        else:
+            directory = require_cmu_dir(clips)
+            clip_set = load_clip_dir(directory, split=split or None)
     except ClipError as exc:
         raise _fail(str(exc)) from exc
     if weights is not None:  # a path given is used or refused, never replaced by a baseline
@@ -165,10 +235,20 @@ def eval_cmd(
         )
     except ValueError as exc:
         raise _fail(str(exc)) from exc
-    # the runtime's forecast: the candidates above arbitrated online, replayed frame by frame
+    # the runtime's forecast: the candidates above arbitrated online, replayed frame by frame; the margins
+    # start from the coverage-target error quantile stored with the weights (measured on clips the network
+    # was not trained on, never on these)
+    prior, prior_source = _margin_prior(predictor, weights, coverage=0.95)
     forecast = evaluate_arbitrated(
-        clip_set, predictors, t_in=predictor.history, horizon=predictor.horizon, fps=predictor.fps
+        clip_set,
+        predictors,
+        t_in=predictor.history,
+        horizon=predictor.horizon,
+        fps=predictor.fps,
+        coverage=0.95,
+        prior_m=prior,
     )
+    forecast["margin_prior"] = prior_source
     report = {
         "clips": str(directory) + (f" ({split})" if split else ""),
         "windows": next(iter(results.values()))["windows"],

@@ -46,15 +46,21 @@ class ClipError(ValueError):
 class Clip:
     """One recording in the canonical joint set.
 
+    Clip names repeat across split folders (the CMU ``train/walking_1`` and ``test/walking_1`` are different
+    recordings), so a clip is identified by :attr:`key`, its split and its name, never by its name alone.
+
     Attributes:
-        name: Clip name (file stem, prefixed by its split folder where there is one).
+        name: Clip name (file stem).
         positions: Joint positions (T, J, 3) in metres, z up, at :data:`FPS`.
         action: Action label, or ``""``.
+        split: The split (folder below the clip folder, e.g. ``train``, ``test``; ``sim`` for simulated
+            operators) it came from, or ``""``.
     """
 
     name: str
     positions: np.ndarray
     action: str = ""
+    split: str = ""
 
     def __post_init__(self) -> None:
         if self.positions.ndim != 3 or self.positions.shape[1:] != (NUM_JOINTS, 3):
@@ -65,6 +71,16 @@ class Clip:
     @property
     def frames(self) -> int:
         return int(self.positions.shape[0])
+
+    @property
+    def key(self) -> tuple[str, str]:
+        """``(split, name)``: the clip's identity."""
+        return (self.split, self.name)
+
+    @property
+    def label(self) -> str:
+        """``split/name`` (or the name where there is no split), for reports."""
+        return f"{self.split}/{self.name}" if self.split else self.name
 
 
 def resample(positions: np.ndarray, factor: float) -> np.ndarray:
@@ -82,7 +98,7 @@ def resample(positions: np.ndarray, factor: float) -> np.ndarray:
     return positions[i0] * (1.0 - w) + positions[i1] * w
 
 
-def load_clip(path: str | Path, *, name: str | None = None, action: str = "") -> Clip:
+def load_clip(path: str | Path, *, name: str | None = None, action: str = "", split: str = "") -> Clip:
     """Load one ``.npz`` clip and convert it to the canonical joint set at 30 Hz."""
     path = Path(path)
     try:
@@ -107,14 +123,16 @@ def load_clip(path: str | Path, *, name: str | None = None, action: str = "") ->
         raise ClipError(f"clip {path}: positions contain NaN or infinite values")
     if abs(fps - FPS) > 1e-6:
         joints = resample(joints, fps / FPS)
-    return Clip(name=name or path.stem, positions=joints, action=action)
+    return Clip(name=name or path.stem, positions=joints, action=action, split=split)
 
 
 def load_clip_dir(directory: str | Path, *, split: str | None = None) -> list[Clip]:
-    """All clips under ``directory`` (sorted by name), optionally only those of ``split`` (train/test).
+    """All clips under ``directory`` (sorted by :attr:`Clip.key`), optionally only those of ``split``
+    (train/test).
 
     With an ``index.json`` (as in the shared CMU folder) its entries are used; otherwise every ``*.npz`` below
-    the folder (a split selects the sub-folder of that name when there is one).
+    the folder (a split selects the sub-folder of that name when there is one). Each clip's split is the
+    folder it lies in below ``directory`` (``""`` at the top).
     """
     directory = Path(directory)
     if not directory.is_dir():
@@ -127,14 +145,24 @@ def load_clip_dir(directory: str | Path, *, split: str | None = None) -> list[Cl
             rel = Path(e["file"])
             if split is not None and rel.parts[0] != split:
                 continue
-            clips.append(load_clip(directory / rel, name=rel.stem, action=str(e.get("action", ""))))
+            clips.append(
+                load_clip(
+                    directory / rel, name=rel.stem, action=str(e.get("action", "")), split=_split_of(rel)
+                )
+            )
     else:
         root = directory / split if split is not None and (directory / split).is_dir() else directory
         for p in sorted(root.rglob("*.npz")):
-            clips.append(load_clip(p, name=p.stem))
+            clips.append(load_clip(p, name=p.stem, split=_split_of(p.relative_to(directory))))
     if not clips:
         raise ClipError(f"no clips found in {directory}" + (f" for split {split!r}" if split else ""))
-    return sorted(clips, key=lambda c: c.name)
+    return sorted(clips, key=lambda c: c.key)
+
+
+def _split_of(rel: Path) -> str:
+    """The split of a clip file at ``rel`` below its clip folder: the folder(s) it lies in."""
+    parent = rel.parent.as_posix()
+    return "" if parent == "." else parent
 
 
 def default_cmu_dir() -> Path | None:
@@ -166,11 +194,34 @@ def require_cmu_dir(path: str | Path | None) -> Path:
 
 
 def split_clips(clips: Sequence[Clip], val_names: Iterable[str]) -> tuple[list[Clip], list[Clip]]:
-    """(train, validation) by clip name."""
+    """(train, validation): a clip is held out for validation if ``val_names`` names it by ``split/name``
+    or, where its name is unique among ``clips``, by its name alone."""
     val_set = set(val_names)
-    train = [c for c in clips if c.name not in val_set]
-    val = [c for c in clips if c.name in val_set]
-    return train, val
+    counts: dict[str, int] = {}
+    for c in clips:
+        counts[c.name] = counts.get(c.name, 0) + 1
+    ambiguous = sorted(n for n in val_set if counts.get(n, 0) > 1)
+    if ambiguous:
+        raise ClipError(
+            f"validation clip name(s) {', '.join(ambiguous)} match clips of several splits; name them as "
+            "split/name"
+        )
+
+    def held_out(c: Clip) -> bool:
+        return c.label in val_set or c.name in val_set
+
+    return [c for c in clips if not held_out(c)], [c for c in clips if held_out(c)]
+
+
+def check_disjoint(**sets: Sequence[Clip]) -> None:
+    """Raise :class:`ClipError` if a clip (by :attr:`Clip.key`) is in two of the named sets, or twice in
+    one: training and evaluation never share a clip."""
+    seen: dict[tuple[str, str], str] = {}
+    for set_name, clips in sets.items():
+        for c in clips:
+            if c.key in seen:
+                raise ClipError(f"clip {c.label} is in {seen[c.key]} and {set_name}: sets must not share it")
+            seen[c.key] = set_name
 
 
 def windows(clips: Sequence[Clip], length: int, *, stride: int = 1) -> np.ndarray:

@@ -9,6 +9,7 @@ time at that instant (index 0 being the last observed pose, where both coincide)
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -166,15 +167,19 @@ def evaluate_arbitrated(
     fps: float = 30.0,
     coverage: float = 0.95,
     horizons_ms: Sequence[int] = HORIZONS_MS,
-    gamma: float | None = None,
+    prior_m: np.ndarray | None = None,
+    arbiter_options: Mapping[str, Any] | None = None,
+    batch: int = 512,
 ) -> dict[str, object]:
     """The arbitrated runtime forecast (:class:`app.prediction.arbitration.ForecastArbiter` over
     ``predictors``, the preferred one first), replayed frame by frame through each clip as the runtime would
     run it: at every frame from the ``t_in``-th on, each candidate forecasts from the last ``t_in`` frames,
     the arbiter scores the forecasts made before against this frame and combines the new ones. Each clip is
-    a new person (the arbiter starts over).
+    a new person (the arbiter starts over, from ``prior_m``). The candidates' forecasts do not depend on the
+    arbiter, so they are computed per clip in batches of ``batch`` windows first.
 
-    ``gamma``: the arbiter's ACI step size (default: its own).
+    ``prior_m``: the arbiter's prior margin per step (default: its own); ``arbiter_options``: other keyword
+    arguments of the arbiter (``gamma``, ``warmup``, ...).
 
     Returns ``{"mpjpe_mm": {ms: ...}, "coverage": {ms: ...}, "coverage_target": ..., "forecasts": n,
     "chosen": {candidate: share of the steps}}``: the MPJPE of the combined forecast and the fraction of
@@ -187,26 +192,35 @@ def evaluate_arbitrated(
     cov_sum = np.zeros(len(horizons_ms))
     count = 0
     chosen_counts = dict.fromkeys(names, 0)
+    options = dict(arbiter_options or {})
+    if prior_m is not None:
+        options["prior_m"] = prior_m
+    steps = np.arange(horizon + 1)
     for clip in clips:
         pos = np.asarray(clip.positions, dtype=np.float64)
         if pos.shape[0] < t_in + horizon:
             continue
-        extra = {} if gamma is None else {"gamma": gamma}
-        arbiter = ForecastArbiter(names, horizon=horizon, dt_s=1.0 / fps, coverage=coverage, **extra)
-        for i in range(t_in - 1, pos.shape[0] - horizon):
+        arbiter = ForecastArbiter(names, horizon=horizon, dt_s=1.0 / fps, coverage=coverage, **options)
+        ends = np.arange(t_in - 1, pos.shape[0] - horizon)
+        hist = np.stack([pos[i - t_in + 1 : i + 1] for i in ends])
+        futures = {
+            n: np.concatenate(
+                [
+                    np.concatenate([hist[s : s + batch, -1:], fn(hist[s : s + batch], horizon)], axis=1)
+                    for s in range(0, hist.shape[0], batch)
+                ]
+            )
+            for n, fn in predictors.items()
+        }
+        for j_end, i in enumerate(ends):
             t = i / fps
             arbiter.score(t, pos[i])
-            hist = pos[i - t_in + 1 : i + 1][None]
-            futures = {
-                n: np.concatenate([hist[:, -1:], fn(hist, horizon)], axis=1)[0]
-                for n, fn in predictors.items()
-            }
-            out = arbiter.combine(t, futures)
+            out = arbiter.combine(t, {n: f[j_end] for n, f in futures.items()})
             truth = pos[i : i + horizon + 1][None]
             for j, ms in enumerate(horizons_ms):
                 p = interpolate_horizon(out.joints[None], ms / 1000.0, fps)[0]
                 g = interpolate_horizon(truth, ms / 1000.0, fps)[0]
-                m = float(np.interp(ms / 1000.0 * fps, np.arange(horizon + 1), out.margins))
+                m = float(np.interp(ms / 1000.0 * fps, steps, out.margins))
                 d = np.linalg.norm(p - g, axis=1)
                 err_sum[j] += float(d.mean())
                 cov_sum[j] += float(np.mean(d <= m))
@@ -215,7 +229,7 @@ def evaluate_arbitrated(
                 chosen_counts[name] += 1
     if count == 0:
         raise ValueError(f"no clip is longer than {t_in + horizon} frames")
-    steps = sum(chosen_counts.values())
+    n_steps = sum(chosen_counts.values())
     return {
         "mpjpe_mm": {
             str(ms): round(1000.0 * e / count, 1) for ms, e in zip(horizons_ms, err_sum, strict=True)
@@ -223,5 +237,5 @@ def evaluate_arbitrated(
         "coverage": {str(ms): round(c / count, 4) for ms, c in zip(horizons_ms, cov_sum, strict=True)},
         "coverage_target": coverage,
         "forecasts": count,
-        "chosen": {n: round(c / max(steps, 1), 3) for n, c in chosen_counts.items()},
+        "chosen": {n: round(c / max(n_steps, 1), 3) for n, c in chosen_counts.items()},
     }

@@ -270,6 +270,7 @@ class MotionPredictor:
                 else:
                     self.model = loaded.model
                     self.model_meta = loaded.meta
+        self._quantile_data: dict[str, Any] | None = None
         self._margins = self._load_margins(quantiles, weights_path)
         self.arbiter: ForecastArbiter | None = None
         if arbitrate:
@@ -284,10 +285,26 @@ class MotionPredictor:
                 dt_s=self.dt_s,
                 coverage=coverage,
                 floor_m=max(self.tracking_margin_m, 1e-3),
-                prior_m=self._margins[names[0]],
+                prior_m=self._arbiter_prior(names[0], coverage),
             )
 
     # ---------------------------------------------------------------- margins
+    def _arbiter_prior(self, kind: str, coverage: float) -> np.ndarray:
+        """The arbiter's prior margins: the stored error quantile at its cold-start level for ``coverage``
+        (:func:`app.prediction.arbitration.prior_margins`) plus the tracking margin; else the stored
+        margins."""
+        from app.prediction.arbitration import prior_margins
+
+        if self._quantile_data is None:
+            return self._margins[kind]
+        try:
+            prior = prior_margins(
+                self._quantile_data, kind, coverage=coverage, fps=self.fps, horizon=self.horizon
+            )
+        except ValueError:
+            return self._margins[kind]
+        return prior + self.tracking_margin_m
+
     def _load_margins(self, quantiles: str | Path | None, weights_path: Path) -> dict[str, np.ndarray]:
         times = np.arange(self.horizon + 1) * self.dt_s
         candidates = [Path(quantiles)] if quantiles is not None else [quantiles_path(weights_path)]
@@ -298,6 +315,7 @@ class MotionPredictor:
             if c.is_file():
                 try:
                     data = load_quantiles(c)
+                    self._quantile_data = data
                     break
                 except (ValueError, OSError) as exc:
                     log.warning("ignoring error-quantile file %s: %s", c, exc)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.prediction.data import Augmentation, Clip, WindowSampler, windows
+from app.prediction.data import Augmentation, Clip, WindowSampler, check_disjoint, windows
 from app.prediction.evaluate import HORIZONS_MS, evaluate_windows
 from app.prediction.graphmixer import GraphMixerConfig
 from app.prediction.predictor import quantiles_path
@@ -141,6 +141,9 @@ def train(
         out: Weights file to write (``.pt``); the card and quantiles go next to it.
         checkpoint_dir: Where ``last.pt`` (resumable) and ``best.pt`` go; default ``<out dir>/checkpoints``.
         test_clips: Optional held-out clips, evaluated once at the end for the model card.
+
+    Raises:
+        ClipError: a clip (by split and name) is in two of the sets.
         resume: Continue from ``checkpoint_dir/last.pt`` if it exists.
         progress: Show a tqdm progress bar.
         data_note: Free text about the data for the model card.
@@ -150,6 +153,7 @@ def train(
 
     from app.prediction.graphmixer import GraphMixer, count_parameters, mpjpe, save_checkpoint
 
+    check_disjoint(train=train_clips, validation=val_clips, test=test_clips or [])
     t_start = time.monotonic()
     out = Path(out)
     ckpt_dir = Path(checkpoint_dir) if checkpoint_dir is not None else out.parent / "checkpoints"
@@ -287,9 +291,9 @@ def train(
         "stopped": stopped,
         "minutes": round(minutes, 2),
         "params": count_parameters(model),
-        "train_clips": [c.name for c in train_clips],
-        "val_clips": [c.name for c in val_clips],
-        "test_clips": [c.name for c in test_clips] if test_clips else [],
+        "train_clips": [c.label for c in train_clips],
+        "val_clips": [c.label for c in val_clips],
+        "test_clips": [c.label for c in test_clips] if test_clips else [],
         "train_frames": int(sum(c.frames for c in train_clips)),
         "val_frames": int(sum(c.frames for c in val_clips)),
         "torch": str(torch.__version__),

@@ -82,6 +82,10 @@ def test_the_predictor_hands_on_the_arbitrated_forecast_when_asked() -> None:
     plain = MotionPredictor(kind="graphmixer", tracking_margin_m=0.02)
     arbitrated = MotionPredictor(kind="graphmixer", tracking_margin_m=0.02, arbitrate=True, coverage=0.9)
     assert plain.arbiter is None and arbitrated.arbiter is not None
+    # the arbiter starts from the stored quantile at its cold-start level (p99 for a 90-99 % target)
+    p95 = plain.margins_for("graphmixer")
+    assert np.all(arbitrated.arbiter.prior_m[1:] >= p95[1:] - 1e-9)
+    assert arbitrated.arbiter.prior_m[-1] > p95[-1]
     assert arbitrated.arbiter.candidates[-2:] == ("constant_velocity", "zero_velocity")
     for i, pose in enumerate(walking):
         fc = arbitrated.update(HumanFrame(i / 30, pose))
@@ -98,3 +102,123 @@ def test_the_predictor_hands_on_the_arbitrated_forecast_when_asked() -> None:
     )
     arbitrated.reset()
     assert arbitrated.history_len == 0 and arbitrated.arbiter.scored.sum() == 0
+
+
+def _noisy_stream(rng: np.random.Generator, n: int, sigma: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """A still person and a candidate whose every joint is off by isotropic Gaussian noise of ``sigma`` per
+    axis: the joint error is Maxwell distributed (known quantiles)."""
+    poses = np.repeat(rng.normal(0.0, 0.2, size=(1, NUM_JOINTS, 3)), n, axis=0)
+    noise = rng.normal(0.0, sigma, size=(n, H + 1, NUM_JOINTS, 3))
+    noise[:, 0] = 0.0
+    return poses, {"noisy": poses[:, None] + noise}
+
+
+def _maxwell_quantile(q: float, sigma: float) -> float:
+    """Quantile of |x| for x ~ N(0, sigma^2 I_3) (numerically, from a large sample)."""
+    x = np.random.default_rng(99).normal(0.0, sigma, size=(400_000, 3))
+    return float(np.quantile(np.linalg.norm(x, axis=1), q))
+
+
+def _replay(arbiter: ForecastArbiter, poses: np.ndarray, futures: dict[str, np.ndarray]) -> list:
+    outs = []
+    for i in range(poses.shape[0]):
+        arbiter.score(i * DT, poses[i])
+        outs.append(arbiter.combine(i * DT, {k: v[i] for k, v in futures.items()}))
+    return outs
+
+
+def test_coverage_on_a_stream_with_a_known_error_distribution_is_the_target() -> None:
+    rng = np.random.default_rng(5)
+    sigma = 0.05
+    poses, futures = _noisy_stream(rng, 1500, sigma)
+    arbiter = ForecastArbiter(["noisy"], horizon=H, dt_s=DT, coverage=0.95, floor_m=0.001)
+    outs = _replay(arbiter, poses, futures)
+    assert np.all(np.abs(arbiter.coverage()[1:] - 0.95) < 0.015)
+    # and the margin is the distribution's own 95 % quantile
+    assert outs[-1].margins[1:] == pytest.approx(np.full(H, _maxwell_quantile(0.95, sigma)), rel=0.1)
+
+
+def test_the_margin_quantile_is_numpys() -> None:
+    rng = np.random.default_rng(6)
+    poses, futures = _noisy_stream(rng, 60, 0.03)
+    arbiter = ForecastArbiter(["noisy"], horizon=H, dt_s=DT, window=20, warmup=0, floor_m=0.0)
+    _replay(arbiter, poses, futures)
+    k = 4
+    errs = arbiter._joint_err[k, : arbiter._count[k]].ravel()
+    expected = np.quantile(errs, 1.0 - arbiter._alpha_t[k])
+    assert arbiter.margins()[k] == pytest.approx(expected, rel=1e-9)
+
+
+def test_the_prior_holds_until_scores_exist_and_bounds_the_warm_up() -> None:
+    rng = np.random.default_rng(7)
+    sigma = 0.05
+    q95 = _maxwell_quantile(0.95, sigma)
+    prior = np.linspace(0.0, 2.0 * q95, H + 1)  # too wide at the far steps, too narrow at the near ones
+    poses, futures = _noisy_stream(rng, 300, sigma)
+    arbiter = ForecastArbiter(
+        ["noisy"], horizon=H, dt_s=DT, floor_m=0.001, prior_m=prior, warmup=60, rescale_prior=False
+    )
+    outs = _replay(arbiter, poses, futures)
+    np.testing.assert_allclose(outs[0].margins[1:], prior[1:])  # nothing scored yet: the prior
+    during = outs[40].margins  # every step scored >= 10 and < 60 times: at least the prior
+    assert np.all(during[1:] >= prior[1:] - 1e-12)
+    after = outs[-1].margins  # past the warm-up: the scores alone
+    assert after[H] == pytest.approx(q95, rel=0.2) and after[H] < 0.7 * prior[H]
+
+    # a flat prior far too narrow for this stream: the first forecasts are not covered; the stored one is
+    def early_coverage(prior_m: np.ndarray) -> float:
+        a = ForecastArbiter(
+            ["noisy"], horizon=H, dt_s=DT, floor_m=0.001, prior_m=prior_m, rescale_prior=False
+        )
+        _replay(a, poses[:30], futures)
+        return float(a.coverage()[H])
+
+    assert early_coverage(np.full(H + 1, 0.2 * q95)) < 0.2
+    assert early_coverage(np.full(H + 1, q95)) > 0.85
+
+
+def test_the_prior_widens_with_what_the_fresh_steps_show() -> None:
+    rng = np.random.default_rng(8)
+    sigma = 0.05
+    q95 = _maxwell_quantile(0.95, sigma)
+    poses, futures = _noisy_stream(rng, 16, sigma)
+    prior = np.full(H + 1, 0.25 * q95)  # 4x too narrow
+    kwargs = {"horizon": H, "dt_s": DT, "floor_m": 0.001, "prior_m": prior}
+    plain = _replay(ForecastArbiter(["noisy"], rescale_prior=False, **kwargs), poses, futures)[-1]
+    rescaled = _replay(ForecastArbiter(["noisy"], **kwargs), poses, futures)[-1]
+    # after 16 frames the near steps are scored, the far ones not yet: the far margins are the prior, scaled
+    # up by the near steps' ratio of scored quantile to prior (never down)
+    assert plain.margins[H] == pytest.approx(prior[H])
+    assert rescaled.margins[H] == pytest.approx(q95, rel=0.3)
+
+
+def test_prior_margins_take_the_cold_start_level_of_the_stored_quantiles() -> None:
+    from app.prediction.arbitration import prior_margins
+
+    stored = {"p50": [0.0, 0.1, 0.2], "p95": [0.0, 0.3, 0.6], "p99": [0.0, 0.5, 1.0], "max_p95": [0, 9, 9]}
+    doc = {"fps": 10.0, "kinds": {"net": stored, "none": {"max_p95": [0.0]}}}
+    # 95 % target: the p99 row (a new person), on a grid twice as fine, held beyond the stored steps
+    np.testing.assert_allclose(
+        prior_margins(doc, "net", coverage=0.95, fps=20.0, horizon=6), [0.0, 0.25, 0.5, 0.75, 1.0, 1.0, 1.0]
+    )
+    np.testing.assert_allclose(prior_margins(doc, "net", coverage=0.5, fps=10.0, horizon=2), [0.0, 0.3, 0.6])
+    with pytest.raises(ValueError, match="no stored error quantile"):
+        prior_margins(doc, "none", coverage=0.95, fps=10.0, horizon=2)
+    with pytest.raises(ValueError, match="no stored error quantiles of 'other'"):
+        prior_margins(doc, "other", coverage=0.95, fps=10.0, horizon=2)
+
+
+def test_the_far_steps_follow_the_near_steps_only_on_clear_evidence() -> None:
+    rng = np.random.default_rng(9)
+    still = _walk(np.zeros(3), 16, rng)
+    # near steps scored, far steps not yet: "hold" has been exact, the preferred "network" off by 0.3 m
+    candidates = {"network": lambda p, q: _hold(p, q) + 0.3, "hold": _hold}
+    kwargs = {"horizon": H, "dt_s": DT}
+    plain = _run(ForecastArbiter(["network", "hold"], transfer_ratio=0.0, **kwargs), still, candidates)[-1]
+    transfer = _run(ForecastArbiter(["network", "hold"], **kwargs), still, candidates)[-1]  # default 0.5
+    assert plain.chosen[1] == "hold" and plain.chosen[H] == "network"
+    assert transfer.chosen[1:] == ("hold",) * H
+    # a candidate only slightly better at the near steps does not take the far ones
+    close = {"network": lambda p, q: _hold(p, q) + 0.01, "hold": lambda p, q: _hold(p, q) + 0.008}
+    out = _run(ForecastArbiter(["network", "hold"], transfer_ratio=0.5, **kwargs), still, close)[-1]
+    assert out.chosen[1] == "hold" and out.chosen[H] == "network"
