@@ -1108,7 +1108,8 @@ class Supervisor:
         self, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
     ) -> float:
         """The governor's target scale for the tick from ``t`` to ``t + dt`` (compiled:
-        :func:`app.safety._kernels.governed_scale`; :meth:`_governed_scale_reference` in NumPy). Caller
+        :func:`app.safety._kernels.governed_scale`; the tests compare it with a NumPy reference in
+        ``tests/governor_reference.py``). Caller
         holds the lock."""
         law = self.speed_scale_law
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
@@ -1131,33 +1132,6 @@ class Supervisor:
                 NO_LAW if law is None else law.kernel_params,
             )
         )
-
-    def _governed_scale_reference(
-        self, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
-    ) -> float:
-        """:meth:`_governed_scale` in NumPy. Caller holds the lock."""
-        # separation lower bound of each part at the next tick
-        sep_lb, v_h = self._separation_bound(t + dt)
-        sep_lb = sep_lb - s * vmax * dt
-        m = np.full(vmax.shape, bool(np.any(vmax > 1e-4)))  # every part of a robot that moves
-        s_target = self.ssm.max_scale_reference(
-            sep_lb[m], v_human_mps=v_h[m], v_parts_mps=vmax[m], rate=rate, lo=lo, hi=hi
-        )
-        if self.speed_scale_law is not None and np.any(m):
-            # the standard's law with the person's measured speed (the envelope above already covers
-            # their worst-case speed-up since it was measured, with the stopping time of this speed)
-            law = self.speed_scale_law(sep_lb[m], vmax[m], np.maximum(self._v_h0[m], 0.0))
-            s_target = min(s_target, max(law, 0.0))
-        return s_target
-
-    def _separation_bound(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Per robot part: a lower bound of the separation at time ``t`` (m) and an upper bound of the
-        person's approach speed then (m/s), from the last measurement, the person's worst case since, and
-        the part's travel. Caller holds the lock."""
-        if not math.isfinite(self._v_h_t):
-            return self._sep_m.copy(), np.full(self.n_parts, self.ssm.human_speed_max_mps)
-        x1, v1 = self.ssm.human_approach(self._v_h0, t - self._v_h_t)
-        return self._sep_m - (x1 - self._x_h0) - self._travel_m, np.asarray(v1)
 
     def recent_decide_s(self) -> tuple[float, ...]:
         with self._lock:

@@ -1,9 +1,10 @@
 """Compiled inner loops of the speed governor (numba): run per servo tick on the robot's parts.
 
-:func:`max_scale` is the loop form of :meth:`app.safety.governor.SeparationModel.max_scale_reference`
-and :func:`governed_scale` of :meth:`app.control.supervisor.Supervisor._governed_scale_reference`; the tests
-compare each kernel with its reference. They run per servo tick on arrays of seven robot parts, where NumPy's
-per-call cost (about a microsecond per operation, dozens to hundreds per call) is most of the time.
+:func:`max_scale` is the loop form of ``max_scale_reference`` and :func:`governed_scale` of
+``governed_scale_reference``, NumPy references kept with the tests (``tests/governor_reference.py``);
+the tests compare each kernel with its reference. They run per servo tick on arrays of seven robot
+parts, where NumPy's per-call cost (about a microsecond per operation, dozens to hundreds per call) is most
+of the time.
 
 The arithmetic is written in the references' order of operations and compiled without ``fastmath``, so the
 results agree to rounding. ``cache=True`` keeps the machine code next to this file (numba compiles in

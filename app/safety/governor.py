@@ -146,8 +146,8 @@ class SeparationModel:
 
         Only scales in ``[lo, hi]`` are examined (the grid's and both ends; the servo passes the range it
         can reach within one tick): the answer is the largest of them up to which every one is safe, ``hi``
-        at most, and 0 when ``lo`` is not safe. Compiled (:func:`app.safety._kernels.max_scale`); the same
-        numbers as :meth:`max_scale_reference`."""
+        at most, and 0 when ``lo`` is not safe. Compiled (:func:`app.safety._kernels.max_scale`); the tests
+        compare it with a NumPy reference (``tests/governor_reference.py``)."""
         return float(
             _kernel_max_scale(
                 np.ascontiguousarray(separation_m, dtype=np.float64).reshape(-1),
@@ -161,46 +161,6 @@ class SeparationModel:
                 self._kernel_params,
             )
         )
-
-    def max_scale_reference(
-        self,
-        separation_m: np.ndarray,
-        *,
-        v_human_mps: np.ndarray,
-        v_parts_mps: np.ndarray,
-        rate: float,
-        lo: float = 0.0,
-        hi: float = 1.0,
-    ) -> float:
-        """:meth:`max_scale` in NumPy over the whole envelope at once (the reference of the tests)."""
-        d1 = np.asarray(separation_m, dtype=np.float64)
-        vh1 = np.asarray(v_human_mps, dtype=np.float64)
-        vp1 = np.asarray(v_parts_mps, dtype=np.float64)
-        if d1.size == 0:
-            return 1.0
-        vtop = float(vp1.max())
-        lo, hi = max(float(lo), 0.0), min(float(hi), 1.0)
-        # quick accept (most ticks): every term at its largest over a brake from the highest scale asked for
-        t_b = hi / max(rate, 1e-6)
-        x_b, v_b = self.human_approach(vh1, t_b)
-        worst = self.sp(hi * vp1, hi * vtop, v_b) + x_b + hi * vp1 * t_b
-        if bool(np.all(d1 >= worst)):
-            return hi
-        inside = (SCALE_GRID - lo > 0.0) & (SCALE_GRID - hi < 0.0)
-        scales = SCALE_GRID[inside]
-        scales = np.concatenate([[lo], scales, [hi]]) if hi > lo else np.array([lo])
-        d, vh0, vp = d1[:, None, None], vh1[:, None, None], vp1[:, None, None]
-        sc = scales[None, :, None]
-        t = BRAKE_INSTANTS[None, None, :] * sc / max(rate, 1e-6)
-        x_h, v_h = self.human_approach(vh0, t)
-        a = rate * vp
-        v = sc * vp
-        travel = v * t - 0.5 * a * t**2
-        s_t = sc - rate * t  # the scale during the brake
-        need = self.sp(s_t * vp, s_t * vtop, v_h)
-        ok = np.all(d - x_h - travel - need >= 0.0, axis=2).all(axis=0)  # (NS,) every part
-        n_ok = int(np.cumprod(ok).sum())
-        return float(scales[n_ok - 1]) if n_ok > 0 else 0.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -59,8 +59,6 @@ PENDING: dict[str, set[str]] = {
     "reference_forks": {
         "app.cell.joint_tracking.step_reference",
         "app.cell.operator_sim.pose_reference",
-        "app.safety.governor.max_scale_reference",
-        "app.control.supervisor._governed_scale_reference",
         "app.planning.collision.__init__",
         "app.planning.kinematics.__init__",
         "app.planning.kinematics.from_workcell",

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from governor_reference import governed_scale_reference, max_scale_reference
 
 from app.control.backup import BackupComputer, InlinePlanJobs
 from app.control.supervisor import Supervisor, SupervisorConfig, _ramp_distance
@@ -703,7 +704,7 @@ def test_the_compiled_envelope_equals_the_numpy_reference() -> None:
         )
         d = rng.uniform(-0.1, 1.5, n)
         with np.errstate(invalid="ignore"):  # an infinite brake rate: inf * 0 in the reference's grid
-            want = model.max_scale_reference(d, **kw)
+            want = max_scale_reference(model, d, **kw)
         got = model.max_scale(d, **kw)
         assert got == pytest.approx(want, abs=1e-12), (d, kw)
         outcomes.add("hi" if got == min(hi, 1.0) else "zero" if got == 0.0 else "inside")
@@ -733,7 +734,7 @@ def test_the_compiled_governor_equals_the_numpy_reference() -> None:
         lo, hi = max(s - rate * 0.008, 0.0), s + 0.04
         sup.speed_scale_law = None if i % 7 == 0 else LAW
         with np.errstate(invalid="ignore"):
-            want = sup._governed_scale_reference(0.0, 0.008, s, vmax, rate, lo, hi)
+            want = governed_scale_reference(sup, 0.0, 0.008, s, vmax, rate, lo, hi)
         got = sup._governed_scale(0.0, 0.008, s, vmax, rate, lo, hi)
         assert got == pytest.approx(want, abs=1e-12), i
         seen.add("hi" if got == pytest.approx(min(hi, 1.0)) else "zero" if got == 0.0 else "between")

@@ -1,0 +1,82 @@
+"""NumPy references of the speed governor's compiled loops, for the tests only (the product never imports
+them): the braking envelope's largest safe scale (:func:`app.safety._kernels.max_scale`) and the servo tick's
+target scale (:func:`app.safety._kernels.governed_scale`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from app.control.supervisor import Supervisor
+from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, SeparationModel
+
+
+def max_scale_reference(
+    model: SeparationModel,
+    separation_m: np.ndarray,
+    *,
+    v_human_mps: np.ndarray,
+    v_parts_mps: np.ndarray,
+    rate: float,
+    lo: float = 0.0,
+    hi: float = 1.0,
+) -> float:
+    """:meth:`SeparationModel.max_scale` of ``model`` in NumPy, over the whole envelope at once."""
+    d1 = np.asarray(separation_m, dtype=np.float64)
+    vh1 = np.asarray(v_human_mps, dtype=np.float64)
+    vp1 = np.asarray(v_parts_mps, dtype=np.float64)
+    if d1.size == 0:
+        return 1.0
+    vtop = float(vp1.max())
+    lo, hi = max(float(lo), 0.0), min(float(hi), 1.0)
+    # quick accept (most ticks): every term at its largest over a brake from the highest scale asked for
+    t_b = hi / max(rate, 1e-6)
+    x_b, v_b = model.human_approach(vh1, t_b)
+    worst = model.sp(hi * vp1, hi * vtop, v_b) + x_b + hi * vp1 * t_b
+    if bool(np.all(d1 >= worst)):
+        return hi
+    inside = (SCALE_GRID - lo > 0.0) & (SCALE_GRID - hi < 0.0)
+    scales = SCALE_GRID[inside]
+    scales = np.concatenate([[lo], scales, [hi]]) if hi > lo else np.array([lo])
+    d, vh0, vp = d1[:, None, None], vh1[:, None, None], vp1[:, None, None]
+    sc = scales[None, :, None]
+    t = BRAKE_INSTANTS[None, None, :] * sc / max(rate, 1e-6)
+    x_h, v_h = model.human_approach(vh0, t)
+    a = rate * vp
+    v = sc * vp
+    travel = v * t - 0.5 * a * t**2
+    s_t = sc - rate * t  # the scale during the brake
+    need = model.sp(s_t * vp, s_t * vtop, v_h)
+    ok = np.all(d - x_h - travel - need >= 0.0, axis=2).all(axis=0)  # (NS,) every part
+    n_ok = int(np.cumprod(ok).sum())
+    return float(scales[n_ok - 1]) if n_ok > 0 else 0.0
+
+
+def separation_bound(sup: Supervisor, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per robot part: a lower bound of the separation at time ``t`` (m) and an upper bound of the
+    person's approach speed then (m/s), from the last measurement, the person's worst case since, and
+    the part's travel (as the compiled governor computes them)."""
+    if not math.isfinite(sup._v_h_t):
+        return sup._sep_m.copy(), np.full(sup.n_parts, sup.ssm.human_speed_max_mps)
+    x1, v1 = sup.ssm.human_approach(sup._v_h0, t - sup._v_h_t)
+    return sup._sep_m - (x1 - sup._x_h0) - sup._travel_m, np.asarray(v1)
+
+
+def governed_scale_reference(
+    sup: Supervisor, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
+) -> float:
+    """``sup._governed_scale`` (the compiled servo tick) in NumPy."""
+    # separation lower bound of each part at the next tick
+    sep_lb, v_h = separation_bound(sup, t + dt)
+    sep_lb = sep_lb - s * vmax * dt
+    m = np.full(vmax.shape, bool(np.any(vmax > 1e-4)))  # every part of a robot that moves
+    s_target = max_scale_reference(
+        sup.ssm, sep_lb[m], v_human_mps=v_h[m], v_parts_mps=vmax[m], rate=rate, lo=lo, hi=hi
+    )
+    if sup.speed_scale_law is not None and np.any(m):
+        # the standard's law with the person's measured speed (the envelope above already covers
+        # their worst-case speed-up since it was measured, with the stopping time of this speed)
+        law = sup.speed_scale_law(sep_lb[m], vmax[m], np.maximum(sup._v_h0[m], 0.0))
+        s_target = min(s_target, max(law, 0.0))
+    return s_target
