@@ -73,7 +73,7 @@ from app.control.trajectory_views import (
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 from app.safety._kernels import governed_scale as _kernel_governed_scale
-from app.safety.governor import BRAKE_INSTANTS, NO_LAW, SCALE_GRID, SeparationModel, SpeedScaleLaw
+from app.safety.governor import BRAKE_INSTANTS, NO_LAW, SCALE_GRID, SeparationModel, SpeedScaleLaw, brake_rate
 from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
@@ -703,11 +703,7 @@ class Supervisor:
         s0 = self._s
         vmax = float(active.profile.window_at(self._tau).max())
         jmax = active.profile.joint_window_at(self._tau)
-        rate = math.inf
-        if vmax > 1e-9:
-            rate = min(rate, cfg.brake_decel_mps2 / vmax)
-        if jmax > 1e-9:
-            rate = min(rate, cfg.brake_joint_decel / jmax)
+        rate = brake_rate(vmax, jmax, cfg.brake_decel_mps2, cfg.brake_joint_decel)
         if not math.isfinite(rate) or s0 <= 0:
             rate = max(s0, 1e-3) / 1e-3
         t_b = s0 / rate
@@ -864,11 +860,7 @@ class Supervisor:
         vtop = float(vmax.max())
         jmax = active.profile.joint_window_at(self._tau)
         # braking: the path scale falls at `rate` (1/s), each part slows at rate * its speed
-        rate = math.inf
-        if vtop > 1e-9:
-            rate = cfg.brake_decel_mps2 / vtop
-        if jmax > 1e-9:
-            rate = min(rate, cfg.brake_joint_decel / jmax)
+        rate = brake_rate(vtop, jmax, cfg.brake_decel_mps2, cfg.brake_joint_decel)
         s = self._s
         if self._stale:
             s_target = 0.0

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from app.planning.trajectory import Trajectory
+from app.planning.trajectory import Trajectory, sample_times
 from app.safety.governor import GovernorModel, directed_approach
 
 __all__ = ["PredictedTiming", "part_speeds", "predicted_scales"]
@@ -133,6 +133,4 @@ class PredictedTiming:
     def sample(self, dt_s: float, *, t_from: float | None = None, t_to: float | None = None) -> np.ndarray:
         a = self.t_start if t_from is None else float(t_from)
         b = self.t_end if t_to is None else float(t_to)
-        if b <= a:
-            return np.array([a])
-        return np.linspace(a, b, math.ceil((b - a) / dt_s) + 1)
+        return sample_times(a, b, dt_s)

@@ -142,6 +142,16 @@ def _segment_peaks(times: np.ndarray, q: np.ndarray, v: np.ndarray) -> tuple[np.
     return vel, acc
 
 
+def sample_times(a: float, b: float, dt_s: float) -> np.ndarray:
+    """Times (N,) every ``dt_s`` (at most) from ``a`` to ``b``, both ends included (``[a]`` when
+    ``b <= a``)."""
+    if dt_s <= 0:
+        raise ValueError(f"dt_s must be > 0, got {dt_s}")
+    if b <= a:
+        return np.array([a])
+    return np.linspace(a, b, int(np.ceil((b - a) / dt_s)) + 1)
+
+
 def fit_knots(
     times: np.ndarray,
     q: np.ndarray,
@@ -413,15 +423,10 @@ class Trajectory:
 
     def sample(self, dt_s: float, *, t_from: float | None = None, t_to: float | None = None) -> np.ndarray:
         """Sample times (N,) every ``dt_s`` from ``t_from`` (default ``t_start``) to ``t_to`` (default
-        ``t_end``), both ends included."""
-        if dt_s <= 0:
-            raise ValueError(f"dt_s must be > 0, got {dt_s}")
+        ``t_end``), both ends included (:func:`sample_times`)."""
         a = self.t_start if t_from is None else float(t_from)
         b = self.t_end if t_to is None else float(t_to)
-        if b <= a:
-            return np.array([a])
-        n = int(np.ceil((b - a) / dt_s))
-        return np.linspace(a, b, n + 1)
+        return sample_times(a, b, dt_s)
 
     def __repr__(self) -> str:
         return f"Trajectory(t_start={self.t_start:.3f}, t_end={self.t_end:.3f}, knots={self._times.shape[0]})"

@@ -205,6 +205,19 @@ BRAKE_INSTANTS = np.linspace(0.0, 1.0, 25)[:-1]
 # ----------------------------------------------------------------------------------------------------
 
 
+def brake_rate(v_top_mps: float, w_top_radps: float, decel_mps2: float, joint_decel_radps2: float) -> float:
+    """How fast (1/s) a brake lowers the path scale of a path whose fastest point moves at ``v_top_mps``
+    and fastest joint at ``w_top_radps`` at scale 1, braking at ``decel_mps2`` (fastest point) and
+    ``joint_decel_radps2`` (fastest joint); inf for a path at rest. The supervisor's brake and the
+    governor's model both take it from here."""
+    rate = math.inf
+    if v_top_mps > 1e-9:
+        rate = decel_mps2 / v_top_mps
+    if w_top_radps > 1e-9:
+        rate = min(rate, joint_decel_radps2 / w_top_radps)
+    return rate
+
+
 def directed_approach(
     d_now: np.ndarray, d_before: np.ndarray, dt_s: float, *, band_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -308,14 +321,8 @@ class GovernorModel:
         return np.where(v <= v_creep_mps, 0.0, np.maximum(need - creep, 0.0))
 
     def brake_rate(self, v_top_mps: float, w_top_radps: float) -> float:
-        """How fast (1/s) a brake lowers the path scale of a path whose fastest point moves at
-        ``v_top_mps`` and fastest joint at ``w_top_radps`` at scale 1 (inf for a path at rest)."""
-        rate = math.inf
-        if v_top_mps > 1e-9:
-            rate = self.brake_decel_mps2 / v_top_mps
-        if w_top_radps > 1e-9:
-            rate = min(rate, self.brake_joint_decel / w_top_radps)
-        return rate
+        """:func:`brake_rate` with this governor's brake."""
+        return brake_rate(v_top_mps, w_top_radps, self.brake_decel_mps2, self.brake_joint_decel)
 
     def scale(
         self, sep_m: np.ndarray, v_human_mps: np.ndarray, v_parts_mps: np.ndarray, w_top_radps: float
