@@ -278,6 +278,9 @@ class TrialResult:
             "tracker_latency_s": self.tracker_latency_s,
             "violations_in_intrusions": 0 if self.safety is None else self.safety.violations_in_intrusions,
             "worst_sample": self._worst_json(),
+            "violation_episodes": (
+                [] if self.safety is None else [e.to_json() for e in self.safety.episodes]
+            ),
             "time_budget_s": self.time_budget_s,
             "arrival_error_s": self.arrival_error_s,
             "time_stopped_s": m.time_stopped_s,

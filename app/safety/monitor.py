@@ -40,7 +40,14 @@ import numpy as np
 from app.safety.ssm import SSMParams
 from app.safety.stopping import UR5E_STOP, StoppingModel
 
-__all__ = ["ISO13855_SPEEDS", "GroundTruthMonitor", "MonitorSample", "MonitorTotals", "is_intrusion"]
+__all__ = [
+    "ISO13855_SPEEDS",
+    "GroundTruthMonitor",
+    "MonitorEpisode",
+    "MonitorSample",
+    "MonitorTotals",
+    "is_intrusion",
+]
 
 #: ISO 13855's constant approach speeds (m/s): the body (walking) and a hand or arm reaching in.
 ISO13855_SPEEDS = {"body": 1.6, "arm": 2.0}
@@ -101,6 +108,37 @@ class MonitorSample:
 
 
 @dataclass(frozen=True, slots=True)
+class MonitorEpisode:
+    """One violation or contact episode, as the trial's JSON lists it.
+
+    Attributes:
+        kind: ``violation`` or ``contact``.
+        intrusion: Started by an intrusion (counted apart, in ``violations_in_intrusions``).
+        start_s: Time of its first check (s).
+        duration_s: From its first check to its last (s); 0 for an episode of one check.
+        first: Its first check.
+        worst: Its check with the least ``separation - S_p``.
+    """
+
+    kind: str
+    intrusion: bool
+    start_s: float
+    duration_s: float
+    first: MonitorSample
+    worst: MonitorSample
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "intrusion": self.intrusion,
+            "start_s": round(self.start_s, 4),
+            "duration_s": round(self.duration_s, 4),
+            "first": self.first.to_json(),
+            "worst": self.worst.to_json(),
+        }
+
+
+@dataclass(frozen=True, slots=True)
 class MonitorTotals:
     """A trial's verdict (see the module docstring).
 
@@ -115,6 +153,8 @@ class MonitorTotals:
         min_separation_moving_m: Smallest separation while the robot was not at standstill (m).
         worst: The check with the least ``separation - S_p`` while the robot moved (None if it never did).
         checks: Checks made.
+        episodes: Every violation and contact episode (the first :attr:`GroundTruthMonitor.MAX_EPISODES`),
+            with its first and worst check, so that each one can be read from the trial's JSON.
     """
 
     violations: int
@@ -127,6 +167,7 @@ class MonitorTotals:
     min_separation_moving_m: float
     worst: MonitorSample | None
     checks: int
+    episodes: tuple[MonitorEpisode, ...] = ()
 
 
 class GroundTruthMonitor:
@@ -150,10 +191,15 @@ class GroundTruthMonitor:
         fd_step_s: Time step of the robot's directed speed (finite difference along ``qd``).
         intrusion_speed_mps: The true person moving like no person moves between two checks
             (:func:`is_intrusion` with this body speed) is an intrusion: a person appearing, or a recording
-            or a tracker jumping. The violation episode that it starts (until the robot is at standstill or
-            the separation recovers) is the intrusion's, not the planner's: it is counted apart
-            (``violations_in_intrusions``), never dropped.
+            or a tracker jumping. A violation episode that starts within the reaction time ``T_r`` of an
+            intrusion's last check (until then no system can have reacted to the jump; the jump itself,
+            spread over a few checks, may open the episode a check or two after it was seen) is the
+            intrusion's, not the planner's, until it ends (the robot at standstill or the separation
+            recovered): it is counted apart (``violations_in_intrusions``), never dropped.
     """
+
+    #: How many episodes :meth:`totals` lists (all are counted).
+    MAX_EPISODES = 50
 
     def __init__(
         self,
@@ -182,7 +228,10 @@ class GroundTruthMonitor:
         self.intrusion_speed_mps = float(intrusion_speed_mps)
         self.intrusions = 0
         self.violations_in_intrusions = 0
-        self._intrusion = False
+        self._intrusion_t = -math.inf  # time of the last check that saw an intrusion
+        self._episode_intrusion = False  # the open violation episode is an intrusion's
+        self._open: dict[str, _OpenEpisode] = {}  # the episodes under way, by kind
+        self.episodes: list[MonitorEpisode] = []
         # judged on the true person, the sensing uncertainty Z_d is not added: it stands for the difference
         # between the measured and the true person, which the judge does not have (a system that keeps the
         # *measured* separation above S_p keeps the true one above S_p - Z_d)
@@ -223,7 +272,7 @@ class GroundTruthMonitor:
             np.linalg.norm(joints - before, axis=1) / dt, body_mps=self.intrusion_speed_mps
         ):
             self.intrusions += 1
-            self._intrusion = True
+            self._intrusion_t = float(t)
         w_top = float(np.abs(qd).max())
         moving = w_top > self.standstill_radps
         d = self.geometry.pair_distances(q, np.stack([joints, before]))  # (2, L, M)
@@ -260,9 +309,9 @@ class GroundTruthMonitor:
             self.worst = sample
         if violation:
             self.violation_time_s += tick
-        self._episode("violation", violation)
-        self._episode("contact", contact)
-        self._episode("iso", iso)
+        self._episode("violation", violation, sample, float(margin[i]))
+        self._episode("contact", contact, sample, float(margin[i]))
+        self._episode("iso", iso, sample, float(margin[i]))
         return sample
 
     def totals(self) -> MonitorTotals:
@@ -278,27 +327,63 @@ class GroundTruthMonitor:
             min_separation_moving_m=self.min_separation_moving_m,
             worst=self.worst,
             checks=self.checks,
+            episodes=tuple(self.episodes),
         )
 
     # ------------------------------------------------------------------------------------------------
     def _part(self, i: int) -> str:
         return self.part_names[i] if i < len(self.part_names) else str(i)
 
-    def _episode(self, kind: str, now: bool) -> None:
-        if kind == "violation" and self._intrusion and not now:
-            self._intrusion = False  # the intrusion's episode is over (or it never started one)
-        if now and not self._in[kind]:
-            if kind == "violation" and self._intrusion:
-                self.violations_in_intrusions += 1
-            elif kind == "violation":
-                self.violations += 1
+    def _episode(self, kind: str, now: bool, sample: MonitorSample, margin_m: float) -> None:
+        if not now:
+            self._end(kind)
+            return
+        if not self._in[kind]:
+            if kind == "violation":
+                self._episode_intrusion = sample.t - self._intrusion_t <= self.t_r
+                if self._episode_intrusion:
+                    self.violations_in_intrusions += 1
+                else:
+                    self.violations += 1
             elif kind == "contact":
                 self.contacts += 1
             else:
                 self.violations_iso += 1
-        self._in[kind] = now
+            self._in[kind] = True
+            if kind != "iso":
+                intrusion = kind == "violation" and self._episode_intrusion
+                self._open[kind] = _OpenEpisode(sample, sample, margin_m, sample.t, intrusion)
+        elif kind in self._open:
+            self._open[kind].update(sample, margin_m)
+
+    def _end(self, kind: str) -> None:
+        self._in[kind] = False
+        if kind == "violation":
+            self._episode_intrusion = False
+        rec = self._open.pop(kind, None)
+        if rec is not None and len(self.episodes) < self.MAX_EPISODES:
+            self.episodes.append(
+                MonitorEpisode(
+                    kind, rec.intrusion, rec.first.t, rec.last_t - rec.first.t, rec.first, rec.worst
+                )
+            )
 
     def _close_episodes(self) -> None:
         for kind in self._in:
-            self._in[kind] = False
-        self._intrusion = False
+            self._end(kind)
+
+
+@dataclass(slots=True)
+class _OpenEpisode:
+    """An episode still under way: its first and worst check, and its last check's time."""
+
+    first: MonitorSample
+    worst: MonitorSample
+    worst_margin_m: float
+    last_t: float
+    intrusion: bool
+
+    def update(self, sample: MonitorSample, margin_m: float) -> None:
+        self.last_t = sample.t
+        if margin_m < self.worst_margin_m:
+            self.worst, self.worst_margin_m = sample, margin_m

@@ -146,5 +146,40 @@ def test_a_true_jump_starts_an_intrusion_whose_violation_is_counted_apart(geomet
     assert first.violation
     assert mon.intrusions == 1 and mon.violations == 0 and mon.violations_in_intrusions == 1
     mon.check(0.008, q, np.zeros(6), person, person, 0.008)  # the robot at standstill: the episode ends
-    mon.check(0.016, q, qd, person, person, 0.008)  # moving again inside S_p: the planner's violation
+    # moving again inside S_p once T_r has passed (the system has seen the person): the planner's violation
+    mon.check(0.016 + T_R, q, qd, person, person, 0.008)
     assert mon.violations == 1 and mon.violations_in_intrusions == 1
+
+
+def test_a_violation_that_opens_within_the_reaction_time_of_a_jump_is_the_jumps(geometry) -> None:
+    """A jump spread over a few checks may open the episode a check after it was seen: until ``T_r`` has
+    passed no system can have reacted, so the episode is the intrusion's; after ``T_r`` it is the robot's."""
+    mon = _monitor(geometry)
+    q, qd, person, direction = _scene(geometry, 0.15)
+    far = person + 0.8 * direction
+    mon.check(0.0, q, qd, far, far + 0.15 * direction, 0.008)  # mid-jump, still far: no violation yet
+    assert mon.intrusions == 1 and not mon.totals().episodes
+    mon.check(0.008, q, qd, person, person, 0.008)  # the jump has landed inside S_p
+    assert mon.violations == 0 and mon.violations_in_intrusions == 1
+    mon.check(0.016, q, np.zeros(6), person, person, 0.008)  # at standstill: the episode ends
+    late = 0.016 + T_R + 0.01
+    mon.check(late, q, qd, person, person, 0.008)  # moving again inside S_p after T_r: the robot's
+    assert mon.violations == 1 and mon.violations_in_intrusions == 1
+
+
+def test_every_episode_keeps_its_first_and_worst_check(geometry) -> None:
+    mon = _monitor(geometry)
+    q, qd, person, direction = _scene(geometry, 0.3)
+    for k, gap in enumerate([0.6, 0.12, 0.08, 0.1, 0.6]):  # inside S_p for three checks, then recovered
+        at = person + (gap - 0.3) * direction
+        mon.check(0.008 * k, q, qd, at, at, 0.008)
+    episodes = mon.totals().episodes
+    kinds = [e.kind for e in episodes]
+    assert kinds.count("violation") == 1
+    ep = next(e for e in episodes if e.kind == "violation")
+    assert not ep.intrusion
+    assert ep.first.t == ep.start_s == pytest.approx(0.008)
+    assert ep.first.separation_m == pytest.approx(0.12, abs=2e-3)
+    assert ep.worst.t == pytest.approx(0.016) and ep.worst.separation_m == pytest.approx(0.08, abs=2e-3)
+    assert ep.duration_s == pytest.approx(0.016)
+    assert ep.to_json()["worst"]["part"] == ep.worst.part
