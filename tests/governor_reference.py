@@ -1,15 +1,18 @@
 """NumPy references of the speed governor's compiled loops, for the tests only (the product never imports
-them): the braking envelope's largest safe scale (:func:`app.safety._kernels.max_scale`) and the servo tick's
-target scale (:func:`app.safety._kernels.governed_scale`)."""
+them): the braking envelope's largest safe scale (:func:`app.safety._kernels.max_scale`), the servo tick's
+target scale (:func:`app.safety._kernels.governed_scale`) and the governor's scale predicted along a path
+(:func:`app.planning._timing_kernels.predicted_scales`)."""
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
 from app.control.supervisor import Supervisor
-from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, SeparationModel
+from app.planning.ssm_timing import STEP_S, _ahead_max, part_speeds
+from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, GovernorModel, SeparationModel, directed_approach
 
 
 def max_scale_reference(
@@ -80,3 +83,30 @@ def governed_scale_reference(
         law = sup.speed_scale_law(sep_lb[m], vmax[m], np.maximum(sup._v_h0[m], 0.0))
         s_target = min(s_target, max(law, 0.0))
     return s_target
+
+
+def predicted_scales_reference(
+    traj: Any, forecast: Any, collision: Any, model: GovernorModel, *, step_s: float = STEP_S
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`app.planning.ssm_timing.predicted_scales` as a NumPy loop: one forecast query, one paired
+    distance call and one :meth:`GovernorModel.scale` per sample point."""
+    t0, t1 = traj.t_start, traj.t_end
+    n = max(math.ceil((t1 - t0) / step_s), 1)
+    tau = np.linspace(t0, t1, n + 1)
+    q = traj.q(tau)
+    qd = traj.qd(tau)
+    ahead = max(round(model.lookahead_s / max((t1 - t0) / n, 1e-9)), 0)
+    v = _ahead_max(part_speeds(collision, q, qd), ahead)
+    w = _ahead_max(np.abs(qd).max(axis=1), ahead)
+    window = model.speed_window_s
+    t = np.empty(n + 1)
+    t[0] = t0
+    scales = np.empty(n)
+    for i in range(n):
+        joints, _ = forecast.poses_at(np.array([t[i], t[i] - window]))
+        d = collision.pair_distances(q[i], joints)  # (2, L, M)
+        sep, v_h = directed_approach(d[0], d[1], window, band_m=model.near_band_m)
+        s = model.scale(sep, v_h, np.maximum(v[i], v[i + 1]), float(max(w[i], w[i + 1])))
+        scales[i] = max(s, model.min_scale)
+        t[i + 1] = t[i] + (tau[i + 1] - tau[i]) / scales[i]
+    return tau, t, scales

@@ -19,8 +19,10 @@ from typing import Any
 
 import numpy as np
 
+from app.planning._timing_kernels import TimingGovernor, TimingPath, TimingPerson
+from app.planning._timing_kernels import predicted_scales as _kernel_predicted_scales
 from app.planning.trajectory import Trajectory, sample_times
-from app.safety.governor import GovernorModel, directed_approach
+from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, GovernorModel
 
 __all__ = ["PredictedTiming", "part_speeds", "predicted_scales"]
 
@@ -52,7 +54,20 @@ def _ahead_max(x: np.ndarray, n: int) -> np.ndarray:
 def predicted_scales(
     traj: Trajectory, forecast: Any, collision: Any, model: GovernorModel, *, step_s: float = STEP_S
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Walk along ``traj`` at the governor's predicted scale.
+    """Walk along ``traj`` at the governor's predicted scale (compiled:
+    :func:`app.planning._timing_kernels.predicted_scales`; the tests compare it with a NumPy reference).
+
+    At each sample point the forecast person at the wall time the robot gets there (and a speed window
+    earlier) gives each part's separation and the person's directed speed toward it
+    (:func:`app.safety.governor.directed_approach`), and :meth:`GovernorModel.scale` the scale of the move
+    to the next point, at least ``model.min_scale``.
+
+    Args:
+        traj: The path, timed at full speed.
+        forecast: The person (:class:`app.prediction.forecast.Forecast`: ``times``, ``joints``).
+        collision: The collision model (``robot_capsules``, ``human_capsules``).
+        model: The governor's model.
+        step_s: Spacing of the sample points (s of path time).
 
     Returns:
         ``(tau, t, scale)``: path times (N + 1,) of the sample points on ``traj``'s own clock (its knots'
@@ -67,18 +82,34 @@ def predicted_scales(
     ahead = max(round(model.lookahead_s / max((t1 - t0) / n, 1e-9)), 0)
     v = _ahead_max(part_speeds(collision, q, qd), ahead)  # (N + 1, L) what the governor brakes for
     w = _ahead_max(np.abs(qd).max(axis=1), ahead)
-    window = model.speed_window_s
-    t = np.empty(n + 1)
-    t[0] = t0
-    scales = np.empty(n)
-    for i in range(n):
-        joints, _ = forecast.poses_at(np.array([t[i], t[i] - window]))
-        d = collision.pair_distances(q[i], joints)  # (2, L, M)
-        sep, v_h = directed_approach(d[0], d[1], window, band_m=model.near_band_m)
-        s = model.scale(sep, v_h, np.maximum(v[i], v[i + 1]), float(max(w[i], w[i + 1])))
-        scales[i] = max(s, model.min_scale)
-        t[i + 1] = t[i] + (tau[i + 1] - tau[i]) / scales[i]
+    ra, rb, rr = collision.robot_capsules(q)
+    ha, hb, hr = collision.human_capsules(np.asarray(forecast.joints, dtype=np.float64))
+    path = TimingPath(tau, _f64(ra), _f64(rb - ra), _f64(rr), _f64(v), _f64(w))
+    person = TimingPerson(_f64(forecast.times), _f64(ha), _f64(hb - ha), _f64(hr))
+    t, scales = _kernel_predicted_scales(path, person, _governor_arrays(model), float(t0))
     return tau, t, scales
+
+
+def _f64(x: Any) -> np.ndarray:
+    return np.ascontiguousarray(x, dtype=np.float64)
+
+
+def _governor_arrays(model: GovernorModel) -> TimingGovernor:
+    """``model`` as the compiled walk reads it."""
+    misc = (
+        model.tracking_margin_m,
+        model.speed_window_s,
+        model.sensing_age_s,
+        model.near_band_m,
+        model.speed_noise_mps,
+        model.min_scale,
+        model.brake_decel_mps2,
+        model.brake_joint_decel,
+    )
+    law = np.zeros(0) if model.law is None else model.law.kernel_params
+    return TimingGovernor(
+        _f64(model.separation.kernel_params), _f64(law), _f64(SCALE_GRID), _f64(BRAKE_INSTANTS), _f64(misc)
+    )
 
 
 class PredictedTiming:

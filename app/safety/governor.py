@@ -59,6 +59,12 @@ class SeparationModel:
             raise ValueError("SeparationModel.stop_decel_mps2 must be > 0")
         object.__setattr__(self, "_kernel_params", np.array([float(getattr(self, n)) for n in names]))
 
+    @property
+    def kernel_params(self) -> np.ndarray:
+        """``(s0_m, t_reaction_s, stop_decel_mps2, human_speed_max_mps, human_accel_mps2)``, as the compiled
+        envelope (:func:`app.safety._kernels.max_scale`) reads them (a copy)."""
+        return self._kernel_params.copy()
+
     @classmethod
     def from_ssm(
         cls,

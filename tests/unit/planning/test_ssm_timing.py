@@ -20,7 +20,9 @@ from app.planning.ssm_timing import PredictedTiming, predicted_scales
 from app.planning.trajectory import Trajectory
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
-from app.safety.governor import GovernorModel, SeparationModel
+from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw
+from app.safety.ssm import SSMParams
+from tests.governor_reference import predicted_scales_reference
 from tests.unit.planning.test_search import R_HUMAN, R_ROBOT, PointRobot, config, person, q_of, roadmap
 
 SEPARATION = SeparationModel(
@@ -99,6 +101,33 @@ def test_a_person_beside_the_path_slows_the_predicted_timing_along_the_same_path
     # a floor: where no speed at all is safe the path is timed at the smallest scale, never forever
     _, _, none_safe = predicted_scales(traj, _standing(np.array([0.3, -0.2, 0.4])), ur5e, model)
     assert none_safe.min() == model.min_scale
+
+
+def _walking_past(t0: float) -> HumanForecast:
+    """A person walking past the front of the arm at 1.2 m/s, one pose every 80 ms for a second, swinging
+    a hand toward the robot."""
+    times = t0 + np.arange(13) * 0.08
+    base = np.array([1.1, -0.6, 0.2]) + np.linspace(0.0, 1e-3, NUM_JOINTS)[:, None]
+    joints = np.stack(
+        [base + np.array([-0.2 * np.sin(4 * k * 0.08), 1.2 * k * 0.08, 0.0]) for k in range(13)]
+    )
+    return HumanForecast(t0=t0, times=times, joints=joints, margins=np.zeros(13))
+
+
+@pytest.mark.parametrize("law", [False, True])
+@pytest.mark.parametrize("t0", [0.0, 0.5])
+def test_the_compiled_walk_matches_its_numpy_reference(ur5e: CollisionModel, law: bool, t0: float) -> None:
+    """Along a path past a walking person (the forecast starts at ``t0``, so the walk also reads it held
+    before its start), with and without the speed-scaling law: the same times and scales to rounding."""
+    traj = _base_turn(1.5)
+    model = governor(speed_noise_mps=0.3, law=SpeedScaleLaw(SSMParams()) if law else None)
+    fc = _walking_past(t0)
+    tau, t, scales = predicted_scales(traj, fc, ur5e, model)
+    tau_r, t_r, scales_r = predicted_scales_reference(traj, fc, ur5e, model)
+    assert np.array_equal(tau, tau_r)
+    assert scales.min() < 0.5  # the person matters here
+    assert np.allclose(scales, scales_r, rtol=0, atol=1e-9)
+    assert np.allclose(t, t_r, rtol=1e-9, atol=1e-9)
 
 
 def test_the_extra_clearance_is_zero_up_to_the_creep_and_grows_with_speed() -> None:

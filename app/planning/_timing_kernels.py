@@ -1,0 +1,166 @@
+"""Compiled loop of the SSM-aware timing (numba): the governor's scale predicted along a path.
+
+:func:`predicted_scales` is the loop of :func:`app.planning.ssm_timing.predicted_scales`: it walks along a
+path, asks the forecast where the person will be when the robot gets to each point (the wall time there
+depends on every scale before it, so the walk is sequential), measures the separation and the person's
+directed speed as the supervisor would, and applies the governor's model
+(:meth:`app.safety.governor.GovernorModel.scale`, with the governor's own compiled envelope and law,
+:func:`app.safety._kernels.max_scale` and :func:`app.safety._kernels.law_scale`). The NumPy loop it replaces
+is kept with the tests (``tests/governor_reference.py``), which compare the two.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from app.jit import jit
+from app.planning._kernels import _seg_dist
+from app.safety._kernels import _approach, law_scale, max_scale
+
+__all__ = ["TimingGovernor", "TimingPath", "TimingPerson", "predicted_scales"]
+
+
+class TimingPath(NamedTuple):
+    """The path, sampled at ``N + 1`` points of its own (full-speed) clock.
+
+    Attributes:
+        tau: Path times (N + 1,) (s).
+        ra: Robot capsule starts (N + 1, L, 3) (m).
+        rd: Robot capsule axes, end minus start (N + 1, L, 3) (m).
+        rr: Robot capsule radii (L,) (m).
+        v: Each part's speed at scale 1 over the governor's look-ahead (N + 1, L) (m/s).
+        w: The fastest joint's speed at scale 1 over the look-ahead (N + 1,) (rad/s).
+    """
+
+    tau: np.ndarray
+    ra: np.ndarray
+    rd: np.ndarray
+    rr: np.ndarray
+    v: np.ndarray
+    w: np.ndarray
+
+
+class TimingPerson(NamedTuple):
+    """The forecast person as capsules at the forecast's frames, linear in between, held beyond its ends.
+
+    Attributes:
+        times: Frame times (K,) (s), increasing.
+        ha: Capsule starts (K, M, 3) (m).
+        hd: Capsule axes (K, M, 3) (m).
+        hr: Capsule radii (M,) (m).
+    """
+
+    times: np.ndarray
+    ha: np.ndarray
+    hd: np.ndarray
+    hr: np.ndarray
+
+
+class TimingGovernor(NamedTuple):
+    """The governor's model (:class:`app.safety.governor.GovernorModel`) as the kernel reads it.
+
+    Attributes:
+        separation: ``(s0_m, t_reaction_s, stop_decel_mps2, human_speed_max_mps, human_accel_mps2)``.
+        law: The speed-scaling law's ``(T_r + T_s, C + Z_d + Z_r, T_r + T_s / 2)``, or empty (none).
+        scales: The grid of scales of the envelope.
+        env_u: The instants of a brake (fractions of it).
+        misc: ``(tracking_margin_m, speed_window_s, sensing_age_s, near_band_m, speed_noise_mps, min_scale,
+            brake_decel_mps2, brake_joint_decel)``.
+    """
+
+    separation: np.ndarray
+    law: np.ndarray
+    scales: np.ndarray
+    env_u: np.ndarray
+    misc: np.ndarray
+
+
+@jit
+def _person_distances(
+    person: TimingPerson, t: float, ra: np.ndarray, rd: np.ndarray, rr: np.ndarray, out: np.ndarray
+) -> None:
+    """Signed distances (L, M) of the robot capsules ``ra``, ``rd`` (L, 3) to the person at time ``t``."""
+    times = person.times
+    k = times.shape[0]
+    i0, i1, w = 0, 0, 0.0
+    if k > 1:
+        tc = min(max(t, times[0]), times[k - 1])
+        i1 = int(np.searchsorted(times, tc, side="right"))
+        i1 = min(max(i1, 1), k - 1)
+        i0 = i1 - 1
+        w = (tc - times[i0]) / (times[i1] - times[i0])
+    ha, hd, hr = person.ha, person.hd, person.hr
+    for m in range(hr.shape[0]):
+        ax = ha[i0, m, 0] * (1.0 - w) + ha[i1, m, 0] * w
+        ay = ha[i0, m, 1] * (1.0 - w) + ha[i1, m, 1] * w
+        az = ha[i0, m, 2] * (1.0 - w) + ha[i1, m, 2] * w
+        dx = hd[i0, m, 0] * (1.0 - w) + hd[i1, m, 0] * w
+        dy = hd[i0, m, 1] * (1.0 - w) + hd[i1, m, 1] * w
+        dz = hd[i0, m, 2] * (1.0 - w) + hd[i1, m, 2] * w
+        for i in range(rr.shape[0]):
+            s = _seg_dist(
+                ra[i, 0], ra[i, 1], ra[i, 2], rd[i, 0], rd[i, 1], rd[i, 2], ax, ay, az, dx, dy, dz
+            )  # fmt: skip
+            out[i, m] = s - rr[i] - hr[m]
+
+
+@jit
+def predicted_scales(
+    path: TimingPath, person: TimingPerson, gov: TimingGovernor, t0: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The wall times (N + 1,) at which the robot reaches each point of ``path`` (the first is ``t0``) and the
+    scale (N,) predicted for each move to the next point (see the module docstring)."""
+    margin, window, age, band, noise, min_scale, decel, jdecel = (
+        gov.misc[0], gov.misc[1], gov.misc[2], gov.misc[3], gov.misc[4], gov.misc[5], gov.misc[6], gov.misc[7]
+    )  # fmt: skip
+    v_max_h, accel = gov.separation[3], gov.separation[4]
+    tau = path.tau
+    n = tau.shape[0] - 1
+    n_parts = path.rr.shape[0]
+    n_caps = person.hr.shape[0]
+    t = np.empty(n + 1)
+    scales = np.empty(n)
+    t[0] = t0
+    d0 = np.empty((n_parts, n_caps))
+    d1 = np.empty((n_parts, n_caps))
+    sep_lb = np.empty(n_parts)
+    v1 = np.empty(n_parts)
+    vh0 = np.empty(n_parts)
+    vp = np.empty(n_parts)
+    half = 0.5 * window
+    for i in range(n):
+        vtop = 0.0
+        for p in range(n_parts):
+            vp[p] = max(path.v[i, p], path.v[i + 1, p])
+            vtop = max(vtop, vp[p])
+        s = 1.0
+        if vtop > 1e-4:
+            _person_distances(person, t[i], path.ra[i], path.rd[i], path.rr, d0)
+            _person_distances(person, t[i] - window, path.ra[i], path.rd[i], path.rr, d1)
+            for p in range(n_parts):
+                sep = d0[p, 0]
+                for m in range(1, n_caps):
+                    sep = min(sep, d0[p, m])
+                v_h = 0.0  # the directed approach (app.safety.governor.directed_approach)
+                for m in range(n_caps):
+                    if d0[p, m] <= sep + band:
+                        v_h = max(v_h, max(d1[p, m] - d0[p, m], 0.0) / max(window, 1e-6))
+                vh0[p] = v_h + noise
+                x0, _ = _approach(vh0[p], half, v_max_h, accel)
+                x1, v_1 = _approach(vh0[p], half + age, v_max_h, accel)
+                sep_lb[p] = sep - margin - (x1 - x0)
+                v1[p] = v_1
+            w_top = max(path.w[i], path.w[i + 1])
+            rate = np.inf
+            if vtop > 1e-9:
+                rate = decel / vtop
+            if w_top > 1e-9:
+                rate = min(rate, jdecel / w_top)
+            s = max_scale(sep_lb, v1, vp, rate, 0.0, 1.0, gov.scales, gov.env_u, gov.separation)
+            if gov.law.shape[0] > 0:
+                s = min(s, max(law_scale(sep_lb, vp, vh0, gov.law), 0.0))
+        scales[i] = max(s, min_scale)
+        t[i + 1] = t[i] + (tau[i + 1] - tau[i]) / scales[i]
+    return t, scales
