@@ -98,18 +98,20 @@ class _TrajectoryChecks:
         its times (:func:`_compiled_view`)."""
         n = ts.shape[0]
         first = n
+        base, path_times = view
         if static:
             moving = np.flatnonzero((ts >= traj.t_start) & (ts <= traj.t_end))
-            if moving.size:
+            if moving.size and base is traj:
                 q = traj.q(ts[moving])
                 bad = ~self._within_limits(q)
                 segs = self.collision.robot_segments(q) if self._static_segments_ok else None
                 bad |= self._static_bad(q, segs)
                 if bad.any():
                     first = int(moving[np.argmax(bad)])
+            elif moving.size:
+                first = self._first_static_bad_of_view(base, path_times, ts, moving, first)
         ssm = self.config.ssm
         f64 = _kernels.as_f64
-        base, path_times = view
         eps = 1e-4
         t_wall = f64(ts[:first])
         k = _kernels.trajectory_first_violation(
@@ -136,6 +138,35 @@ class _TrajectoryChecks:
         if k >= 0:
             first = k
         return None if first == n else float(ts[first])
+
+    def _first_static_bad_of_view(
+        self,
+        base: Trajectory,
+        path_times: Callable[[np.ndarray], np.ndarray],
+        ts: np.ndarray,
+        moving: np.ndarray,
+        first: int,
+    ) -> int:
+        """The first wall-time sample (index into ``ts``) at which a view of ``base`` in another timing
+        breaks the joint limits or touches the static scene (``first`` if none): the path is ``base``'s,
+        whatever its timing, so it is checked at ``base``'s own sample spacing in path time (the density at
+        which every trajectory is checked at full speed), not at the view's, which a slow predicted timing
+        makes many times denser."""
+        tau = path_times(ts[moving])
+        lo, hi = float(tau[0]), float(tau[-1])
+        dt = self.config.verify_dt_s
+        tau_s = np.unique(np.concatenate([np.arange(lo, hi, dt), [hi]]))
+        q = base.q(tau_s)
+        bad = ~self._within_limits(q)
+        segs = self.collision.robot_segments(q) if self._static_segments_ok else None
+        bad |= self._static_bad(q, segs)
+        if not bad.any():
+            return first
+        tau_bad = float(tau_s[np.argmax(bad)])
+        # the last wall sample at or before the path reaches the bad path time (so that the failure is not
+        # reported later than the path gets there)
+        k = int(np.searchsorted(tau, tau_bad, side="right")) - 1
+        return int(moving[max(k, 0)])
 
     def _separation_bad(
         self,

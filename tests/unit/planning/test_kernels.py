@@ -31,7 +31,7 @@ from app.planning.scenarios import reference_queries
 from app.planning.search import Planner
 from app.planning.trajectory import Trajectory
 from app.prediction.forecast import HumanForecast
-from app.prediction.skeleton import NUM_JOINTS
+from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 
 TOL = 1e-9
 
@@ -332,6 +332,30 @@ def test_move_checks_and_verification_match_the_numpy_checks(cell, planners) -> 
             assert got == ref.first_violation(view, fc, t_from=view.t_ref, t_to=view.t_end + 0.3)
             found.append(got is None)
     assert any(found) and not all(found)  # trajectories with and without a violation
+
+
+def test_a_slow_view_is_checked_against_the_static_scene_at_its_paths_own_spacing(cell, planners) -> None:  # type: ignore[no-untyped-def]
+    """The static scene does not depend on the timing: a view of a path at a quarter of its speed (as the
+    SSM-aware timing makes one) is checked at the path's own spacing, and fails where the path does, at the
+    view's wall time, no later than the dense check of every wall sample finds it."""
+    _, fast, ref = planners
+    q0 = np.asarray(cell.robot.home_q, dtype=float)
+    q1 = q0.copy()
+    q1[1] = 0.3  # the shoulder lowers the arm into the table
+    t = np.linspace(0.0, 2.0, 5)
+    s = 0.5 - 0.5 * np.cos(np.pi * t / 2.0)
+    qd = (0.25 * np.pi) * np.sin(np.pi * t / 2.0)[:, None] * (q1 - q0)
+    traj = Trajectory(t, q0 + s[:, None] * (q1 - q0), qd)
+    far = HumanForecast.hold(
+        HumanFrame(0.0, np.full((NUM_JOINTS, 3), 6.0) + np.linspace(0.0, 1e-3, NUM_JOINTS)[:, None])
+    )
+    at_full = fast._verify(traj, far, 0.0, traj.t_end, static=True)
+    assert at_full is not None and 0.5 < at_full < traj.t_end
+    view = _SlowView(traj, t_ref=0.0, tau_ref=0.0, scale=0.25)
+    got = fast._verify(view, far, 0.0, view.t_end, static=True)
+    dense = ref._verify(view, far, 0.0, view.t_end, static=True)
+    assert got == pytest.approx(at_full / 0.25, abs=0.05)
+    assert dense is not None and got <= dense + 1e-9 and dense - got <= 0.05
 
 
 class _SlowView:
