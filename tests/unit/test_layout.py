@@ -62,7 +62,6 @@ PENDING: dict[str, set[str]] = {
         "app.planning.collision.__init__",
         "app.planning.kinematics.__init__",
         "app.planning.kinematics.from_workcell",
-        "app.prediction.predictor._cap_speed_reference",
     },
     "module_lines": {"app.planning._kernels"},
 }
