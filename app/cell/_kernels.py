@@ -1,9 +1,10 @@
 """Compiled inner loops of the simulated cell (numba): the servo tracker and the simulated operator's body.
 
-:func:`track_substeps` is the loop form of :meth:`app.cell.joint_tracking.JointTracker.step_reference` and
-:func:`body_pose` of :meth:`app.cell.operator_sim._Body.pose_reference`; the tests compare each kernel with
-its reference. They run per servo tick or camera frame on arrays of six joints or nineteen body joints, where
-NumPy's per-call cost (about a microsecond per operation, dozens to hundreds per call) is most of the time.
+:func:`track_substeps` is the loop form of :meth:`app.cell.reference.ReferenceJointTracker.step` and
+:func:`body_pose` of :func:`app.cell.reference.body_pose_reference`, NumPy references that only the tests
+import; the tests compare each kernel with its reference. They run per servo tick or camera frame on arrays
+of six joints or nineteen body joints, where NumPy's per-call cost (about a microsecond per operation,
+dozens to hundreds per call) is most of the time.
 
 The arithmetic is written in the references' order of operations and compiled without ``fastmath``, so the
 results agree to rounding. ``cache=True`` keeps the machine code next to this file (numba compiles in

@@ -57,8 +57,6 @@ PENDING: dict[str, set[str]] = {
         "app.safety._kernels.governed_scale",
     },
     "reference_forks": {
-        "app.cell.joint_tracking.step_reference",
-        "app.cell.operator_sim.pose_reference",
         "app.planning.collision.__init__",
         "app.planning.kinematics.__init__",
         "app.planning.kinematics.from_workcell",
