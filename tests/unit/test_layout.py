@@ -56,11 +56,6 @@ PENDING: dict[str, set[str]] = {
         "app.planning._kernels.wait_samples",
         "app.safety._kernels.governed_scale",
     },
-    "reference_forks": {
-        "app.planning.collision.__init__",
-        "app.planning.kinematics.__init__",
-        "app.planning.kinematics.from_workcell",
-    },
     "module_lines": {"app.planning._kernels"},
 }
 
