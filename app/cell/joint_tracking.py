@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.cell._kernels import track_substeps
+from app.cell._kernels import TrackerCommand, TrackerModel, track_substeps
 
 __all__ = ["JointLimits", "JointTracker", "ServoCommand", "warm_up_compiled"]
 
@@ -134,7 +134,20 @@ class JointTracker:
         self._ref_hi = limits.q_max - 1e-4
         self.qd = np.zeros(6)
         self.command: ServoCommand | None = None
-        self._no_command = np.zeros(6)
+        # the compiled loop's arguments (kp and hold_after_s are fixed from here on)
+        self._model = TrackerModel(
+            self.hold_after_s,
+            self.kp,
+            self._ref_lo,
+            self._ref_hi,
+            limits.q_min,
+            limits.q_max,
+            self._qdd_max,
+            self._inv_qd_max,
+        )
+        no_command = np.zeros(6)
+        self._hold = TrackerCommand(0.0, no_command, no_command, False)
+        self._command = self._hold
 
     def set_command(self, command: ServoCommand | None) -> None:
         """Track ``command`` from now on (``None``: hold the current position)."""
@@ -143,6 +156,9 @@ class JointTracker:
             if not np.array_equal(q_target, command.q):
                 command = ServoCommand(command.t, q_target, command.qd)
         self.command = command
+        self._command = (
+            self._hold if command is None else TrackerCommand(float(command.t), command.q, command.qd, True)
+        )
 
     def reference(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
         """Reference position (6,) rad and feed-forward velocity (6,) rad/s at time ``tau``."""
@@ -169,29 +185,7 @@ class JointTracker:
         n, h, s = self._substeps(dt_s, speed_scale)
         if n == 0:
             return
-        c = self.command
-        lim = self.limits
-        track_substeps(
-            self.q,
-            self.qd,
-            float(t),
-            h,
-            n,
-            s,
-            bool(stopping),
-            c.t if c is not None else 0.0,
-            c.q if c is not None else self._no_command,
-            c.qd if c is not None else self._no_command,
-            c is not None,
-            self.hold_after_s,
-            self.kp,
-            self._ref_lo,
-            self._ref_hi,
-            lim.q_min,
-            lim.q_max,
-            self._qdd_max,
-            self._inv_qd_max,
-        )
+        track_substeps(self.q, self.qd, float(t), h, n, s, bool(stopping), self._command, self._model)
 
     def _substeps(self, dt_s: float, speed_scale: float) -> tuple[int, float, float]:
         """Number and length (s) of the substeps of a step of ``dt_s`` >= 0 seconds, and the speed scale

@@ -41,7 +41,6 @@ WORLD = {"app.control.headless"}
 #: rule -> what still breaks it (to be emptied by the restructuring of the planner, supervisor and kernels)
 PENDING: dict[str, set[str]] = {
     "kernel_params": {
-        "app.cell._kernels.track_substeps",
         "app.planning._kernels._segments_one",
         "app.planning._kernels.sample_separation_ok",
         "app.planning._kernels.moves_separation_ok",
