@@ -53,7 +53,6 @@ PENDING: dict[str, set[str]] = {
         "app.planning._kernels.speculate_chain",
         "app.planning._kernels.accept_checked",
         "app.planning._kernels.wait_samples",
-        "app.safety._kernels.governed_scale",
     },
     "module_lines": {"app.planning._kernels"},
 }

@@ -723,11 +723,11 @@ def test_the_compiled_governor_equals_the_numpy_reference() -> None:
     seen = set()
     for i in range(1500):
         measured = i % 5 != 0
-        sup._sep_m = rng.uniform(-0.05, 1.2, L)
-        sup._v_h0 = rng.uniform(-0.5, 2.5, L)
+        sep_m = rng.uniform(-0.05, 1.2, L)
+        v_h0 = rng.uniform(-0.5, 2.5, L)
         sup._v_h_t = float(rng.uniform(-0.1, 0.0)) if measured else -math.inf
-        sup._x_h0 = np.asarray(SSM.human_approach(sup._v_h0, -sup._v_h_t if measured else 0.0)[0])
-        sup._travel_m = rng.uniform(0.0, 0.05, L)
+        x_h0 = np.asarray(SSM.human_approach(v_h0, -sup._v_h_t if measured else 0.0)[0])
+        sup._parts = _kernels.PartSeparation(sep_m, x_h0, v_h0, rng.uniform(0.0, 0.05, L))
         vmax = rng.uniform(0.0, 1.5, L) * (rng.uniform(size=L) > 0.2)
         s = float(rng.uniform(0.0, 1.0))
         rate = float(rng.uniform(1.0, 20.0))
