@@ -47,6 +47,7 @@ from ur5e_meshes import UR5eMeshes, block_corners, robotiq_2f85_open
 
 from app.config import load_workcell
 from app.planning.collision import ROBOT_LINKS, CollisionModel, joint_axis_segments
+from app.planning.reference import ReferenceCollisionModel
 
 #: Menagerie body -> the capsules rigid in its frame.
 CANDIDATES: dict[str, tuple[str, ...]] = {
@@ -113,7 +114,7 @@ def main() -> None:
         fit_tool()
         return
     meshes = UR5eMeshes()
-    model = CollisionModel(load_workcell(), compiled=False)
+    model = ReferenceCollisionModel(load_workcell())
     rng = np.random.default_rng(args.seed)
     qs = rng.uniform(model.kin.q_min, model.kin.q_max, size=(args.configs, 6))
     frames = body_frame_segments(meshes, model, qs[:100])
@@ -190,7 +191,7 @@ def main() -> None:
     from app.planning import collision
 
     collision.ROBOT_LINK_EXTENSIONS.update({c: (float(ext[c][0]), float(ext[c][1])) for c in ARM})
-    model = CollisionModel(load_workcell(), compiled=False)
+    model = ReferenceCollisionModel(load_workcell())
     radii = np.array([math.floor(r[c] * 1000) / 1000 for c in ARM])
     for _ in range(3):
         before = radii.copy()

@@ -60,10 +60,11 @@ def separation_bound(sup: Supervisor, t: float) -> tuple[np.ndarray, np.ndarray]
     """Per robot part: a lower bound of the separation at time ``t`` (m) and an upper bound of the
     person's approach speed then (m/s), from the last measurement, the person's worst case since, and
     the part's travel (as the compiled governor computes them)."""
+    parts = sup._parts
     if not math.isfinite(sup._v_h_t):
-        return sup._sep_m.copy(), np.full(sup.n_parts, sup.ssm.human_speed_max_mps)
-    x1, v1 = sup.ssm.human_approach(sup._v_h0, t - sup._v_h_t)
-    return sup._sep_m - (x1 - sup._x_h0) - sup._travel_m, np.asarray(v1)
+        return parts.sep_m.copy(), np.full(sup.n_parts, sup.ssm.human_speed_max_mps)
+    x1, v1 = sup.ssm.human_approach(parts.v_h0, t - sup._v_h_t)
+    return parts.sep_m - (x1 - parts.x_h0) - parts.travel_m, np.asarray(v1)
 
 
 def governed_scale_reference(
@@ -80,7 +81,7 @@ def governed_scale_reference(
     if sup.speed_scale_law is not None and np.any(m):
         # the standard's law with the person's measured speed (the envelope above already covers
         # their worst-case speed-up since it was measured, with the stopping time of this speed)
-        law = sup.speed_scale_law(sep_lb[m], vmax[m], np.maximum(sup._v_h0[m], 0.0))
+        law = sup.speed_scale_law(sep_lb[m], vmax[m], np.maximum(sup._parts.v_h0[m], 0.0))
         s_target = min(s_target, max(law, 0.0))
     return s_target
 

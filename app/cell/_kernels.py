@@ -1,9 +1,10 @@
 """Compiled inner loops of the simulated cell (numba): the servo tracker and the simulated operator's body.
 
-:func:`track_substeps` is the loop form of :meth:`app.cell.joint_tracking.JointTracker.step_reference` and
-:func:`body_pose` of :meth:`app.cell.operator_sim._Body.pose_reference`; the tests compare each kernel with
-its reference. They run per servo tick or camera frame on arrays of six joints or nineteen body joints, where
-NumPy's per-call cost (about a microsecond per operation, dozens to hundreds per call) is most of the time.
+:func:`track_substeps` is the loop form of :meth:`app.cell.reference.ReferenceJointTracker.step` and
+:func:`body_pose` of :func:`app.cell.reference.body_pose_reference`, NumPy references that only the tests
+import; the tests compare each kernel with its reference. They run per servo tick or camera frame on arrays
+of six joints or nineteen body joints, where NumPy's per-call cost (about a microsecond per operation,
+dozens to hundreds per call) is most of the time.
 
 The arithmetic is written in the references' order of operations and compiled without ``fastmath``, so the
 results agree to rounding. ``cache=True`` keeps the machine code next to this file (numba compiles in
@@ -13,10 +14,54 @@ memory with a warning where that folder is read-only).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from app.jit import jit
+
+__all__ = ["TrackerCommand", "TrackerModel", "body_pose", "track_substeps"]
+
+
+class TrackerModel(NamedTuple):
+    """A joint tracker's constants as :func:`track_substeps` reads them (built once per tracker).
+
+    Attributes:
+        hold_after_s: How long (s) a command is extrapolated with its velocity.
+        kp: Feedback gain (1/s).
+        ref_lo: Lower bounds (6,) of the reference (rad), a hair inside the position limits.
+        ref_hi: Upper bounds (6,) of the reference (rad).
+        q_min: Lower position limits (6,) (rad).
+        q_max: Upper position limits (6,) (rad).
+        qdd_max: Acceleration limits (6,) (rad/s^2).
+        inv_qd_max: Reciprocals (6,) of the speed limits (s/rad).
+    """
+
+    hold_after_s: float
+    kp: float
+    ref_lo: np.ndarray
+    ref_hi: np.ndarray
+    q_min: np.ndarray
+    q_max: np.ndarray
+    qdd_max: np.ndarray
+    inv_qd_max: np.ndarray
+
+
+class TrackerCommand(NamedTuple):
+    """The servo set-point a joint tracker follows, as :func:`track_substeps` reads it (built once per
+    command).
+
+    Attributes:
+        t: Time of the set-point (s).
+        q: Joint positions (6,) (rad).
+        qd: Joint velocities (6,) (rad/s).
+        active: False: there is no command and the tracker holds its position (``t``, ``q``, ``qd`` unused).
+    """
+
+    t: float
+    q: np.ndarray
+    qd: np.ndarray
+    active: bool
 
 
 @jit
@@ -28,22 +73,16 @@ def track_substeps(
     n: int,
     s: float,
     stopping: bool,
-    cmd_t: float,
-    cmd_q: np.ndarray,
-    cmd_qd: np.ndarray,
-    has_cmd: bool,
-    hold_after_s: float,
-    kp: float,
-    ref_lo: np.ndarray,
-    ref_hi: np.ndarray,
-    q_min: np.ndarray,
-    q_max: np.ndarray,
-    qdd_max: np.ndarray,
-    inv_qd_max: np.ndarray,
+    command: TrackerCommand,
+    model: TrackerModel,
 ) -> None:
     """``n`` substeps of ``h`` (s) of the joint tracker from time ``t``, updating ``q`` and ``qd`` (6,) in
-    place: tracking the command (``cmd_*``; ``has_cmd`` False holds the position) at speed scale ``s``, or
-    braking to rest along the path when ``stopping``."""
+    place: tracking the ``command`` at speed scale ``s``, or braking to rest along the path when
+    ``stopping``."""
+    cmd_t, cmd_q, cmd_qd, has_cmd = command.t, command.q, command.qd, command.active
+    hold_after_s, kp = model.hold_after_s, model.kp
+    ref_lo, ref_hi, q_min, q_max = model.ref_lo, model.ref_hi, model.q_min, model.q_max
+    qdd_max, inv_qd_max = model.qdd_max, model.inv_qd_max
     q_ref = np.empty(6)
     qd_ff = np.empty(6)
     qd_new = np.empty(6)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.cell._kernels import track_substeps
+from app.cell._kernels import TrackerCommand, TrackerModel, track_substeps
 
 __all__ = ["JointLimits", "JointTracker", "ServoCommand", "warm_up_compiled"]
 
@@ -129,12 +129,25 @@ class JointTracker:
         self.q = q
         self._qdd_max = np.array(limits.qdd_max)
         self._inv_qd_max = 1.0 / limits.qd_max
-        # Targets stay a hair inside the limits, so the braking never touches the hard clip in _integrate.
+        # Targets stay a hair inside the limits, so the braking never touches the hard clip of the positions.
         self._ref_lo = limits.q_min + 1e-4
         self._ref_hi = limits.q_max - 1e-4
         self.qd = np.zeros(6)
         self.command: ServoCommand | None = None
-        self._no_command = np.zeros(6)
+        # the compiled loop's arguments (kp and hold_after_s are fixed from here on)
+        self._model = TrackerModel(
+            self.hold_after_s,
+            self.kp,
+            self._ref_lo,
+            self._ref_hi,
+            limits.q_min,
+            limits.q_max,
+            self._qdd_max,
+            self._inv_qd_max,
+        )
+        no_command = np.zeros(6)
+        self._hold = TrackerCommand(0.0, no_command, no_command, False)
+        self._command = self._hold
 
     def set_command(self, command: ServoCommand | None) -> None:
         """Track ``command`` from now on (``None``: hold the current position)."""
@@ -143,6 +156,9 @@ class JointTracker:
             if not np.array_equal(q_target, command.q):
                 command = ServoCommand(command.t, q_target, command.qd)
         self.command = command
+        self._command = (
+            self._hold if command is None else TrackerCommand(float(command.t), command.q, command.qd, True)
+        )
 
     def reference(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
         """Reference position (6,) rad and feed-forward velocity (6,) rad/s at time ``tau``."""
@@ -169,29 +185,7 @@ class JointTracker:
         n, h, s = self._substeps(dt_s, speed_scale)
         if n == 0:
             return
-        c = self.command
-        lim = self.limits
-        track_substeps(
-            self.q,
-            self.qd,
-            float(t),
-            h,
-            n,
-            s,
-            bool(stopping),
-            c.t if c is not None else 0.0,
-            c.q if c is not None else self._no_command,
-            c.qd if c is not None else self._no_command,
-            c is not None,
-            self.hold_after_s,
-            self.kp,
-            self._ref_lo,
-            self._ref_hi,
-            lim.q_min,
-            lim.q_max,
-            self._qdd_max,
-            self._inv_qd_max,
-        )
+        track_substeps(self.q, self.qd, float(t), h, n, s, bool(stopping), self._command, self._model)
 
     def _substeps(self, dt_s: float, speed_scale: float) -> tuple[int, float, float]:
         """Number and length (s) of the substeps of a step of ``dt_s`` >= 0 seconds, and the speed scale
@@ -200,59 +194,6 @@ class JointTracker:
             raise ValueError(f"dt_s must be >= 0, got {dt_s}")
         n = max(1, math.ceil(dt_s / self.max_substep_s - 1e-9)) if dt_s > 0 else 0
         return n, (dt_s / n if n else 0.0), min(max(float(speed_scale), 0.0), 1.0)
-
-    def step_reference(
-        self, t: float, dt_s: float, *, speed_scale: float = 1.0, stopping: bool = False
-    ) -> None:
-        """:meth:`step` in NumPy, one substep at a time (the reference of the compiled loop)."""
-        n, h, s = self._substeps(dt_s, speed_scale)
-        for i in range(n):
-            if stopping:
-                self._substep_stop(h)
-            else:
-                self._substep_track(t + i * h, h, s)
-
-    def _substep_stop(self, h: float) -> None:
-        lim = self.limits
-        speed = np.abs(self.qd)
-        if not np.any(speed > 0):
-            return
-        t_stop = float(np.max(speed / lim.qdd_max))
-        if t_stop <= h:
-            qd_new = np.zeros(6)
-        else:
-            qd_new = self.qd * (1.0 - h / t_stop)
-        self._integrate(qd_new, h)
-
-    def _substep_track(self, tau: float, h: float, s: float) -> None:
-        # Plain numpy on (6,) arrays, no temporaries that are not needed: this runs 250-500 times per
-        # simulated second per arm.
-        q_ref, qd_ff = self.reference(tau + h)
-        err = q_ref - self.q
-        mag = np.abs(err)
-        # Fastest speed from which the joint still stops on the reference, for this discrete step: the
-        # continuous sqrt(2 a |e|) overshoots by about a h^2 per step.
-        ah = self._qdd_max * h
-        v_brake = ah * (np.sqrt(0.25 + 2.0 * mag / (ah * h)) - 0.5)
-        v_des = qd_ff + np.copysign(np.minimum(self.kp * mag, v_brake), err)
-        if s <= 0.0:
-            v_des = np.zeros(6)
-        else:
-            worst = float(np.max(np.abs(v_des) * self._inv_qd_max)) / s
-            if worst > 1.0:  # scale the whole vector: the direction of motion is kept
-                v_des = v_des / worst
-        dv = np.minimum(np.maximum(v_des - self.qd, -ah), ah)
-        self._integrate(self.qd + dv, h)
-
-    def _integrate(self, qd_new: np.ndarray, h: float) -> None:
-        lim = self.limits
-        q_new = self.q + qd_new * h  # semi-implicit Euler, consistent with the braking speed above
-        if (q_new < lim.q_min).any() or (q_new > lim.q_max).any():
-            clipped = (q_new < lim.q_min) | (q_new > lim.q_max)
-            q_new = np.clip(q_new, lim.q_min, lim.q_max)
-            qd_new = np.where(clipped, 0.0, qd_new)
-        self.q = q_new
-        self.qd = qd_new
 
     @property
     def at_rest(self) -> bool:

@@ -82,25 +82,6 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / n if n > 1e-12 else v
 
 
-def _two_link(
-    a: np.ndarray, target: np.ndarray, l1: float, l2: float, pole: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Middle joint and end point of a two-link chain from ``a`` towards ``target`` (clamped to reach),
-    bending towards ``pole``."""
-    d_vec = target - a
-    d = _norm(d_vec)
-    reach = 0.999 * (l1 + l2)
-    n = _unit(d_vec) if d > 1e-9 else np.array([0.0, 0.0, -1.0])
-    d = min(max(d, abs(l1 - l2) + 1e-6), reach)
-    end = a + n * d
-    x = (l1 * l1 - l2 * l2 + d * d) / (2.0 * d)
-    r = math.sqrt(max(l1 * l1 - x * x, 0.0))
-    perp = pole - n * float(pole @ n)
-    if _norm(perp) < 1e-9:
-        perp = np.cross(n, [0.0, 1.0, 0.0])
-    return a + n * x + _unit(perp) * r, end
-
-
 @dataclass(frozen=True)
 class OperatorParams:
     """One participant's body and behaviour.
@@ -298,7 +279,8 @@ class _Body:
 
     def pose(self, posture: np.ndarray, lh: np.ndarray, rh: np.ndarray, sway: np.ndarray) -> np.ndarray:
         """Joints (J, 3) in the body frame for a posture (lean, twist, dx, dy) and hand targets (compiled:
-        :func:`app.cell._kernels.body_pose`; the same numbers as :meth:`pose_reference`)."""
+        :func:`app.cell._kernels.body_pose`; the tests compare it with the NumPy reference
+        :func:`app.cell.reference.body_pose_reference`)."""
         out = np.empty((NUM_JOINTS, 3))
         body_pose(
             np.asarray(posture, dtype=np.float64),
@@ -308,42 +290,6 @@ class _Body:
             self._dims,
             out,
         )
-        return out
-
-    def pose_reference(
-        self, posture: np.ndarray, lh: np.ndarray, rh: np.ndarray, sway: np.ndarray
-    ) -> np.ndarray:
-        """:meth:`pose` in NumPy."""
-        lean, twist = posture[0], posture[1]
-        out = np.empty((NUM_JOINTS, 3))
-        p = self.pelvis(posture) + sway
-        R_half = _rz(0.6 * twist) @ _ry(0.45 * lean)
-        R = self.torso_rotation(posture)
-        spine = p + R_half @ np.array([0.0, 0.0, self.l_spine])
-        chest = spine + R @ np.array([0.0, 0.0, self.l_chest])
-        neck = chest + R @ np.array([0.0, 0.0, self.l_neck])
-        head = neck + R @ _ry(-0.35 * lean + 0.2) @ np.array([0.0, 0.0, self.l_head])
-        out[_J["pelvis"]], out[_J["spine"]], out[_J["chest"]] = p, spine, chest
-        out[_J["neck"]], out[_J["head"]] = neck, head
-        for side, hand, names in (
-            (1.0, lh, ("l_shoulder", "l_elbow", "l_wrist", "l_hand")),
-            (-1.0, rh, ("r_shoulder", "r_elbow", "r_wrist", "r_hand")),
-        ):
-            sh = chest + R @ np.array([0.0, side * self.sh_y, self.sh_z])
-            w, u = self.wrist_target(sh, hand)
-            excess = _norm(w - sh) - 0.85 * self.arm
-            if excess > 0:  # the shoulder comes forward on a long reach
-                sh = sh + _unit(w - sh) * min(self.protraction, excess)
-            pole = R @ _unit(np.array([-0.3, side * 0.6, -1.0]))
-            elbow, wrist = _two_link(sh, w, self.l_upper, self.l_fore, pole)
-            out[_J[names[0]]], out[_J[names[1]]], out[_J[names[2]]] = sh, elbow, wrist
-            out[_J[names[3]]] = wrist + self.l_hand * u
-        R_p = _rz(0.35 * twist)
-        for side, names in ((1.0, ("l_hip", "l_knee", "l_ankle")), (-1.0, ("r_hip", "r_knee", "r_ankle"))):
-            hip = p + R_p @ np.array([0.0, side * self.hip_y, self.hip_z])
-            ankle = np.array([0.0, side * self.foot_y, self.ankle_z])
-            knee, ankle = _two_link(hip, ankle, self.l_thigh, self.l_shank, np.array([1.0, 0.0, 0.0]))
-            out[_J[names[0]]], out[_J[names[1]]], out[_J[names[2]]] = hip, knee, ankle
         return out
 
     def solve_posture(self, lh: np.ndarray, rh: np.ndarray, *, reaching: str | None) -> np.ndarray:

@@ -72,6 +72,7 @@ from app.control.trajectory_views import (
 )
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+from app.safety._kernels import PartSeparation, ServoGovernor
 from app.safety._kernels import governed_scale as _kernel_governed_scale
 from app.safety.governor import BRAKE_INSTANTS, NO_LAW, SCALE_GRID, SeparationModel, SpeedScaleLaw, brake_rate
 from app.safety.stopping import UR5E_STOP
@@ -344,13 +345,12 @@ class Supervisor:
         self._seq = -1
         # separation bookkeeping for the governor
         L = self.n_parts
-        self._sep_m = np.full(L, math.inf)  # per robot part, minus the tracking margin
+        # per robot part: the separation (none yet), the person's approach speed measured over a window and
+        # their worst-case approach from its middle to the frame, the travel since (the compiled tick's input)
+        self._parts = PartSeparation(np.full(L, math.inf), np.zeros(L), np.zeros(L), np.zeros(L))
         self._sep_person_t = -math.inf  # time of the frame the separation was measured on
-        self._v_h0 = np.zeros(L)  # the person's approach speed per part, measured over a window...
-        self._v_h_t = -math.inf  # ...whose middle is this
-        self._x_h0 = np.zeros(L)  # worst-case approach from the middle of that window to the frame
+        self._v_h_t = -math.inf  # the middle of the window the person's approach speed was measured over
         self._history: deque[HumanFrame] = deque(maxlen=16)
-        self._travel_m = np.zeros(L)  # travel of each part since the separation was measured (bound, m)
         self._v_cmd = np.zeros(L)  # speed bound of each part over the last tick (m/s)
         self._v_inst = np.zeros(L)  # speed of each part along the path at the last tick (m/s)
         self._stale = False
@@ -386,6 +386,19 @@ class Supervisor:
     @property
     def state(self) -> SupervisorState:
         return self._state
+
+    @property
+    def speed_scale_law(self) -> SpeedScaleLaw | None:
+        """The speed-scaling law the governor applies besides the braking envelope (None: the envelope
+        alone)."""
+        return self._speed_scale_law
+
+    @speed_scale_law.setter
+    def speed_scale_law(self, law: SpeedScaleLaw | None) -> None:
+        self._speed_scale_law = law
+        self._governor = ServoGovernor(
+            self.ssm.kernel_params, NO_LAW if law is None else law.kernel_params, SCALE_GRID, BRAKE_INSTANTS
+        )
 
     @property
     def estopped(self) -> bool:
@@ -481,7 +494,7 @@ class Supervisor:
             gen = self._generation
             active = self._active
             tau, s = self._tau, self._s
-            travel0 = self._travel_m.copy()
+            travel0 = self._parts.travel_m.copy()
         # separation of each robot part now (robot at its last commanded pose vs the person as seen), and
         # the person's approach speed: how fast their motion closed the distance over the last window
         old = self._older_frame(frame.t - cfg.human_speed_window_s)
@@ -501,12 +514,14 @@ class Supervisor:
         sep = float(sep_parts.min())
         self._history.append(frame)
         with self._lock:
-            self._sep_m = sep_parts
+            self._parts = PartSeparation(
+                sep_parts,
+                np.asarray(self.ssm.human_approach(v_h0, frame.t - t_mid)[0], dtype=np.float64),
+                v_h0,
+                np.maximum(self._parts.travel_m - travel0, 0.0),  # travel since q_now was read
+            )
             self._sep_person_t = frame.t
-            self._v_h0 = v_h0
             self._v_h_t = t_mid
-            self._x_h0 = np.asarray(self.ssm.human_approach(v_h0, frame.t - t_mid)[0], dtype=np.float64)
-            self._travel_m = np.maximum(self._travel_m - travel0, 0.0)  # travel since q_now was read
             if self._estop or self._fault:
                 return self._done("hold", None, sep, c0)
             if self._stale:
@@ -791,7 +806,8 @@ class Supervisor:
             qd = qd * self._s
             if not active.under_way(self._tau):
                 qd = np.zeros(6)
-            self._travel_m += self._v_cmd * dt
+            travel = self._parts.travel_m  # in place: the governor's input
+            travel += self._v_cmd * dt
             self._q_cmd = q
             self._account(dt)
             return ServoCommand(t, q.copy(), qd, self._s, bool(not np.any(qd)))
@@ -1065,13 +1081,13 @@ class Supervisor:
             active = self._active
             pend = self._pending
             backup = pend.outcome.traj if pend is not None and pend.outcome is not None else None
-            i = int(np.argmin(self._sep_m))
+            i = int(np.argmin(self._parts.sep_m))
             v_h = self._v_h_bound(self._t)
             return SupervisorStatus(
                 t=self._t,
                 state=self._effective_state(),
                 scale=self._s,
-                separation_m=float(self._sep_m[i]),
+                separation_m=float(self._parts.sep_m[i]),
                 required_separation_m=float(
                     self.ssm.sp(float(self._v_cmd[i]), float(self._v_cmd.max()), float(v_h[i]))
                 ),
@@ -1093,7 +1109,7 @@ class Supervisor:
     def _v_h_bound(self, t: float) -> np.ndarray:
         if not math.isfinite(self._v_h_t):
             return np.full(self.n_parts, self.ssm.human_speed_max_mps)
-        _, v = self.ssm.human_approach(self._v_h0, t - self._v_h_t)
+        _, v = self.ssm.human_approach(self._parts.v_h0, t - self._v_h_t)
         return np.asarray(v)
 
     def _governed_scale(
@@ -1101,29 +1117,9 @@ class Supervisor:
     ) -> float:
         """The governor's target scale for the tick from ``t`` to ``t + dt`` (compiled:
         :func:`app.safety._kernels.governed_scale`; the tests compare it with a NumPy reference in
-        ``tests/governor_reference.py``). Caller
-        holds the lock."""
-        law = self.speed_scale_law
+        ``tests/governor_reference.py``). Caller holds the lock."""
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
-        return float(
-            _kernel_governed_scale(
-                self._sep_m,
-                self._x_h0,
-                self._v_h0,
-                self._travel_m,
-                vmax,
-                dt_h,
-                s,
-                dt,
-                rate,
-                lo,
-                hi,
-                SCALE_GRID,
-                BRAKE_INSTANTS,
-                self.ssm._kernel_params,
-                NO_LAW if law is None else law.kernel_params,
-            )
-        )
+        return float(_kernel_governed_scale(self._parts, vmax, dt_h, s, dt, rate, lo, hi, self._governor))
 
     def recent_decide_s(self) -> tuple[float, ...]:
         with self._lock:

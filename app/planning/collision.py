@@ -20,14 +20,11 @@ segment distance minus both radii, exact; for a capsule and a box it is the mini
 box's signed distance field minus the radius).
 
 Performance: the forward kinematics to the capsules and the robot-person, self and segment distances run in
-compiled kernels (:mod:`app.planning._kernels`, numba) unless the model is built with ``compiled=False``; the
-NumPy implementations below stay as their reference (``tests/unit/planning/test_kernels.py``).
-:meth:`CollisionModel.distance_to_human` and :meth:`CollisionModel.distance_to_human_paired` (NumPy) run a
-branch-free closest-point computation (no Python loop over pairs) on blocks
-small enough to stay in cache and to avoid fresh page-faulted allocations. The cross version (B x H) gets
-every dot product of the segment-segment problem from one matrix product of augmented vectors (BLAS); the
-paired version (K) lays the pairs out as (robot capsule, person capsule, configuration) so that every pass
-runs over contiguous rows. ``hrc bench kinematics`` compares them with python-fcl.
+compiled kernels (:mod:`app.planning._kernels`, numba). Their NumPy references (a branch-free closest-point
+computation on blocks small enough to stay in cache, the cross version's dot products from one matrix
+product of augmented vectors) live in :mod:`app.planning.reference`, which only the tests
+(``tests/unit/planning/test_kernels.py``) and the capsule fit import. ``hrc bench kinematics`` compares the
+distances with python-fcl.
 """
 
 from __future__ import annotations
@@ -272,89 +269,16 @@ _HUMAN_B = np.array([*BONES[:, 1], JOINT_INDEX["head"]])
 
 # ----------------------------------------------------------------------------------------- distance kernels
 
-_TINY = 1e-18  # m^4: below this the segments are treated as parallel (error below 1e-8 m, see _closest_sq)
 # Work arrays are kept below 128 KiB: larger ones are mmap-ed by glibc on every allocation and page-faulted on
 # first touch, which costs more than the arithmetic.
 _BLOCK_ELEMS = 10_000
-_PAIRED_BLOCK = 128  # configurations per block of the paired kernel (9 x 19 x 128 pairs)
-
-
-def _clip01(x: np.ndarray) -> None:
-    np.maximum(x, 0.0, out=x)
-    np.minimum(x, 1.0, out=x)
-
-
-def _closest_sq(
-    b: np.ndarray,
-    c: np.ndarray,
-    f: np.ndarray,
-    rh: np.ndarray,
-    a: np.ndarray,
-    e: np.ndarray,
-    inv_a: np.ndarray,
-    inv_e: np.ndarray,
-    work: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-) -> np.ndarray:
-    """Squared distance between segments p1 + s d1 and p2 + t d2 (s, t in [0, 1]) from their dot products.
-
-    ``b = d1.d2, c = d1.r, f = d2.r, rh = r.r / 2, a = d1.d1, e = d2.d2`` with ``r = p1 - p2``; ``inv_a`` and
-    ``inv_e`` are 1/a and 1/e (0 for a point). All broadcast to the shape of the four ``work`` arrays; the
-    result is written into ``work[0]`` and returned. The squared distance is expanded in dot products, so near
-    contact its square root is precise to about sqrt(round-off) * |r|, a few 1e-8 m.
-
-    Closest points as in Ericson, Real-Time Collision Detection, 5.1.9, written without branches: the
-    unconstrained s clamped, the best t for it clamped, the best s for that t clamped. This is exact (a convex
-    problem; for (near-)parallel segments any clamped start gives the minimum up to |d1| * angle < 1e-8 m).
-    """
-    w1, w2, s, t = work
-    np.multiply(a, e, out=w1)  # denominator a e - b^2
-    np.multiply(b, b, out=w2)
-    w1 -= w2
-    np.maximum(w1, _TINY, out=w1)
-    np.multiply(b, f, out=s)  # s = (b f - c e) / denominator
-    np.multiply(c, e, out=w2)
-    s -= w2
-    s /= w1
-    _clip01(s)
-    np.multiply(b, s, out=t)  # t = (b s + f) / e
-    t += f
-    t *= inv_e
-    _clip01(t)
-    np.multiply(b, t, out=s)  # s = (b t - c) / a
-    s -= c
-    s *= inv_a
-    _clip01(s)
-    # |r + s d1 - t d2|^2 = 2 rh + s (a s + 2 (c - t b)) + t (e t - 2 f)
-    np.multiply(t, b, out=w2)
-    np.subtract(c, w2, out=w2)
-    w2 *= 2.0
-    np.multiply(a, s, out=w1)
-    w1 += w2
-    w1 *= s
-    np.multiply(e, t, out=w2)
-    w2 -= f
-    w2 -= f
-    w2 *= t
-    w1 += w2
-    w1 += rh
-    w1 += rh
-    np.maximum(w1, 0.0, out=w1)
-    return w1
-
-
-def _inv(x: np.ndarray) -> np.ndarray:
-    return np.divide(1.0, x, out=np.zeros_like(x), where=x > _TINY)
-
-
-def _work(shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    return np.empty(shape), np.empty(shape), np.empty(shape), np.empty(shape)
 
 
 def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
     """Distances between segments [p1, q1] and [p2, q2], all (..., 3) broadcastable; returns (...,) in m.
 
-    Compiled (:func:`app.planning._kernels.segment_distances`); :func:`_segment_distance_numpy` is the
-    reference."""
+    Compiled (:func:`app.planning._kernels.segment_distances`); the tests compare it with the NumPy reference
+    :func:`app.planning.reference.segment_distance_reference`."""
     p1, q1, p2, q2 = (np.asarray(v, dtype=float) for v in (p1, q1, p2, q2))
     p1, q1, p2, q2 = np.broadcast_arrays(p1, q1, p2, q2)
     if p1.shape[-1:] != (3,):
@@ -364,214 +288,11 @@ def segment_distance(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndar
     return _kernels.segment_distances(*flat).reshape(shape)
 
 
-def _segment_distance_numpy(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> np.ndarray:
-    """:func:`segment_distance` in NumPy (the reference of the compiled kernel)."""
-    p1, q1, p2, q2 = (np.asarray(v, dtype=float) for v in (p1, q1, p2, q2))
-    p1, q1, p2, q2 = np.broadcast_arrays(p1, q1, p2, q2)
-    shape = p1.shape[:-1]
-    # component-major (3, N): every product below is one contiguous pass
-    p1, q1, p2, q2 = (np.ascontiguousarray(v.reshape(-1, 3).T) for v in (p1, q1, p2, q2))
-    d1 = q1 - p1
-    d2 = q2 - p2
-    r = p1 - p2
-
-    def dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        out = u[0] * v[0]
-        out += u[1] * v[1]
-        out += u[2] * v[2]
-        return out
-
-    a, e = dot(d1, d1), dot(d2, d2)
-    rh = 0.5 * dot(r, r)
-    sq = _closest_sq(dot(d1, d2), dot(d1, r), dot(d2, r), rh, a, e, _inv(a), _inv(e), _work(a.shape))
-    return np.sqrt(sq).reshape(shape)
-
-
 def capsule_distance(
     p1: np.ndarray, q1: np.ndarray, r1: np.ndarray, p2: np.ndarray, q2: np.ndarray, r2: np.ndarray
 ) -> np.ndarray:
     """Signed surface distance (...,) between capsules (segment endpoints (..., 3), radii (...,)), m."""
     return segment_distance(p1, q1, p2, q2) - np.asarray(r1) - np.asarray(r2)
-
-
-# Every dot product of the segment-segment problem is one entry of a matrix product of augmented vectors:
-#   robot rows  D = [d1, d1.p1, 0, 0]       P = [p1, 0, 1, |p1|^2 / 2]
-#   person cols D = [d2, 0, -d2.p2, 0]      P = [-p2, 1, |p2|^2 / 2, 1]
-# gives D.D = b, D.P = c = d1.(p1 - p2), P.D = f = d2.(p1 - p2), P.P = |p1 - p2|^2 / 2.
-_FEATURES = 6
-
-
-def _robot_features(a_c: np.ndarray, d_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Augmented robot rows (K, 2L, 6) and a = d1.d1 (K, L) from component-major segments (L, 3, K)."""
-    L, _, K = a_c.shape
-    U = np.zeros((K, 2 * L, _FEATURES))
-    a = d_c[:, 0] * d_c[:, 0]
-    dp = d_c[:, 0] * a_c[:, 0]
-    pp = a_c[:, 0] * a_c[:, 0]
-    for i in range(3):
-        U[:, :L, i] = d_c[:, i].T
-        U[:, L:, i] = a_c[:, i].T
-        if i:
-            a += d_c[:, i] * d_c[:, i]
-            dp += d_c[:, i] * a_c[:, i]
-            pp += a_c[:, i] * a_c[:, i]
-    U[:, :L, 3] = dp.T
-    U[:, L:, 4] = 1.0
-    U[:, L:, 5] = 0.5 * pp.T
-    return U, np.ascontiguousarray(a.T)
-
-
-def _human_features(joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Augmented person columns (H, 6, 2M) and e = d2.d2 (H, M) for poses (H, J, 3)."""
-    jt = np.ascontiguousarray(joints.transpose(1, 2, 0))  # (J, 3, H)
-    p2 = jt[_HUMAN_A]  # (M, 3, H)
-    d2 = jt[_HUMAN_B]
-    d2 -= p2
-    M, _, H = p2.shape
-    V = np.zeros((H, _FEATURES, 2 * M))
-    e = d2[:, 0] * d2[:, 0]
-    dp = d2[:, 0] * p2[:, 0]
-    pp = p2[:, 0] * p2[:, 0]
-    for i in range(3):
-        V[:, i, :M] = d2[:, i].T
-        V[:, i, M:] = p2[:, i].T
-        if i:
-            e += d2[:, i] * d2[:, i]
-            dp += d2[:, i] * p2[:, i]
-            pp += p2[:, i] * p2[:, i]
-    np.negative(V[:, :3, M:], out=V[:, :3, M:])
-    V[:, 4, :M] = dp.T
-    np.negative(V[:, 4, :M], out=V[:, 4, :M])
-    V[:, 3, M:] = 1.0
-    V[:, 4, M:] = 0.5 * pp.T
-    V[:, 5, M:] = 1.0
-    return V, np.ascontiguousarray(e.T)
-
-
-def _cross_min_distance(
-    U: np.ndarray, a: np.ndarray, ra: np.ndarray, V: np.ndarray, e: np.ndarray, rh: np.ndarray
-) -> np.ndarray:
-    """Min signed distance between every robot configuration and every person pose.
-
-    Args:
-        U, a: Robot features (B, 2L, 6) and squared segment lengths (B, L) (:func:`_robot_features`).
-        ra: Robot radii (L,).
-        V, e: Person features (H, 6, 2M) and squared segment lengths (H, M) (:func:`_human_features`).
-        rh: Person radii (M,).
-
-    Returns:
-        (B, H) minimum over the L x M capsule pairs.
-    """
-    B, L = a.shape
-    H, M = e.shape
-    out = np.empty((B, H))
-    hb = max(1, min(H, _BLOCK_ELEMS // (L * M)))  # poses per block
-    rows = max(1, min(B, _BLOCK_ELEMS // (L * M * hb)))  # configurations per block
-    rsum = (ra[:, None] + rh[None, :])[:, None, :]  # (L, 1, M)
-    inv_a = _inv(a)
-    inv_e = _inv(e)
-    work = _work((rows * L, hb * M))
-    for h0 in range(0, H, hb):
-        h1 = min(H, h0 + hb)
-        nh = (h1 - h0) * M
-        # columns [D of every pose, then P of every pose]
-        Vb = V[h0:h1].reshape(h1 - h0, _FEATURES, 2, M).transpose(1, 2, 0, 3).reshape(_FEATURES, 2 * nh)
-        eb = e[h0:h1].reshape(1, nh)
-        ieb = inv_e[h0:h1].reshape(1, nh)
-        for b0 in range(0, B, rows):
-            b1 = min(B, b0 + rows)
-            n = (b1 - b0) * L
-            Ub = U[b0:b1].reshape(b1 - b0, 2, L, _FEATURES).transpose(1, 0, 2, 3).reshape(2 * n, _FEATURES)
-            G = Ub @ Vb  # (2n, 2nh): [b, c; f, rr / 2]
-            w = work if n == work[0].shape[0] and nh == work[0].shape[1] else _work((n, nh))
-            sq = _closest_sq(
-                G[:n, :nh],
-                G[:n, nh:],
-                G[n:, :nh],
-                G[n:, nh:],
-                a[b0:b1].reshape(n, 1),
-                eb,
-                inv_a[b0:b1].reshape(n, 1),
-                ieb,
-                w,
-            )
-            dist = np.sqrt(sq, out=sq).reshape(b1 - b0, L, h1 - h0, M)
-            dist -= rsum
-            out[b0:b1, h0:h1] = dist.min(axis=(1, 3))
-    return out
-
-
-def _paired_min_distance(
-    a_c: np.ndarray,
-    d_c: np.ndarray,
-    ra: np.ndarray,
-    jt: np.ndarray,
-    ia: np.ndarray,
-    ib: np.ndarray,
-    rh: np.ndarray,
-) -> np.ndarray:
-    """Min signed distance between robot configuration k and person pose k.
-
-    Works in an (L, M, k) layout, configurations innermost: every robot quantity (L, 1, k) and person quantity
-    (1, M, k) broadcasts along an outer axis, so each numpy pass runs over contiguous rows.
-
-    Args:
-        a_c, d_c: Robot segment starts and directions, component-major (L, 3, K).
-        ra: Robot radii (L,).
-        jt: Person poses, component-major (J, 3, K).
-        ia, ib: Joint indices (M,) of the person capsules' ends.
-        rh: Person radii (M,).
-
-    Returns:
-        (K,) minimum over the L x M capsule pairs of each k.
-    """
-    L, _, K = a_c.shape
-    M = len(rh)
-    kb = max(1, min(K, _PAIRED_BLOCK))
-    a = np.einsum("lik,lik->lk", d_c, d_c)
-    inv_a = _inv(a)
-    rsum = (ra[:, None] + rh[None, :])[:, :, None]
-    out = np.empty(K)
-    shape = (L, M, kb)
-    b, c, f, rr, tmp = (np.empty(shape) for _ in range(5))
-    work = _work(shape)
-    for k0 in range(0, K, kb):
-        k1 = min(K, k0 + kb)
-        m = k1 - k0
-        if m != kb:
-            b, c, f, rr, tmp = (x[:, :, :m] for x in (b, c, f, rr, tmp))
-            work = tuple(w[:, :, :m] for w in work)  # type: ignore[assignment]
-        d1 = d_c[:, :, None, k0:k1]  # (L, 3, 1, m)
-        p1 = a_c[:, :, None, k0:k1]
-        p2 = jt[ia, :, k0:k1]  # (M, 3, m)
-        d2 = jt[ib, :, k0:k1]
-        d2 -= p2
-        e = np.einsum("mik,mik->mk", d2, d2)[None]  # (1, M, m)
-        d2 = d2.transpose(1, 0, 2)[:, None]  # (3, 1, M, m)
-        p2 = p2.transpose(1, 0, 2)[:, None]
-        r = work[0]
-        np.multiply(d1[:, 0], d2[0], out=b)
-        for i in range(3):
-            np.subtract(p1[:, i], p2[i], out=r)  # r = p1 - p2, one component
-            if i:
-                np.multiply(d1[:, i], d2[i], out=tmp)
-                b += tmp
-                np.multiply(d1[:, i], r, out=tmp)
-                c += tmp
-                np.multiply(d2[i], r, out=tmp)
-                f += tmp
-                np.multiply(r, r, out=tmp)
-                rr += tmp
-            else:
-                np.multiply(d1[:, 0], r, out=c)
-                np.multiply(d2[0], r, out=f)
-                np.multiply(r, r, out=rr)
-        rr *= 0.5
-        sq = _closest_sq(b, c, f, rr, a[:, None, k0:k1], e, inv_a[:, None, k0:k1], _inv(e), work)
-        dist = np.sqrt(sq, out=sq)
-        dist -= rsum
-        out[k0:k1] = dist.min(axis=(0, 1))
-    return out
 
 
 def _box_excess(x: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -747,12 +468,10 @@ class CollisionModel:
         human_radii: Person capsule radii: a :class:`HumanRadii`, a mapping of its field names to radii (m),
             or an array (M,) in the order of :data:`HUMAN_CAPSULES`; default ``HumanRadii()``.
 
-        compiled: Run the forward kinematics to the capsules and the capsule distances in the compiled
-            kernels (:mod:`app.planning._kernels`); False: the NumPy implementations (the reference). Also
-            tells the planner whether it may use its fused compiled checks.
-
-    The model is immutable after construction; its methods allocate their own work arrays, so one instance may
-    be used from several threads.
+    The forward kinematics to the capsules and the capsule distances run in the compiled kernels of
+    :mod:`app.planning._kernels` (the tests compare them with the NumPy
+    :class:`app.planning.reference.ReferenceCollisionModel`). The model is immutable after construction; its
+    methods allocate their own work arrays, so one instance may be used from several threads.
     """
 
     def __init__(
@@ -761,12 +480,9 @@ class CollisionModel:
         *,
         kin: UR5e | None = None,
         human_radii: HumanRadii | Mapping[str, float] | np.ndarray | None = None,
-        compiled: bool = True,
     ) -> None:
         self.cell = cell
-        self.kin = kin if kin is not None else UR5e.from_workcell(cell, compiled=compiled)
-        # the compiled capsule layout is the UR5e's (kinematics.D, A and the twists)
-        self.compiled = bool(compiled) and type(self.kin) is UR5e
+        self.kin = kin if kin is not None else UR5e.from_workcell(cell)
         self.robot_radii = np.array([*(ROBOT_LINK_RADII[n] for n in ROBOT_LINKS[:-1]), cell.tool.radius_m])
         self.self_radii = np.array([*(SELF_COLLISION_RADII[n] for n in ROBOT_LINKS[:-1]), cell.tool.radius_m])
         self.human_radii = _radii_from(human_radii)
@@ -801,7 +517,6 @@ class CollisionModel:
         self._k_self_j = np.array(self._self_j, dtype=np.int64)
         # the robot's arguments of the compiled kernels (T_base, t_tcp, dh_d, dh_a, twist, off_shoulder,
         # off_forearm), made once: the capsule kernel and kernel_geometry() both take them
-        self._k_robot: tuple[Any, ...] = ()
         # the tool capsule runs from the flange along the TCP direction; its round end lies
         # ``tool.capsule_length_m`` from the flange (fitted to the open gripper and the part it holds)
         t_tcp = np.asarray(self.kin.T_flange_tcp[:3, 3], dtype=np.float64)
@@ -819,18 +534,18 @@ class CollisionModel:
         #: (L, 2) each capsule's extension beyond its start and end, as a fraction of its length.
         self._k_ext = np.where(ext > 0, ext / np.maximum(seg_len, 1e-9)[:, None], 0.0)
         self._k_ext.setflags(write=False)
-        if self.compiled:
-            kin = self.kin
-            self._k_robot = (
-                kin._T_base_k,
-                np.ascontiguousarray(kin._t_tcp_k * self.tool_end_fraction),
-                _DH_D,
-                _DH_A,
-                _TWIST,
-                SHOULDER_OFFSET_M,
-                FOREARM_OFFSET_M,
-                np.array(self._k_ext),
-            )
+        # the compiled capsule layout is the UR5e's (kinematics.D, A and the twists)
+        kin = self.kin
+        self._k_robot: tuple[Any, ...] = (
+            kin._T_base_k,
+            np.ascontiguousarray(kin._t_tcp_k * self.tool_end_fraction),
+            _DH_D,
+            _DH_A,
+            _TWIST,
+            SHOULDER_OFFSET_M,
+            FOREARM_OFFSET_M,
+            np.array(self._k_ext),
+        )
 
     # ------------------------------------------------------------------ geometry
     def _robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -840,18 +555,7 @@ class CollisionModel:
 
     def _robot_segments_cm(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Robot segment starts and directions, component-major, each (L, 3, B)."""
-        if not self.compiled:
-            return self._robot_segments_cm_numpy(q)
         return _kernels.robot_segments(_kernels.as_f64(q), *self._k_robot)
-
-    def _robot_segments_cm_numpy(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`_robot_segments_cm` in NumPy (the reference of the compiled kernel)."""
-        p, z, p_tcp = self.kin.link_origins_and_axes(q)  # (7, 3, B), (7, 3, B), (3, B)
-        a, d = joint_axis_segments(p, z, p_tcp, self.tool_end_fraction)
-        f = self._k_ext  # (L, 2): the extensions as fractions of each segment's length
-        a -= f[:, 0, None, None] * d
-        d *= (1.0 + f[:, 0] + f[:, 1])[:, None, None]
-        return a, d
 
     def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Robot capsules for configurations q (B, 6).
@@ -889,14 +593,10 @@ class CollisionModel:
         joints = self._check_joints(joints, "distance_to_human")
         if q.shape[0] == 0 or joints.shape[0] == 0:
             return np.empty((q.shape[0], joints.shape[0]))
-        if self.compiled:
-            a_c, d_c = self._robot_segments_cm(q)
-            return _kernels.cross_min_distance(
-                a_c, d_c, self._k_ra, _kernels.as_f64(joints), self._k_ia, self._k_ib, self._k_rh
-            )
-        U, a = _robot_features(*self._robot_segments_cm(q))
-        V, e = _human_features(joints)
-        return _cross_min_distance(U, a, self.robot_radii, V, e, self.human_radii)
+        a_c, d_c = self._robot_segments_cm(q)
+        return _kernels.cross_min_distance(
+            a_c, d_c, self._k_ra, _kernels.as_f64(joints), self._k_ia, self._k_ib, self._k_rh
+        )
 
     def distance_to_human_paired(
         self,
@@ -936,33 +636,21 @@ class CollisionModel:
             raise ValueError(
                 f"distance_to_human_paired: segments must be ({_NL}, 3, K) each, got {a_c.shape}"
             )
-        if self.compiled:
-            ia, ib, rh = self._k_ia, self._k_ib, self._k_rh
-            if (links is not None and len(links) == 0) or (capsules is not None and len(capsules) == 0):
-                return np.full(q.shape[0], np.inf)
-            if capsules is not None:
-                ia, ib, rh = ia[capsules], ib[capsules], rh[capsules]
-            return _kernels.paired_min_distance(
-                _kernels.as_f64(a_c),
-                _kernels.as_f64(d_c),
-                self._k_ra,
-                self._k_links if links is None else _kernels.as_i64(links),
-                _kernels.as_f64(joints),
-                ia,
-                ib,
-                rh,
-            )
-        ra, ia, ib, rh = self.robot_radii, _HUMAN_A, _HUMAN_B, self.human_radii
-        if links is not None:
-            if len(links) == 0:
-                return np.full(q.shape[0], np.inf)
-            a_c, d_c, ra = a_c[links], d_c[links], ra[links]
+        ia, ib, rh = self._k_ia, self._k_ib, self._k_rh
+        if (links is not None and len(links) == 0) or (capsules is not None and len(capsules) == 0):
+            return np.full(q.shape[0], np.inf)
         if capsules is not None:
-            if len(capsules) == 0:
-                return np.full(q.shape[0], np.inf)
             ia, ib, rh = ia[capsules], ib[capsules], rh[capsules]
-        jt = np.ascontiguousarray(joints.transpose(1, 2, 0))  # (J, 3, K)
-        return _paired_min_distance(a_c, d_c, ra, jt, ia, ib, rh)
+        return _kernels.paired_min_distance(
+            _kernels.as_f64(a_c),
+            _kernels.as_f64(d_c),
+            self._k_ra,
+            self._k_links if links is None else _kernels.as_i64(links),
+            _kernels.as_f64(joints),
+            ia,
+            ib,
+            rh,
+        )
 
     def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """Signed surface distance of every robot capsule at one configuration to every person capsule.
@@ -979,17 +667,6 @@ class CollisionModel:
         if q.shape != (6,):
             raise ValueError(f"pair_distances: q must have shape (6,), got {q.shape}")
         joints = self._check_joints(joints, "pair_distances")
-        if not self.compiled:
-            ra, rb, rr = self.robot_capsules(q[None])
-            ha, hb, hr = self.human_capsules(joints)
-            return capsule_distance(
-                ra[0][None, :, None, :],
-                rb[0][None, :, None, :],
-                rr[None, :, None],
-                ha[:, None, :, :],
-                hb[:, None, :, :],
-                hr[None, None, :],
-            )
         a_c, d_c = self._robot_segments_cm(q[None])
         return _kernels.pair_distances(
             a_c, d_c, self._k_ra, _kernels.as_f64(joints), self._k_ia, self._k_ib, self._k_rh
@@ -997,10 +674,8 @@ class CollisionModel:
 
     def kernel_geometry(self) -> tuple[Any, ...] | None:
         """The arguments the compiled checks of :mod:`app.planning._kernels` take for this model's robot
-        and person (``T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ext, ra, ia, ib, rh``),
-        or None when the model runs in NumPy (``compiled=False``)."""
-        if not self.compiled:
-            return None
+        and person (``T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ext, ra, ia, ib, rh``);
+        None from a model without them (the tests' NumPy reference): the planner then checks in NumPy."""
         return (
             *self._k_robot,
             self._k_ra,
@@ -1126,22 +801,11 @@ class CollisionModel:
         """Signed distances (B, P) of the link pairs :data:`SELF_COLLISION_PAIRS` with the
         :data:`SELF_COLLISION_RADII`, m (``segments`` as in :meth:`static_clearance`)."""
         q = self._check_q(q, "self_distances")
-        if self.compiled:
-            a_c, d_c = self._robot_segments_cm(q) if segments is None else segments
-            if a_c.shape != (_NL, 3, q.shape[0]) or d_c.shape != a_c.shape:
-                raise ValueError(f"segments must be ({_NL}, 3, B) each for q (B, 6), got {a_c.shape}")
-            return _kernels.self_distances(
-                _kernels.as_f64(a_c), _kernels.as_f64(d_c), self._k_ra_self, self._k_self_i, self._k_self_j
-            )
-        pa, pd = self._segments_bl(q, segments)
-        i, j = self._self_i, self._self_j
-        return capsule_distance(
-            pa[:, i],
-            pa[:, i] + pd[:, i],
-            self.self_radii[i],
-            pa[:, j],
-            pa[:, j] + pd[:, j],
-            self.self_radii[j],
+        a_c, d_c = self._robot_segments_cm(q) if segments is None else segments
+        if a_c.shape != (_NL, 3, q.shape[0]) or d_c.shape != a_c.shape:
+            raise ValueError(f"segments must be ({_NL}, 3, B) each for q (B, 6), got {a_c.shape}")
+        return _kernels.self_distances(
+            _kernels.as_f64(a_c), _kernels.as_f64(d_c), self._k_ra_self, self._k_self_i, self._k_self_j
         )
 
     def self_clearance(

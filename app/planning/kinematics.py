@@ -59,11 +59,8 @@ D = np.array([0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996])
 A = np.array([0.0, -0.425, -0.3922, 0.0, 0.0, 0.0])
 #: DH twists (rad), per joint.
 ALPHA = np.array([math.pi / 2, 0.0, 0.0, math.pi / 2, -math.pi / 2, 0.0])
-_CA = np.round(np.cos(ALPHA))  # the twists are 0 and +-pi/2: exact 0/1/-1 entries
-_SA = np.round(np.sin(ALPHA))
+_SA = np.round(np.sin(ALPHA))  # the twists are 0 and +-pi/2: exact 0/1/-1 entries
 _TWIST = _SA.copy()  # the compiled chain's twist signs (+1: pi/2, -1: -pi/2, 0: none)
-#: Batches up to this size go through the 4x4 product form of the chain.
-_SMALL_BATCH = 8
 
 _D1, _A2, _A3, _D4, _D5, _D6 = 0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996
 
@@ -233,8 +230,9 @@ class UR5e:
         T_world_base: Pose (4, 4) of DH frame 0 in the world (identity by default).
         T_flange_tcp: Pose (4, 4) of the tool centre point in the flange frame (identity by default).
         q_min, q_max: Joint position limits (6,) in rad (defaults :data:`Q_MIN`, :data:`Q_MAX`).
-        compiled: Run the forward kinematics in the compiled kernel (:mod:`app.planning._kernels`; the same
-            operations as the NumPy chain, so the same results); False: NumPy (the reference).
+
+    The forward kinematics runs in a compiled kernel (:func:`app.planning._kernels.chain_frames`; the tests
+    compare it with the NumPy chain of :class:`app.planning.reference.ReferenceUR5e`).
 
     All methods are batched over the first axis and fully vectorised; none keeps state between calls, so one
     instance can be shared by threads.
@@ -247,9 +245,7 @@ class UR5e:
         T_flange_tcp: np.ndarray | None = None,
         q_min: np.ndarray | None = None,
         q_max: np.ndarray | None = None,
-        compiled: bool = True,
     ) -> None:
-        self.compiled = bool(compiled)
         self.T_world_base = _as_transform(T_world_base, "T_world_base")
         self.T_flange_tcp = _as_transform(T_flange_tcp, "T_flange_tcp")
         self.T_base_world = _inverse_transform(self.T_world_base)
@@ -269,11 +265,9 @@ class UR5e:
         self._t_tcp_k = np.array(self.T_flange_tcp[:3, 3])
 
     @classmethod
-    def from_workcell(cls, cell: WorkCell, *, compiled: bool = True) -> UR5e:
+    def from_workcell(cls, cell: WorkCell) -> UR5e:
         """Kinematics placed as in a work cell (robot mount and tool)."""
-        return cls(
-            T_world_base=cell.robot.T_world_base(), T_flange_tcp=cell.tool.T_flange_tcp(), compiled=compiled
-        )
+        return cls(T_world_base=cell.robot.T_world_base(), T_flange_tcp=cell.tool.T_flange_tcp())
 
     # ------------------------------------------------------------------ forward kinematics
     def _chain(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -282,81 +276,8 @@ class UR5e:
         Returns ``(x, y, z, p)`` each (7, 3, B) (component-major so that every step works on contiguous rows):
         the columns of the rotations and the origins.
         """
-        if not self.compiled:
-            return self._chain_numpy(q)
         out = _kernels.chain_frames(_kernels.as_f64(q), self._T_base_k, D, A, _TWIST)
         return out[0], out[1], out[2], out[3]
-
-    def _chain_numpy(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`_chain` in NumPy (the reference of the compiled kernel)."""
-        B = q.shape[0]
-        if B <= _SMALL_BATCH:
-            return self._chain_small(q)
-        x = np.empty((7, 3, B))
-        y = np.empty((7, 3, B))
-        z = np.empty((7, 3, B))
-        p = np.empty((7, 3, B))
-        Tb = self.T_world_base
-        x[0] = Tb[:3, 0, None]
-        y[0] = Tb[:3, 1, None]
-        z[0] = Tb[:3, 2, None]
-        p[0] = Tb[:3, 3, None]
-        qt = np.ascontiguousarray(q.T)
-        c = np.cos(qt)
-        s = np.sin(qt)
-        for i in range(6):
-            xp, yp, zp = x[i], y[i], z[i]
-            ci, si = c[i], s[i]
-            # R_i = Rz(q_i) Rx(alpha_i): first turn the parent axes about z ...
-            xn = x[i + 1]
-            np.multiply(ci, xp, out=xn)
-            xn += si * yp
-            yn = ci * yp
-            yn -= si * xp
-            # ... then the twist (alpha in {0, pi/2, -pi/2} permutes the axes with signs).
-            if ALPHA[i] == 0.0:
-                y[i + 1] = yn
-                z[i + 1] = zp
-            elif ALPHA[i] > 0.0:
-                y[i + 1] = zp
-                np.negative(yn, out=z[i + 1])
-            else:
-                np.negative(zp, out=y[i + 1])
-                z[i + 1] = yn
-            # origin: translate d along the parent z, then a along the new x.
-            pn = p[i + 1]
-            pn[...] = p[i]
-            if D[i] != 0.0:
-                pn += D[i] * zp
-            if A[i] != 0.0:
-                pn += A[i] * xn
-        return x, y, z, p
-
-    def _chain_small(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`_chain` for a few configurations: 4x4 DH products (far fewer numpy calls per pose than
-        the component-major form, which pays off from batches of a few dozen poses)."""
-        B = q.shape[0]
-        c, s = np.cos(q), np.sin(q)  # (B, 6)
-        T = np.empty((B, 6, 4, 4))
-        T[..., 0, 0] = c
-        T[..., 0, 1] = -s * _CA
-        T[..., 0, 2] = s * _SA
-        T[..., 0, 3] = A * c
-        T[..., 1, 0] = s
-        T[..., 1, 1] = c * _CA
-        T[..., 1, 2] = -c * _SA
-        T[..., 1, 3] = A * s
-        T[..., 2, 0] = 0.0
-        T[..., 2, 1] = _SA
-        T[..., 2, 2] = _CA
-        T[..., 2, 3] = D
-        T[..., 3, :] = (0.0, 0.0, 0.0, 1.0)
-        frames = np.empty((7, B, 4, 4))
-        frames[0] = self.T_world_base
-        for i in range(6):
-            np.matmul(frames[i], T[:, i], out=frames[i + 1])
-        R = frames[:, :, :3, :]  # (7, B, 3, 4): columns x, y, z, p
-        return tuple(np.ascontiguousarray(R[..., k].transpose(0, 2, 1)) for k in range(4))  # type: ignore[return-value]
 
     @staticmethod
     def _check_q(q: np.ndarray, name: str) -> np.ndarray:

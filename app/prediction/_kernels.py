@@ -296,7 +296,7 @@ def forward(x, p, ints, fps):
 def cap_speed(last: np.ndarray, future: np.ndarray, dt: float, vmax: float) -> np.ndarray:
     """The forecast's joints (H + 1, J, 3): ``last`` (J, 3) then ``future`` (H, J, 3) with each joint's
     displacement from ``last`` capped at ``vmax * dt * (h + 1)`` (m) at step ``h``. The numbers of
-    :meth:`app.prediction.predictor.MotionPredictor._cap_speed_reference` (same operations, same order)."""
+    :func:`app.prediction.reference.cap_speed_reference` (same operations, same order)."""
     H, J = future.shape[0], future.shape[1]
     out = np.empty((H + 1, J, 3))
     out[0] = last

@@ -74,13 +74,10 @@ class PredictorInputError(ValueError):
 
 
 @functools.cache
-def _cap_speed_kernel() -> Callable[..., np.ndarray] | None:
-    """The compiled speed cap (imported on first use: numba loads in about a second), None without numba."""
-    try:
-        from app.prediction._kernels import cap_speed
-    except ImportError as exc:
-        log.info("numba not available (%s): forecasts are capped in NumPy", exc)
-        return None
+def _cap_speed_kernel() -> Callable[..., np.ndarray]:
+    """The compiled speed cap, imported on first use (numba loads in about a second)."""
+    from app.prediction._kernels import cap_speed
+
     return cap_speed
 
 
@@ -514,25 +511,15 @@ class MotionPredictor:
 
     def _cap_speed(self, last: np.ndarray, future: np.ndarray) -> np.ndarray:
         """The forecast's joints (H + 1, J, 3): ``last``, then ``future`` with every joint's displacement
-        from ``last`` capped at ``max_speed_mps`` times the step's time (compiled where numba is)."""
-        kernel = _cap_speed_kernel()
-        if kernel is not None:
-            return kernel(
-                np.ascontiguousarray(last, dtype=np.float64),
-                np.ascontiguousarray(future, dtype=np.float64),
-                float(self.dt_s),
-                float(self.max_speed_mps),
-            )
-        return self._cap_speed_reference(last, future)
-
-    def _cap_speed_reference(self, last: np.ndarray, future: np.ndarray) -> np.ndarray:
-        """:meth:`_cap_speed` in NumPy (the reference of the tests)."""
-        t = self.dt_s * np.arange(1, future.shape[0] + 1)[:, None, None]
-        disp = future - last[None]
-        dist = np.linalg.norm(disp, axis=-1, keepdims=True)
-        limit = self.max_speed_mps * t
-        scale = np.where(dist > limit, limit / np.maximum(dist, 1e-12), 1.0)
-        return np.concatenate([last[None], last[None] + disp * scale], axis=0)
+        from ``last`` capped at ``max_speed_mps`` times the step's time (compiled:
+        :func:`app.prediction._kernels.cap_speed`; the tests compare it with the NumPy reference
+        :func:`app.prediction.reference.cap_speed_reference`)."""
+        return _cap_speed_kernel()(
+            np.ascontiguousarray(last, dtype=np.float64),
+            np.ascontiguousarray(future, dtype=np.float64),
+            float(self.dt_s),
+            float(self.max_speed_mps),
+        )
 
     def predict_batch(self, history: np.ndarray, *, kind: str | None = None) -> np.ndarray:
         """Forecasts for several people at once: uniform histories (P, T, J, 3) -> futures (P, H, J, 3).

@@ -14,12 +14,48 @@ memory with a warning where that folder is read-only).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from app.jit import jit
 
-__all__ = ["governed_scale", "law_scale", "max_scale"]
+__all__ = ["PartSeparation", "ServoGovernor", "governed_scale", "law_scale", "max_scale"]
+
+
+class PartSeparation(NamedTuple):
+    """The governor's last measurement of the person, per robot part (L,), as :func:`governed_scale` reads
+    it (built once per camera frame; the servo tick adds to ``travel_m`` in place).
+
+    Attributes:
+        sep_m: Each part's separation from the person at the measurement, less the tracking margin (m).
+        x_h0: The person's worst-case approach from the middle of the speed window to the frame (m), already
+            in ``sep_m``.
+        v_h0: The person's approach speed toward each part, measured over the window (m/s).
+        travel_m: Each part's travel since the separation was measured (a bound, m).
+    """
+
+    sep_m: np.ndarray
+    x_h0: np.ndarray
+    v_h0: np.ndarray
+    travel_m: np.ndarray
+
+
+class ServoGovernor(NamedTuple):
+    """The servo governor's constants as :func:`governed_scale` reads them (built once per law).
+
+    Attributes:
+        separation: ``(s0_m, t_reaction_s, stop_decel_mps2, human_speed_max_mps, human_accel_mps2)`` of the
+            separation model (:attr:`app.safety.governor.SeparationModel.kernel_params`).
+        law: The speed-scaling law's ``(T_r + T_s, C + Z_d + Z_r, T_r + T_s / 2)``, or empty (none).
+        scales: The grid of scales of the braking envelope (:data:`app.safety.governor.SCALE_GRID`).
+        env_u: The instants of a brake, as fractions of it (:data:`app.safety.governor.BRAKE_INSTANTS`).
+    """
+
+    separation: np.ndarray
+    law: np.ndarray
+    scales: np.ndarray
+    env_u: np.ndarray
 
 
 @jit(inline="always")
@@ -150,10 +186,7 @@ def law_scale(d: np.ndarray, v_nom: np.ndarray, v_h: np.ndarray, law: np.ndarray
 
 @jit
 def governed_scale(
-    sep_m: np.ndarray,
-    x_h0: np.ndarray,
-    v_h0: np.ndarray,
-    travel_m: np.ndarray,
+    parts: PartSeparation,
     vmax: np.ndarray,
     dt_h: float,
     s: float,
@@ -161,20 +194,19 @@ def governed_scale(
     rate: float,
     lo: float,
     hi: float,
-    scales: np.ndarray,
-    env_u: np.ndarray,
-    params: np.ndarray,
-    law: np.ndarray,
+    governor: ServoGovernor,
 ) -> float:
     """The speed governor's target scale for the next tick (parts (L,)).
 
-    The separation of each part at the next tick is bounded below from the last measurement ``sep_m``
-    (m), the person's worst-case approach since (from ``v_h0`` (m/s), ``dt_h`` (s) after the measurement,
-    less the ``x_h0`` (m) already counted; NaN ``dt_h``: no measurement, the fastest approach), the part's
-    travel since ``travel_m`` and its travel this tick (``s * vmax * dt``). The target is the braking
-    envelope's largest safe scale in ``[lo, hi]`` (:func:`max_scale`) over every part when any part moves
-    (``vmax > 1e-4`` m/s), limited by the speed-scaling law at the measured ``v_h0`` when ``law`` is not
-    empty (:func:`law_scale`)."""
+    The separation of each part at the next tick is bounded below from the last measurement ``parts.sep_m``
+    (m), the person's worst-case approach since (from ``parts.v_h0`` (m/s), ``dt_h`` (s) after the
+    measurement, less the ``parts.x_h0`` (m) already counted; NaN ``dt_h``: no measurement, the fastest
+    approach), the part's travel since ``parts.travel_m`` and its travel this tick (``s * vmax * dt``). The
+    target is the braking envelope's largest safe scale in ``[lo, hi]`` (:func:`max_scale`) over every part
+    when any part moves (``vmax > 1e-4`` m/s), limited by the speed-scaling law at the measured ``v_h0``
+    when ``governor.law`` is not empty (:func:`law_scale`)."""
+    sep_m, x_h0, v_h0, travel_m = parts.sep_m, parts.x_h0, parts.v_h0, parts.travel_m
+    params, law = governor.separation, governor.law
     n = sep_m.shape[0]
     v_max_h, accel = params[3], params[4]
     d = np.empty(n)
@@ -200,7 +232,7 @@ def governed_scale(
             vp[k] = vmax[i]
             vm[k] = max(v_h0[i], 0.0)
             k += 1
-    target = max_scale(d[:k], vh[:k], vp[:k], rate, lo, hi, scales, env_u, params)
+    target = max_scale(d[:k], vh[:k], vp[:k], rate, lo, hi, governor.scales, governor.env_u, params)
     if law.shape[0] > 0 and k > 0:
         target = min(target, max(law_scale(d[:k], vp[:k], vm[:k], law), 0.0))
     return target

@@ -41,7 +41,6 @@ WORLD = {"app.control.headless"}
 #: rule -> what still breaks it (to be emptied by the restructuring of the planner, supervisor and kernels)
 PENDING: dict[str, set[str]] = {
     "kernel_params": {
-        "app.cell._kernels.track_substeps",
         "app.planning._kernels._segments_one",
         "app.planning._kernels.sample_separation_ok",
         "app.planning._kernels.moves_separation_ok",
@@ -54,15 +53,6 @@ PENDING: dict[str, set[str]] = {
         "app.planning._kernels.speculate_chain",
         "app.planning._kernels.accept_checked",
         "app.planning._kernels.wait_samples",
-        "app.safety._kernels.governed_scale",
-    },
-    "reference_forks": {
-        "app.cell.joint_tracking.step_reference",
-        "app.cell.operator_sim.pose_reference",
-        "app.planning.collision.__init__",
-        "app.planning.kinematics.__init__",
-        "app.planning.kinematics.from_workcell",
-        "app.prediction.predictor._cap_speed_reference",
     },
     "module_lines": {"app.planning._kernels"},
 }

@@ -84,8 +84,9 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         self.qd_max = pick(cfg.qd_max, kinematics.QD_MAX)
         self.qdd_max = pick(cfg.qdd_max, kinematics.QDD_MAX)
         self._inv_qd = 1.0 / self.qd_max
-        # the compiled row-wise _align (only with the compiled collision model: a NumPy model stays NumPy)
-        compiled = bool(getattr(collision, "compiled", False))
+        # the compiled row-wise _align (only with a model that has compiled checks: a NumPy model stays NumPy)
+        get_geometry = getattr(collision, "kernel_geometry", None)
+        compiled = callable(get_geometry) and get_geometry() is not None
         self._k_align = (_kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max)) if compiled else None
         # path acceleration in "fraction of full speed per second"
         self._A = float(np.min(self.qdd_max / self.qd_max)) * cfg.accel_fraction
@@ -115,7 +116,6 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         )
         self._robot_r = np.asarray(collision.robot_capsules(np.zeros((1, 6)))[2], dtype=np.float64)
         # the fused compiled checks, when the model is the (compiled) UR5e capsule model
-        get_geometry = getattr(collision, "kernel_geometry", None)
         self._kernel_geometry = get_geometry() if callable(get_geometry) and self._segments_ok else None
         if self._kernel_geometry is not None:  # the node tables as the compiled move check reads them
             n_rows = roadmap.num_nodes * NUM_BRANCHES

@@ -10,6 +10,7 @@ import pytest
 from app.cell.backends import make_robot
 from app.cell.clock import SimClock
 from app.cell.joint_tracking import JointLimits, JointTracker, ServoCommand
+from app.cell.reference import ReferenceJointTracker
 from app.cell.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot
 from app.config import Settings
 
@@ -243,7 +244,7 @@ def test_the_compiled_tracker_equals_the_numpy_reference(stopping: bool) -> None
     rng = np.random.default_rng(3 if stopping else 4)
     limits = JointLimits.ur5e()
     a = JointTracker(HOME, limits, hold_after_s=0.1, max_substep_s=0.004)
-    b = JointTracker(HOME, limits, hold_after_s=0.1, max_substep_s=0.004)
+    b = ReferenceJointTracker(HOME, limits, hold_after_s=0.1, max_substep_s=0.004)
     t = 0.0
     for k in range(400):
         if k % 25 == 0:
@@ -258,7 +259,7 @@ def test_the_compiled_tracker_equals_the_numpy_reference(stopping: bool) -> None
         scale = float(rng.choice([1.0, 0.5, 0.05, 0.0]))
         brake = stopping and k >= 200
         a.step(t, dt, speed_scale=scale, stopping=brake)
-        b.step_reference(t, dt, speed_scale=scale, stopping=brake)
+        b.step(t, dt, speed_scale=scale, stopping=brake)
         t += dt
         np.testing.assert_allclose(a.q, b.q, rtol=0, atol=1e-12)
         np.testing.assert_allclose(a.qd, b.qd, rtol=0, atol=1e-12)

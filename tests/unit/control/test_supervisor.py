@@ -723,11 +723,11 @@ def test_the_compiled_governor_equals_the_numpy_reference() -> None:
     seen = set()
     for i in range(1500):
         measured = i % 5 != 0
-        sup._sep_m = rng.uniform(-0.05, 1.2, L)
-        sup._v_h0 = rng.uniform(-0.5, 2.5, L)
+        sep_m = rng.uniform(-0.05, 1.2, L)
+        v_h0 = rng.uniform(-0.5, 2.5, L)
         sup._v_h_t = float(rng.uniform(-0.1, 0.0)) if measured else -math.inf
-        sup._x_h0 = np.asarray(SSM.human_approach(sup._v_h0, -sup._v_h_t if measured else 0.0)[0])
-        sup._travel_m = rng.uniform(0.0, 0.05, L)
+        x_h0 = np.asarray(SSM.human_approach(v_h0, -sup._v_h_t if measured else 0.0)[0])
+        sup._parts = _kernels.PartSeparation(sep_m, x_h0, v_h0, rng.uniform(0.0, 0.05, L))
         vmax = rng.uniform(0.0, 1.5, L) * (rng.uniform(size=L) > 0.2)
         s = float(rng.uniform(0.0, 1.0))
         rate = float(rng.uniform(1.0, 20.0))
@@ -765,6 +765,10 @@ class _PointCapsules:
     def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         q = np.asarray(q, dtype=float).reshape(-1, 6)
         return q[:, None, :3].copy(), q[:, None, :3].copy(), np.zeros(1)
+
+    def human_capsules(self, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        joints = np.asarray(joints, dtype=float)
+        return joints.copy(), joints.copy(), np.full(joints.shape[-2], R_HUMAN)
 
     def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         return (np.linalg.norm(np.asarray(joints) - np.asarray(q)[:3], axis=-1) - R_HUMAN)[:, None, :]

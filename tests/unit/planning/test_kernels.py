@@ -22,10 +22,10 @@ from app.planning.collision import (
     HUMAN_CAPSULES,
     ROBOT_LINKS,
     CollisionModel,
-    _segment_distance_numpy,
     segment_distance,
 )
 from app.planning.kinematics import UR5e
+from app.planning.reference import ReferenceCollisionModel, ReferenceUR5e, segment_distance_reference
 from app.planning.roadmap import RoadmapConfig, load_or_build_roadmap
 from app.planning.scenarios import reference_queries
 from app.planning.search import Planner
@@ -43,7 +43,7 @@ def cell():  # type: ignore[no-untyped-def]
 
 @pytest.fixture(scope="module")
 def models(cell):  # type: ignore[no-untyped-def]
-    return CollisionModel(cell), CollisionModel(cell, compiled=False)
+    return CollisionModel(cell), ReferenceCollisionModel(cell)
 
 
 def _poses(rng: np.random.Generator, n: int, spread: float = 0.35) -> np.ndarray:
@@ -75,7 +75,7 @@ def test_segment_distances_match_the_numpy_reference(n: int) -> None:
     p2[col] = p1[col] + rng.uniform(-2.0, 2.0, (col.sum(), 1)) * (q1[col] - p1[col])
     q2[col] = p2[col] + rng.uniform(-1.5, 1.5, (col.sum(), 1)) * (q1[col] - p1[col])
     got = segment_distance(p1, q1, p2, q2)
-    ref = _segment_distance_numpy(p1, q1, p2, q2)
+    ref = segment_distance_reference(p1, q1, p2, q2)
     assert got.shape == (n,)
     apart = ref > 1e-6
     np.testing.assert_allclose(got[apart], ref[apart], rtol=0.0, atol=TOL)
@@ -103,7 +103,7 @@ def test_touching_parallel_and_degenerate_segments_have_their_exact_distance() -
     for (p1, q1, p2, q2), expected in cases:
         got = float(segment_distance(p1, q1, p2, q2))
         assert abs(got - expected) <= 1e-12, (p1, q1, p2, q2, got)
-        assert abs(float(_segment_distance_numpy(p1, q1, p2, q2)) - got) <= 1e-7
+        assert abs(float(segment_distance_reference(p1, q1, p2, q2)) - got) <= 1e-7
         # the same pair swapped and reversed
         assert abs(float(segment_distance(q2, p2, q1, p1)) - expected) <= 1e-12
 
@@ -114,7 +114,7 @@ def test_segment_distance_broadcasts_like_the_reference() -> None:
     p2, q2 = rng.normal(size=(2, 1, 5, 3))
     got = segment_distance(p1, q1, p2, q2)
     assert got.shape == (4, 5)
-    np.testing.assert_allclose(got, _segment_distance_numpy(p1, q1, p2, q2), rtol=0.0, atol=TOL)
+    np.testing.assert_allclose(got, segment_distance_reference(p1, q1, p2, q2), rtol=0.0, atol=TOL)
     with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
         segment_distance(np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 2)))
 
@@ -126,7 +126,7 @@ def test_segment_distance_broadcasts_like_the_reference() -> None:
 def test_compiled_chain_equals_the_numpy_chain(cell, n: int) -> None:  # type: ignore[no-untyped-def]
     rng = np.random.default_rng(n)
     q = rng.uniform(-2 * np.pi, 2 * np.pi, (n, 6))
-    kin, ref = UR5e.from_workcell(cell), UR5e.from_workcell(cell, compiled=False)
+    kin, ref = UR5e.from_workcell(cell), ReferenceUR5e.from_workcell(cell)
     _all_close(kin._chain(q), ref._chain(q))
     np.testing.assert_allclose(kin.fk(q), ref.fk(q), rtol=0.0, atol=1e-12)
     np.testing.assert_allclose(kin.fk_tcp(q), ref.fk_tcp(q), rtol=0.0, atol=1e-12)
