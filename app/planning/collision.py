@@ -799,9 +799,10 @@ class CollisionModel:
         self._k_links = np.arange(_NL, dtype=np.int64)
         self._k_self_i = np.array(self._self_i, dtype=np.int64)
         self._k_self_j = np.array(self._self_j, dtype=np.int64)
-        # the robot's arguments of the compiled kernels (T_base, t_tcp, dh_d, dh_a, twist, off_shoulder,
-        # off_forearm), made once: the capsule kernel and kernel_geometry() both take them
-        self._k_robot: tuple[Any, ...] = ()
+        # the robot and person as the compiled kernels take them, made once: the capsule kernel and
+        # kernel_geometry() both take them (None with the NumPy implementations)
+        self._k_robot: tuple[Any, ...] | None = None  # RobotArrays, packed
+        self._k_geometry: _kernels.KernelGeometry | None = None
         # the tool capsule runs from the flange along the TCP direction; its round end lies
         # ``tool.capsule_length_m`` from the flange (fitted to the open gripper and the part it holds)
         t_tcp = np.asarray(self.kin.T_flange_tcp[:3, 3], dtype=np.float64)
@@ -821,16 +822,21 @@ class CollisionModel:
         self._k_ext.setflags(write=False)
         if self.compiled:
             kin = self.kin
-            self._k_robot = (
-                kin._T_base_k,
-                np.ascontiguousarray(kin._t_tcp_k * self.tool_end_fraction),
-                _DH_D,
-                _DH_A,
-                _TWIST,
-                SHOULDER_OFFSET_M,
-                FOREARM_OFFSET_M,
-                np.array(self._k_ext),
+            self._k_robot = _kernels.pack(
+                _kernels.RobotArrays(
+                    T_base=kin._T_base_k,
+                    t_tcp=np.ascontiguousarray(kin._t_tcp_k * self.tool_end_fraction),
+                    dh_d=_DH_D,
+                    dh_a=_DH_A,
+                    twist=_TWIST,
+                    off_shoulder=SHOULDER_OFFSET_M,
+                    off_forearm=FOREARM_OFFSET_M,
+                    ext=np.array(self._k_ext),
+                    ra=self._k_ra,
+                )
             )
+            person = _kernels.PersonCapsules(self._k_ia, self._k_ib, self._k_rh)
+            self._k_geometry = _kernels.KernelGeometry(robot=self._k_robot, person=_kernels.pack(person))
 
     # ------------------------------------------------------------------ geometry
     def _robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -842,7 +848,8 @@ class CollisionModel:
         """Robot segment starts and directions, component-major, each (L, 3, B)."""
         if not self.compiled:
             return self._robot_segments_cm_numpy(q)
-        return _kernels.robot_segments(_kernels.as_f64(q), *self._k_robot)
+        assert self._k_robot is not None
+        return _kernels.robot_segments(_kernels.as_f64(q), self._k_robot)
 
     def _robot_segments_cm_numpy(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`_robot_segments_cm` in NumPy (the reference of the compiled kernel)."""
@@ -995,19 +1002,12 @@ class CollisionModel:
             a_c, d_c, self._k_ra, _kernels.as_f64(joints), self._k_ia, self._k_ib, self._k_rh
         )
 
-    def kernel_geometry(self) -> tuple[Any, ...] | None:
-        """The arguments the compiled checks of :mod:`app.planning._kernels` take for this model's robot
-        and person (``T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ext, ra, ia, ib, rh``),
-        or None when the model runs in NumPy (``compiled=False``)."""
-        if not self.compiled:
-            return None
-        return (
-            *self._k_robot,
-            self._k_ra,
-            self._k_ia,
-            self._k_ib,
-            self._k_rh,
-        )
+    def kernel_geometry(self) -> _kernels.KernelGeometry | None:
+        """The robot (:class:`~app.planning._kernels.RobotArrays`) and person
+        (:class:`~app.planning._kernels.PersonCapsules`) as the compiled checks of
+        :mod:`app.planning._kernels` take them (packed), or None when the model runs in NumPy
+        (``compiled=False``)."""
+        return self._k_geometry
 
     def robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Robot capsule segments for configurations q (K, 6), component-major: starts and directions

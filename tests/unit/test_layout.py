@@ -42,18 +42,6 @@ WORLD = {"app.control.headless"}
 PENDING: dict[str, set[str]] = {
     "kernel_params": {
         "app.cell._kernels.track_substeps",
-        "app.planning._kernels._segments_one",
-        "app.planning._kernels.sample_separation_ok",
-        "app.planning._kernels.moves_separation_ok",
-        "app.planning._kernels.trajectory_first_violation",
-        "app.planning._kernels._record_move",
-        "app.planning._kernels.children_moves",
-        "app.planning._kernels.alternative_moves",
-        "app.planning._kernels.check_prepare",
-        "app.planning._kernels.pop_batch",
-        "app.planning._kernels.speculate_chain",
-        "app.planning._kernels.accept_checked",
-        "app.planning._kernels.wait_samples",
         "app.safety._kernels.governed_scale",
     },
     "reference_forks": {
@@ -64,7 +52,6 @@ PENDING: dict[str, set[str]] = {
         "app.planning.kinematics.from_workcell",
         "app.prediction.predictor._cap_speed_reference",
     },
-    "module_lines": {"app.planning._kernels"},
 }
 
 
