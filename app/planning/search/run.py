@@ -271,9 +271,8 @@ class _Run:
         table and ``h_pred`` ((0, 8) where there is none): :class:`~app.planning._kernels.SearchContext`,
         packed."""
         key = (self.t_last, self.t_nongoal, self.h_pred is None)
-        if (
-            self._ctx is None or self._ctx_key != key
-        ):  # the prune's bounds change only after the approach probe
+        # the prune's bounds change only after the approach probe
+        if self._ctx is None or self._ctx_key != key:
             goal = -2 if self.goal is None else self.goal
             stop = math.nan if self.stop_time is None else self.stop_time
             ctx = np.array([goal, self.A, self.min_edge, self.w_h, stop, self.t_last, self.t_nongoal, self.f])
@@ -549,13 +548,13 @@ class _Run:
                         rows[live],
                     )  # fmt: skip
                     fl = np.ascontiguousarray(fl[:, live])
-                moves = _kernels.pack(_kernels.Moves(
+                moves = _kernels.Moves(
                     q_a=q_par, target=target, pts_a=pts, cen_a=cen, rad_a=rad, rows=rows,
                     t_dep=fl[0], h=fl[1], u0=fl[2], L=fl[3], f=fl[4], end_rest=end, hold=hold,
-                ))  # fmt: skip
+                )  # fmt: skip
                 res, n_samples, n_exact = _kernels.moves_separation_ok(
-                    moves, p._k_tables, p._k_motion, float(self.hold_s), sep._k_requirement, sep._k_forecast,
-                    geo.robot, geo.person,
+                    _kernels.pack(moves), p._k_tables, p._k_motion, float(self.hold_s), sep._k_requirement,
+                    sep._k_forecast, geo.robot, geo.person,
                 )  # fmt: skip
                 sep.samples += n_samples
                 sep.exact_samples += n_exact
