@@ -548,12 +548,10 @@ class _Run:
                         rows[live],
                     )  # fmt: skip
                     fl = np.ascontiguousarray(fl[:, live])
-                moves = _kernels.Moves(
-                    q_a=q_par, target=target, pts_a=pts, cen_a=cen, rad_a=rad, rows=rows,
-                    t_dep=fl[0], h=fl[1], u0=fl[2], L=fl[3], f=fl[4], end_rest=end, hold=hold,
-                )  # fmt: skip
+                # the fields of Moves, packed (built as a plain tuple: this runs once per batch)
+                moves = (q_par, target, pts, cen, rad, rows, *fl, end, hold)
                 res, n_samples, n_exact = _kernels.moves_separation_ok(
-                    _kernels.pack(moves), p._k_tables, p._k_motion, float(self.hold_s), sep._k_requirement,
+                    moves, p._k_tables, p._k_motion, float(self.hold_s), sep._k_requirement,
                     sep._k_forecast, geo.robot, geo.person,
                 )  # fmt: skip
                 sep.samples += n_samples
