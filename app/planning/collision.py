@@ -515,8 +515,6 @@ class CollisionModel:
         self._k_links = np.arange(_NL, dtype=np.int64)
         self._k_self_i = np.array(self._self_i, dtype=np.int64)
         self._k_self_j = np.array(self._self_j, dtype=np.int64)
-        # the robot's arguments of the compiled kernels (T_base, t_tcp, dh_d, dh_a, twist, off_shoulder,
-        # off_forearm), made once: the capsule kernel and kernel_geometry() both take them
         # the tool capsule runs from the flange along the TCP direction; its round end lies
         # ``tool.capsule_length_m`` from the flange (fitted to the open gripper and the part it holds)
         t_tcp = np.asarray(self.kin.T_flange_tcp[:3, 3], dtype=np.float64)
@@ -534,18 +532,24 @@ class CollisionModel:
         #: (L, 2) each capsule's extension beyond its start and end, as a fraction of its length.
         self._k_ext = np.where(ext > 0, ext / np.maximum(seg_len, 1e-9)[:, None], 0.0)
         self._k_ext.setflags(write=False)
-        # the compiled capsule layout is the UR5e's (kinematics.D, A and the twists)
+        # the robot and person as the compiled kernels take them, made once: the capsule kernel and
+        # kernel_geometry() both take them
         kin = self.kin
-        self._k_robot: tuple[Any, ...] = (
-            kin._T_base_k,
-            np.ascontiguousarray(kin._t_tcp_k * self.tool_end_fraction),
-            _DH_D,
-            _DH_A,
-            _TWIST,
-            SHOULDER_OFFSET_M,
-            FOREARM_OFFSET_M,
-            np.array(self._k_ext),
+        self._k_robot: tuple[Any, ...] = _kernels.pack(
+            _kernels.RobotArrays(
+                T_base=kin._T_base_k,
+                t_tcp=np.ascontiguousarray(kin._t_tcp_k * self.tool_end_fraction),
+                dh_d=_DH_D,
+                dh_a=_DH_A,
+                twist=_TWIST,
+                off_shoulder=SHOULDER_OFFSET_M,
+                off_forearm=FOREARM_OFFSET_M,
+                ext=np.array(self._k_ext),
+                ra=self._k_ra,
+            )
         )
+        person = _kernels.PersonCapsules(self._k_ia, self._k_ib, self._k_rh)
+        self._k_geometry = _kernels.KernelGeometry(robot=self._k_robot, person=_kernels.pack(person))
 
     # ------------------------------------------------------------------ geometry
     def _robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -555,7 +559,7 @@ class CollisionModel:
 
     def _robot_segments_cm(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Robot segment starts and directions, component-major, each (L, 3, B)."""
-        return _kernels.robot_segments(_kernels.as_f64(q), *self._k_robot)
+        return _kernels.robot_segments(_kernels.as_f64(q), self._k_robot)
 
     def robot_capsules(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Robot capsules for configurations q (B, 6).
@@ -672,17 +676,13 @@ class CollisionModel:
             a_c, d_c, self._k_ra, _kernels.as_f64(joints), self._k_ia, self._k_ib, self._k_rh
         )
 
-    def kernel_geometry(self) -> tuple[Any, ...] | None:
-        """The arguments the compiled checks of :mod:`app.planning._kernels` take for this model's robot
-        and person (``T_base, t_tcp, dh_d, dh_a, twist, off_shoulder, off_forearm, ext, ra, ia, ib, rh``);
-        None from a model without them (the tests' NumPy reference): the planner then checks in NumPy."""
-        return (
-            *self._k_robot,
-            self._k_ra,
-            self._k_ia,
-            self._k_ib,
-            self._k_rh,
-        )
+    def kernel_geometry(self) -> _kernels.KernelGeometry | None:
+        """The robot (:class:`~app.planning._kernels.RobotArrays`) and person
+        (:class:`~app.planning._kernels.PersonCapsules`) as the compiled checks of
+        :mod:`app.planning._kernels` take them (packed); None from a model without them (the tests' NumPy
+        reference, :class:`app.planning.reference.ReferenceCollisionModel`): the planner then checks in
+        NumPy."""
+        return self._k_geometry
 
     def robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Robot capsule segments for configurations q (K, 6), component-major: starts and directions

@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from app.planning._timing_kernels import TimingGovernor, TimingPath, TimingPerson
-from app.planning._timing_kernels import predicted_scales as _kernel_predicted_scales
+from app.planning._kernels.timing import TimingGovernor, TimingPath, TimingPerson
+from app.planning._kernels.timing import predicted_scales as _kernel_predicted_scales
 from app.planning.trajectory import Trajectory, sample_times
 from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, GovernorModel
 
@@ -55,7 +55,7 @@ def predicted_scales(
     traj: Trajectory, forecast: Any, collision: Any, model: GovernorModel, *, step_s: float = STEP_S
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Walk along ``traj`` at the governor's predicted scale (compiled:
-    :func:`app.planning._timing_kernels.predicted_scales`; the tests compare it with a NumPy reference).
+    :func:`app.planning._kernels.timing.predicted_scales`; the tests compare it with a NumPy reference).
 
     At each sample point the forecast person at the wall time the robot gets there (and a speed window
     earlier) gives each part's separation and the person's directed speed toward it

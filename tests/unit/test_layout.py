@@ -12,9 +12,7 @@
   and benchmarks import.
 - No module of ``app`` is longer than 1,200 lines.
 
-The modules that still break a rule are listed in ``PENDING`` (issue 16's restructuring is not finished for
-them). The list can only shrink: a new offender fails its rule, and so does a listed one that no longer
-offends (take it off the list).
+Every rule holds for every module: there is no list of exceptions.
 """
 
 from __future__ import annotations
@@ -38,33 +36,11 @@ SIMULATOR = "app.cell.operator_sim"
 DECIDERS = ("app.planning", "app.prediction", "app.safety", "app.control")
 # the modules that set up the simulated world (they may create a simulated operator)
 WORLD = {"app.control.headless"}
-#: rule -> what still breaks it (to be emptied by the restructuring of the planner, supervisor and kernels)
-PENDING: dict[str, set[str]] = {
-    "kernel_params": {
-        "app.planning._kernels._segments_one",
-        "app.planning._kernels.sample_separation_ok",
-        "app.planning._kernels.moves_separation_ok",
-        "app.planning._kernels.trajectory_first_violation",
-        "app.planning._kernels._record_move",
-        "app.planning._kernels.children_moves",
-        "app.planning._kernels.alternative_moves",
-        "app.planning._kernels.check_prepare",
-        "app.planning._kernels.pop_batch",
-        "app.planning._kernels.speculate_chain",
-        "app.planning._kernels.accept_checked",
-        "app.planning._kernels.wait_samples",
-    },
-    "module_lines": {"app.planning._kernels"},
-}
 
 
 def _check(rule: str, offenders: dict[str, str]) -> None:
-    """Fail on an offender that is not pending, and on a pending one that no longer offends."""
-    pending = PENDING.get(rule, set())
-    new = [msg for key, msg in sorted(offenders.items()) if key not in pending]
-    fixed = sorted(pending - set(offenders))
-    assert not new, "\n".join(new)
-    assert not fixed, f"no longer breaking the rule {rule!r}, take them off PENDING: {fixed}"
+    """Fail on any module or kernel that breaks ``rule`` (``offenders``: name -> what it breaks)."""
+    assert not offenders, f"{rule}:\n" + "\n".join(msg for _, msg in sorted(offenders.items()))
 
 
 def _module_name(path: Path) -> str:

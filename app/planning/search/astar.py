@@ -260,9 +260,8 @@ class _Search:
             W_b = min(W, 8 + 4 * n_batches)
             while True:
                 code, n_out, e, n_fin = _kernels.pop_batch(
-                    ol.heap, ol.hs, ol.E_key, ol.E_negt, ol.E_id, ol.def_head, ol.def_next, AT, run._I,
-                    run._B, run.status, ctx, h_pred, len(batch), W_b, len(popped), spec_len > 0, out,
-                )  # fmt: skip
+                    ol.arrays, run._k_state, ctx, h_pred, len(batch), W_b, len(popped), spec_len > 0, out
+                )
                 E_id = ol.E_id
                 if n_out:
                     got = out[0, :n_out].tolist()
@@ -294,9 +293,8 @@ class _Search:
                 spec_rate = 0.5 * spec_rate + 0.5 * passed
                 chain_ids = _NO_IDS
             n_acc, failed, expand, final_sid = _kernels.accept_checked(
-                np.array(popped, dtype=np.int64), run.status, run._F, run._I, run._B, AT, goal_i, stop,
-                ol.def_head, ol.def_next, ol.heap, ol.hs, ol.E_key, ol.E_negt, ol.E_id,
-            )  # fmt: skip
+                np.array(popped, dtype=np.int64), run._k_state, goal_i, stop, ol.arrays
+            )
             expanded += n_acc
             if final_sid >= 0:
                 return run.reconstruct(int(final_sid)), expanded, "ok"

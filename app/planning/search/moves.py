@@ -151,39 +151,39 @@ class _MoveChecks:
         first sample that fails."""
         f64, M = _kernels.as_f64, q_a.shape[0]
         if target_geometry is None:
-            pts_tab, cen_tab, rad_tab = self._k_tables
+            tables = self._k_tables
             rows = _kernels.as_i64(np.asarray(cv) * NUM_BRANCHES + np.asarray(b))
         else:
-            pts_tab, cen_tab, rad_tab = (f64(x) for x in target_geometry)
+            tables = _kernels.pack(_kernels.CapsuleBounds(*(f64(x) for x in target_geometry)))
             rows = np.arange(M, dtype=np.int64)
+        moves = _kernels.pack(
+            _kernels.Moves(
+                q_a=f64(q_a),
+                target=f64(target),
+                pts_a=f64(pts_a),
+                cen_a=f64(cen_a),
+                rad_a=f64(rad_a),
+                rows=rows,
+                t_dep=_per_move(t_dep, M),
+                h=f64(h),
+                u0=f64(u0),
+                L=f64(L),
+                f=_per_move(f, M),
+                end_rest=_per_move(end_rest, M, np.bool_),
+                hold=_per_move(hold, M, np.bool_),
+            )
+        )
+        geo = sep._kernel
+        assert geo is not None
         ok, n_samples, n_exact = _kernels.moves_separation_ok(
-            f64(q_a),
-            f64(target),
-            f64(pts_a),
-            f64(cen_a),
-            f64(rad_a),
-            pts_tab,
-            cen_tab,
-            rad_tab,
-            rows,
-            _per_move(t_dep, M),
-            f64(h),
-            f64(u0),
-            f64(L),
-            _per_move(f, M),
-            _per_move(end_rest, M, np.bool_),
-            _per_move(hold, M, np.bool_),
-            self._k_lever,
-            self._k_moved_by,
-            self._k_speed_factor,
-            self._A,
-            self._k_sample_dt,
+            moves,
+            tables,
+            self._k_motion,
             float(hold_s),
-            sep._k_offsets,
-            sep._k_params,
-            *sep._k_forecast,
-            *sep._k_window,
-            *sep._kernel,
+            sep._k_requirement,
+            sep._k_forecast,
+            geo.robot,
+            geo.person,
         )
         sep.samples += n_samples
         sep.exact_samples += n_exact

@@ -3,6 +3,8 @@ result of a search whose open list ran empty (:func:`_exhausted`)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from app.planning import _kernels
@@ -25,12 +27,24 @@ class _OpenList:
         self.heap = np.zeros(cap, dtype=np.int64)
         self.hs = np.zeros(2, dtype=np.int64)  # heap size, entries
         self.def_head = np.full(run.t.shape[0], -1, dtype=np.int64)
+        self.arrays = self._arrays()
+
+    def _arrays(self) -> tuple[Any, ...]:
+        """The arrays as the compiled search loop takes them (:class:`~app.planning._kernels.OpenArrays`,
+        packed; rebuilt whenever they grow)."""
+        return _kernels.pack(
+            _kernels.OpenArrays(
+                self.heap, self.hs, self.E_key, self.E_negt, self.E_id, self.def_head, self.def_next
+            )
+        )
 
     def push(self, got: tuple[np.ndarray, np.ndarray, np.ndarray]) -> None:
         ids, keys, ts = got
         m = ids.shape[0]
         cap = self.E_key.shape[0]
+        grown = False
         if self.hs[1] + m > cap:
+            grown = True
             new = max(2 * cap, int(self.hs[1]) + m)
             for name in ("E_key", "E_negt", "E_id", "def_next", "heap"):
                 old = getattr(self, name)
@@ -46,6 +60,9 @@ class _OpenList:
             head = np.full(n_states, -1, dtype=np.int64)
             head[: self.def_head.shape[0]] = self.def_head
             self.def_head = head
+            grown = True
+        if grown:
+            self.arrays = self._arrays()
         if m:  # (the generation kernels' own arrays: int64 / float64, contiguous)
             _kernels.heap_add(ids, keys, ts, self.heap, self.hs, self.E_key, self.E_negt, self.E_id)
 

@@ -117,19 +117,40 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         self._robot_r = np.asarray(collision.robot_capsules(np.zeros((1, 6)))[2], dtype=np.float64)
         # the fused compiled checks, when the model is the (compiled) UR5e capsule model
         self._kernel_geometry = get_geometry() if callable(get_geometry) and self._segments_ok else None
-        if self._kernel_geometry is not None:  # the node tables as the compiled move check reads them
+        if self._kernel_geometry is not None:  # the tables as the compiled checks and search read them
             n_rows = roadmap.num_nodes * NUM_BRANCHES
-            self._k_tables = (
-                _kernels.as_f64(self._pts_all.reshape(n_rows, -1, 3)),
-                _kernels.as_f64(self._cen_all.reshape(n_rows, -1, 3)),
-                _kernels.as_f64(self._rad_all.reshape(n_rows, -1)),
+            pack = _kernels.pack
+            self._k_tables = pack(
+                _kernels.CapsuleBounds(
+                    pts=_kernels.as_f64(self._pts_all.reshape(n_rows, -1, 3)),
+                    cen=_kernels.as_f64(self._cen_all.reshape(n_rows, -1, 3)),
+                    rad=_kernels.as_f64(self._rad_all.reshape(n_rows, -1)),
+                )
             )
-            self._k_lever = _kernels.as_f64(self._lever)
-            self._k_q_lo, self._k_q_hi = _kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max)
-            self._k_moved_by = _kernels.as_i64(self._moved_by)
+            self._k_limits = pack(
+                _kernels.JointLimits(_kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max))
+            )
+            self._k_motion = pack(
+                _kernels.MotionModel(
+                    lever=_kernels.as_f64(self._lever),
+                    moved_by=_kernels.as_i64(self._moved_by),
+                    speed_factor=float(cfg.speed_factor),
+                    accel=self._A,
+                    sample_dt=float(cfg.sample_dt_s),
+                )
+            )
             self._k_ik = _kernels.as_f64(self._ik)
-            self._k_speed_factor = float(cfg.speed_factor)
-            self._k_sample_dt = float(cfg.sample_dt_s)
+            self._k_roadmap = pack(
+                _kernels.RoadmapTables(
+                    indptr=self._k_indptr,
+                    indices=self._k_indices,
+                    ord_flat=self._ord_flat,
+                    L_flat=self._L_flat,
+                    same_flat=self._same_flat,
+                    delta0=self._delta0,
+                    ik=self._k_ik,
+                )
+            )
         self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
         # which joints each person capsule runs between (joint indices fed in as coordinates) and its radius
         coded = np.repeat(np.arange(NUM_JOINTS, dtype=np.float64)[None, :, None], 3, axis=2)

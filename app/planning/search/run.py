@@ -86,15 +86,18 @@ class _Run:
         self._h_tab_k = _kernels.as_f64(h_tab) if h_tab is not None else np.zeros((0, NUM_BRANCHES))
         self._kinds: np.ndarray | None = None
         self._ctx_key: tuple[float, float, bool] | None = None
-        self._ctx: tuple[np.ndarray, np.ndarray] = (np.zeros(8), np.zeros((0, NUM_BRANCHES)))
+        self._ctx: tuple[Any, ...] | None = None  # SearchContext, packed
         self.wait_ok[:] = np.nan  # per checked state: until when standing still there is safe (NaN: unknown)
         self.q[0] = q_start
         pts, cen, rad = planner._points_and_spheres(q_start[None])
         self.start_pts, self.start_cen, self.start_rad = pts[0], cen[0], rad[0]
-        self._start_k = tuple(_kernels.as_f64(x) for x in (pts[0], cen[0], rad[0]))
+        self._start_k = _kernels.pack(
+            _kernels.CapsuleBounds(*(_kernels.as_f64(x) for x in (pts[0], cen[0], rad[0])))
+        )
         # option tables: rows e * 8 + b of the planner's edge tables, then the start's rows (-1 - j)
         self.start_b = np.zeros((1, planner._R), dtype=np.int64)
         self.start_L = np.full((1, planner._R), np.inf)
+        self._k_state = self._state()
 
     # -- records
     def _grow(self, m: int) -> None:
@@ -116,6 +119,16 @@ class _Run:
             arr = np.zeros((new, *old.shape[1:]), dtype=old.dtype)
             arr[:cap] = old
             setattr(self, name, arr)
+        self._k_state = self._state()
+
+    def _state(self) -> tuple[Any, ...]:
+        """The records as the compiled bookkeeping takes them (:class:`~app.planning._kernels.SearchState`,
+        packed; rebuilt whenever they grow)."""
+        return _kernels.pack(
+            _kernels.SearchState(
+                F=self._F, I=self._I, B=self._B, alts=self.alt, q=self.q, status=self.status, AT=self.AT
+            )
+        )
 
     def _bind(self) -> None:
         """The record attributes as views of the packed arrays."""
@@ -253,16 +266,18 @@ class _Run:
             row,
         )
 
-    def _context(self) -> tuple[np.ndarray, np.ndarray]:
-        """The compiled generation's scalars (see :func:`app.planning._kernels.children_moves`) and
-        ``h_pred`` ((0, 8) where there is none)."""
+    def _context(self) -> tuple[Any, ...]:
+        """The compiled generation's scalars (see :func:`app.planning._kernels.children_moves`), heuristic
+        table and ``h_pred`` ((0, 8) where there is none): :class:`~app.planning._kernels.SearchContext`,
+        packed."""
         key = (self.t_last, self.t_nongoal, self.h_pred is None)
-        if self._ctx_key != key:  # the prune's bounds change only after the approach probe
+        # the prune's bounds change only after the approach probe
+        if self._ctx is None or self._ctx_key != key:
             goal = -2 if self.goal is None else self.goal
             stop = math.nan if self.stop_time is None else self.stop_time
             ctx = np.array([goal, self.A, self.min_edge, self.w_h, stop, self.t_last, self.t_nongoal, self.f])
             h_pred = self.h_pred if self.h_pred is not None else np.zeros((0, NUM_BRANCHES))
-            self._ctx = (ctx, _kernels.as_f64(h_pred))
+            self._ctx = _kernels.pack(_kernels.SearchContext(ctx, self._h_tab_k, _kernels.as_f64(h_pred)))
             self._ctx_key = key
         return self._ctx
 
@@ -278,14 +293,11 @@ class _Run:
         p = self.p
         if self.compiled:
             self._grow(p._max_degree * sids.size)
-            ctx, h_pred = self._context()
             return self._recorded(
                 *_kernels.children_moves(
-                    sids, p._k_indptr, p._k_indices, p._ord_flat, p._L_flat, p._same_flat, self.f,
-                    NUM_BRANCHES, ctx, self._h_tab_k, h_pred, self.AT, self._F, self._I, self._B, self.alt,
-                    self.n,
+                    sids, p._k_roadmap, self.f, NUM_BRANCHES, self._context(), self._k_state, self.n
                 )
-            )  # fmt: skip
+            )
         u, bu = self.node[sids], self.branch[sids]
         a, z = p._indptr[u], p._indptr[u + 1]
         cnt = z - a
@@ -326,12 +338,10 @@ class _Run:
         p = self.p
         if self.compiled:
             self._grow(max_len)
-            ctx, h_pred = self._context()
             return self._recorded(
                 *_kernels.speculate_chain(
-                    sid, max_len, p._next_cache_k[self.goal], p._k_indices, p._ord_flat, p._L_flat,
-                    p._same_flat, p._delta0, p._k_ik, p._k_q_lo, p._k_q_hi, ctx,
-                    self._h_tab_k, h_pred, self.AT, self._F, self._I, self._B, self.alt, self.q, self.n,
+                    sid, max_len, p._next_cache_k[self.goal], p._k_roadmap, p._k_limits, self._context(),
+                    self._k_state, self.n,
                 )
             )  # fmt: skip
         node, b = int(self.node[sid]), int(self.branch[sid])
@@ -405,12 +415,11 @@ class _Run:
                 self._kinds = np.array(self._alternative_kinds(), dtype=np.float64).reshape(-1, 4)
             p = self.p
             self._grow(failed.size * self._kinds.shape[0])
-            ctx, h_pred = self._context()
             return self._recorded(
                 *_kernels.alternative_moves(
                     failed, self._kinds, _NO_ROW, float(cfg.wait_step_s), float(self.sep.t_static),
-                    self.start_b, _kernels.as_f64(self.start_L), p._ord_flat, p._L_flat, p._same_flat,
-                    ctx, self._h_tab_k, h_pred, self.AT, self._F, self._I, self._B, self.alt, self.n,
+                    self.start_b, _kernels.as_f64(self.start_L), p._k_roadmap, self._context(),
+                    self._k_state, self.n,
                 )
             )  # fmt: skip
         failed = failed[(self.alt[failed] == 0) & (self.row[failed] != _NO_ROW)]
@@ -504,8 +513,7 @@ class _Run:
         p = self.p
         sep = self.sep
         target, same, q_par, pts, cen, rad, fl, hold, end, waits, rows, par, stored = _kernels.check_prepare(
-            batch, self._F, self._I, self._B, self.q, p._k_ik, p._k_q_lo, p._k_q_hi, *p._k_tables,
-            self._start_k[0], self._start_k[1], self._start_k[2],
+            batch, self._k_state, p._k_ik, p._k_limits, p._k_tables, self._start_k,
             -2 if self.goal is None else self.goal, self.hold_s > 0,
         )  # fmt: skip
         M = batch.size
@@ -520,6 +528,8 @@ class _Run:
             )  # fmt: skip
             ok[todo] = res == 1
         if sep.forecast is not None:
+            geo = sep._kernel
+            assert geo is not None  # a compiled run's separation is compiled too
             dep = fl[0]
             # waits: the parent must be able to stand still until the departure (checked once per parent)
             waits &= ok
@@ -538,11 +548,11 @@ class _Run:
                         rows[live],
                     )  # fmt: skip
                     fl = np.ascontiguousarray(fl[:, live])
+                # the fields of Moves, packed (built as a plain tuple: this runs once per batch)
+                moves = (q_par, target, pts, cen, rad, rows, *fl, end, hold)
                 res, n_samples, n_exact = _kernels.moves_separation_ok(
-                    q_par, target, pts, cen, rad, *p._k_tables, rows,
-                    fl[0], fl[1], fl[2], fl[3], fl[4], end, hold,
-                    p._k_lever, p._k_moved_by, p._k_speed_factor, p._A, p._k_sample_dt, float(self.hold_s),
-                    sep._k_offsets, sep._k_params, *sep._k_forecast, *sep._k_window, *sep._kernel,
+                    moves, p._k_tables, p._k_motion, float(self.hold_s), sep._k_requirement,
+                    sep._k_forecast, geo.robot, geo.person,
                 )  # fmt: skip
                 sep.samples += n_samples
                 sep.exact_samples += n_exact
@@ -559,15 +569,15 @@ class _Run:
         K, sub = _wait_grid(cfg)
         n_w = K * sub
         sep = self.sep
-        if self.compiled and sep._kernel is not None:  # the samples and their requirement compiled
+        geo = sep._kernel
+        if self.compiled and geo is not None:  # the samples and their requirement compiled
             p = self.p
             qs, t_all, req, cen, rad, ts = _kernels.wait_samples(
-                todo, self._F, self._I, self.q, p._k_tables[1], p._k_tables[2], self._start_k[1],
-                self._start_k[2], n_w, cfg.wait_step_s / sub, sep._k_offsets, sep._k_forecast[0],
-                sep._k_window[0], sep._k_params,
+                todo, self._k_state, p._k_tables, self._start_k, n_w, cfg.wait_step_s / sub,
+                sep._k_requirement, sep._k_forecast,
             )  # fmt: skip
             ok, exact = _kernels.sample_separation_ok(
-                qs, t_all, req, cen, rad, True, _NO_IDS, 0, *sep._k_forecast, *sep._kernel
+                qs, t_all, req, cen, rad, True, _NO_IDS, 0, sep._k_forecast, geo.robot, geo.person
             )
             sep.samples += t_all.size
             sep.exact_samples += exact

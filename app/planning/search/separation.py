@@ -46,7 +46,7 @@ class _Separation:
         subsets: bool = False,
         cap_ends: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
         robot_r: np.ndarray | None = None,
-        kernel: tuple[object, ...] | None = None,
+        kernel: _kernels.KernelGeometry | None = None,
         ssm_extra: tuple[float, np.ndarray] | None = None,
     ) -> None:
         self.model = model
@@ -61,7 +61,7 @@ class _Separation:
         self.samples = 0
         self.exact_samples = 0
         self.t_static = math.inf  # from then on the person holds still and the margin is constant (s)
-        self._kernel = None
+        self._kernel: _kernels.KernelGeometry | None = None
         if forecast is None:
             return
         m_end = float(forecast.margins[-1])
@@ -97,22 +97,26 @@ class _Separation:
         self._kernel = kernel
         if kernel is not None:
             H, J = joints.shape[0], joints.shape[1]
-            self._k_forecast = (
-                _kernels.as_f64(self._times),
-                _kernels.as_f64(joints),
-                _kernels.as_f64(self._djoints if H > 1 else np.zeros((1, J, 3))),
-                _kernels.as_f64(self._dtimes if H > 1 else np.ones(1)),
-                _kernels.as_f64(self._lo_pair),
-                _kernels.as_f64(self._hi_pair),
-            )
             # the sparse table as (levels, H, .) arrays (level k is valid on its first H - 2^k + 1 rows)
             n_lev = len(self._lo_tab)
             lo_tab, hi_tab = np.zeros((n_lev, H, 3)), np.zeros((n_lev, H, 4))
             for k, (a, b) in enumerate(zip(self._lo_tab, self._hi_tab, strict=True)):
                 lo_tab[k, : a.shape[0]] = a
                 hi_tab[k, : b.shape[0]] = b
-            self._k_window = (_kernels.as_f64(self._margin_arr), lo_tab, hi_tab)
-            self._k_params = np.array(
+            self._k_forecast = _kernels.pack(
+                _kernels.PersonForecast(
+                    times=_kernels.as_f64(self._times),
+                    joints=_kernels.as_f64(joints),
+                    djoints=_kernels.as_f64(self._djoints if H > 1 else np.zeros((1, J, 3))),
+                    dtimes=_kernels.as_f64(self._dtimes if H > 1 else np.ones(1)),
+                    lo_pair=_kernels.as_f64(self._lo_pair),
+                    hi_pair=_kernels.as_f64(self._hi_pair),
+                    margins=_kernels.as_f64(self._margin_arr),
+                    lo_tab=lo_tab,
+                    hi_tab=hi_tab,
+                )
+            )
+            params = np.array(
                 [
                     forecast.growth_mps,
                     self._cap,
@@ -127,6 +131,7 @@ class _Separation:
                 dtype=np.float64,
             )
             self._k_offsets = np.array(offsets, dtype=np.float64)
+            self._k_requirement = _kernels.pack(_kernels.Requirement(self._k_offsets, params))
         # per person capsule boxes (for the exact stage to skip capsules far from the robot), sparse table
         # the exact stage's shortcuts need the collision model's segments and capsule subsets
         self._subsets = subsets and cap_ends is not None and robot_r is not None
@@ -324,6 +329,8 @@ class _Separation:
         else:
             groups_k = _kernels.as_i64(groups)
             n_groups = int(groups_k.max()) + 1
+        geo = self._kernel
+        assert geo is not None
         ok, exact = _kernels.sample_separation_ok(
             _kernels.as_f64(q),
             t_all,
@@ -333,8 +340,9 @@ class _Separation:
             use_spheres,
             groups_k,
             n_groups,
-            *self._k_forecast,
-            *self._kernel,
+            self._k_forecast,
+            geo.robot,
+            geo.person,
         )
         self.samples += n_off * S
         self.exact_samples += exact

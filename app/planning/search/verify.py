@@ -114,26 +114,39 @@ class _TrajectoryChecks:
         f64 = _kernels.as_f64
         eps = 1e-4
         t_wall = f64(ts[:first])
+        geo = self._kernel_geometry
+        assert geo is not None
+        pack = _kernels.pack
+        fc = pack(
+            _kernels.ForecastPoses(
+                times=f64(forecast.times),
+                joints=f64(forecast.joints),
+                margins=f64(forecast.margins),
+                growth=float(forecast.growth_mps),
+                cap=max(float(forecast.max_margin_m), float(forecast.margins.max())),
+                r_max=self._human_r_max,
+            )
+        )
+        clearance = pack(
+            _kernels.Clearance(
+                robot_time_s=ssm.robot_time_s,
+                intrusion_m=ssm.intrusion_m,
+                z_robot_m=ssm.z_robot_m,
+                z_human_m=ssm.z_human_m,
+                floor_m=math.inf if floor_m is None else float(floor_m),
+            )
+        )
         k = _kernels.trajectory_first_violation(
             t_wall,
             f64(path_times(t_wall)),
             f64(path_times(t_wall + eps)),
-            *base._kernel_knots(),
             eps,
-            self._k_q_lo,
-            self._k_q_hi,
-            f64(forecast.times),
-            f64(forecast.joints),
-            f64(forecast.margins),
-            float(forecast.growth_mps),
-            max(float(forecast.max_margin_m), float(forecast.margins.max())),
-            ssm.robot_time_s,
-            ssm.intrusion_m,
-            ssm.z_robot_m,
-            ssm.z_human_m,
-            math.inf if floor_m is None else float(floor_m),
-            self._human_r_max,
-            *self._kernel_geometry,
+            pack(_kernels.Knots(*base._kernel_knots())),
+            self._k_limits,
+            fc,
+            clearance,
+            geo.robot,
+            geo.person,
         )
         if k >= 0:
             first = k

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 
 from app.jit import jit
-from app.planning._kernels import _seg_dist
+from app.planning._kernels.base import _seg_dist
 from app.safety._kernels import _approach, law_scale, max_scale
 
 __all__ = ["TimingGovernor", "TimingPath", "TimingPerson", "predicted_scales"]
