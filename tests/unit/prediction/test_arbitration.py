@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.prediction.arbitration import ForecastArbiter
+from app.prediction.arbitration import FAR_ALPHA_FACTOR, ForecastArbiter
 from app.prediction.skeleton import NUM_JOINTS
 
 H, DT = 10, 1 / 30
@@ -131,11 +131,25 @@ def test_coverage_on_a_stream_with_a_known_error_distribution_is_the_target() ->
     rng = np.random.default_rng(5)
     sigma = 0.05
     poses, futures = _noisy_stream(rng, 1500, sigma)
-    arbiter = ForecastArbiter(["noisy"], horizon=H, dt_s=DT, coverage=0.95, floor_m=0.001)
+    arbiter = ForecastArbiter(
+        ["noisy"], horizon=H, dt_s=DT, coverage=0.95, floor_m=0.001, far_alpha_factor=1.0
+    )
     outs = _replay(arbiter, poses, futures)
     assert np.all(np.abs(arbiter.coverage()[1:] - 0.95) < 0.015)
     # and the margin is the distribution's own 95 % quantile
     assert outs[-1].margins[1:] == pytest.approx(np.full(H, _maxwell_quantile(0.95, sigma)), rel=0.1)
+
+
+def test_by_default_the_far_steps_aim_higher_and_each_step_tracks_its_own_target() -> None:
+    rng = np.random.default_rng(5)
+    poses, futures = _noisy_stream(rng, 1500, 0.05)
+    arbiter = ForecastArbiter(["noisy"], horizon=H, dt_s=DT, coverage=0.95, floor_m=0.001)
+    _replay(arbiter, poses, futures)
+    target = 1.0 - arbiter.alpha_k
+    assert target[0] == pytest.approx(0.95)
+    assert target[H] == pytest.approx(1.0 - 0.05 * FAR_ALPHA_FACTOR)
+    assert np.all(np.diff(target) > 0)
+    assert np.all(np.abs(arbiter.coverage()[1:] - target[1:]) < 0.015)
 
 
 def test_the_margin_quantile_is_numpys() -> None:
@@ -183,7 +197,7 @@ def test_the_prior_widens_with_what_the_fresh_steps_show() -> None:
     q95 = _maxwell_quantile(0.95, sigma)
     poses, futures = _noisy_stream(rng, 16, sigma)
     prior = np.full(H + 1, 0.25 * q95)  # 4x too narrow
-    kwargs = {"horizon": H, "dt_s": DT, "floor_m": 0.001, "prior_m": prior}
+    kwargs = {"horizon": H, "dt_s": DT, "floor_m": 0.001, "prior_m": prior, "far_alpha_factor": 1.0}
     plain = _replay(ForecastArbiter(["noisy"], rescale_prior=False, **kwargs), poses, futures)[-1]
     rescaled = _replay(ForecastArbiter(["noisy"], **kwargs), poses, futures)[-1]
     # after 16 frames the near steps are scored, the far ones not yet: the far margins are the prior, scaled
