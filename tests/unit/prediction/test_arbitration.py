@@ -236,3 +236,40 @@ def test_the_far_steps_follow_the_near_steps_only_on_clear_evidence() -> None:
     close = {"network": lambda p, q: _hold(p, q) + 0.01, "hold": lambda p, q: _hold(p, q) + 0.008}
     out = _run(ForecastArbiter(["network", "hold"], transfer_ratio=0.5, **kwargs), still, close)[-1]
     assert out.chosen[1] == "hold" and out.chosen[H] == "network"
+
+
+def test_the_compiled_arbiter_gives_the_numpy_reference_numbers() -> None:
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(11)
+    poses, futures = _noisy_stream(rng, 200, 0.04)
+    other = poses[:, None] + rng.normal(0.0, 0.04, size=futures["noisy"].shape)
+    other[:, 0] = poses
+    futures = {"noisy": futures["noisy"], "other": other}
+    kwargs = {"horizon": H, "dt_s": DT, "window": 30, "min_scores": 5, "floor_m": 0.0}
+    compiled = ForecastArbiter(["noisy", "other"], **kwargs)
+    reference = ForecastArbiter(["noisy", "other"], compiled=False, **kwargs)
+    assert compiled._kernels is not None and reference._kernels is None
+    for a, b in zip(_replay(compiled, poses, futures), _replay(reference, poses, futures), strict=True):
+        np.testing.assert_allclose(a.margins, b.margins, rtol=1e-12, atol=0)
+        np.testing.assert_array_equal(a.joints, b.joints)
+        assert a.chosen == b.chosen
+    np.testing.assert_allclose(compiled._cand_err, reference._cand_err, rtol=1e-12)
+    np.testing.assert_allclose(compiled._alpha_t, reference._alpha_t, rtol=1e-12)
+    np.testing.assert_array_equal(compiled.covered, reference.covered)
+
+
+def test_the_compiled_quantile_is_numpys_at_every_level() -> None:
+    pytest.importorskip("numba")
+    from app.prediction._aci_kernels import step_quantiles
+
+    rng = np.random.default_rng(12)
+    err = rng.gamma(2.0, 0.05, size=(6, 7, 5))
+    err[2, :3] = 0.1  # ties
+    count = np.array([7, 3, 7, 1, 0, 5])
+    level = np.array([0.95, 0.5, 0.999, 0.3, 0.9, 1.0])
+    got = step_quantiles(err, count, level)
+    for k in range(6):
+        if count[k] == 0:
+            assert got[k] == np.inf
+        else:
+            assert got[k] == pytest.approx(np.quantile(err[k, : count[k]].ravel(), level[k]), rel=1e-12)
