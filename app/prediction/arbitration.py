@@ -176,6 +176,7 @@ class ForecastArbiter:
         self._cand_err = np.zeros((len(self.candidates), n, W))
         self._joint_err: np.ndarray | None = None  # (n, W, J), allocated at the first score
         self._count = np.zeros(n, dtype=np.int64)
+        self._q_last = np.full(n, np.inf)  # the quantiles found last time (a hint for the next)
         self._head = np.zeros(n, dtype=np.int64)
         self._alpha_t = self.alpha_k.copy()
         # forecasts waiting to be scored, in a ring of slots (allocated at the first combine); a slot is
@@ -282,7 +283,8 @@ class ForecastArbiter:
         ready = self._count >= self.min_scores
         if self._joint_err is not None and np.any(ready):
             if self._kernels is not None:
-                q = self._kernels[1](self._joint_err, self._count, 1.0 - self._alpha_t)
+                q = self._kernels[1](self._joint_err, self._count, 1.0 - self._alpha_t, self._q_last)
+                self._q_last = q
             else:
                 q = self._quantiles_reference()
             prior = self.prior_m

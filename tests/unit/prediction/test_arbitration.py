@@ -267,9 +267,15 @@ def test_the_compiled_quantile_is_numpys_at_every_level() -> None:
     err[2, :3] = 0.1  # ties
     count = np.array([7, 3, 7, 1, 0, 5])
     level = np.array([0.95, 0.5, 0.999, 0.3, 0.9, 1.0])
-    got = step_quantiles(err, count, level)
-    for k in range(6):
-        if count[k] == 0:
-            assert got[k] == np.inf
-        else:
-            assert got[k] == pytest.approx(np.quantile(err[k, : count[k]].ravel(), level[k]), rel=1e-12)
+    for levels in (level, np.array([0.0, 0.1, 0.05, 0.7, 0.2, 0.45])):
+        exact = step_quantiles(err, count, levels, np.full(6, np.inf))
+        for k in range(6):
+            if count[k] == 0:
+                assert exact[k] == np.inf
+            else:
+                expected = np.quantile(err[k, : count[k]].ravel(), levels[k])
+                assert exact[k] == pytest.approx(expected, rel=1e-12)
+        # a hint (last frame's quantiles) only saves work: too low, too high or right, the same numbers
+        for factor in (0.3, 1.0, 1.1, 5.0):
+            hinted = step_quantiles(err, count, levels, np.where(np.isfinite(exact), factor * exact, np.inf))
+            np.testing.assert_array_equal(hinted, exact)
