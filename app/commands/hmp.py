@@ -23,6 +23,26 @@ hmp_app = typer.Typer(
 )
 
 
+#: The data sources of a cross-source evaluation (``--leave-out``): the CMU clips (trained on their train
+#: split, evaluated on their test split) and the simulated operators of the configured cell (trained on
+#: participant seeds from ``--sim-train-seed``, by default 2000 on; evaluated on ``--sim-seed``, by default 1
+#: on).
+SOURCES: tuple[str, ...] = ("cmu", "sim")
+
+#: Where ``hrc hmp train --leave-out SOURCE`` writes its weights by default and ``hrc hmp eval --leave-out
+#: SOURCE`` reads them.
+LEAVE_OUT_DIR = Path("var") / "hmp_leave_out"
+
+
+def _leave_out_weights(source: str) -> Path:
+    return LEAVE_OUT_DIR / f"{source}.pt"
+
+
+def _check_source(source: str) -> None:
+    if source not in SOURCES:
+        raise _fail(f"unknown source {source!r} for --leave-out; choose one of {', '.join(SOURCES)}")
+
+
 def _fail(message: str) -> typer.Exit:
     typer.echo(f"error: {message}", err=True)
     return typer.Exit(2)
@@ -60,8 +80,28 @@ def train_cmd(
     blocks: Annotated[int, typer.Option(help="Mixer blocks.")] = 3,
     resume: Annotated[bool, typer.Option(help="Continue from the last checkpoint.")] = False,
     progress: Annotated[bool, typer.Option(help="Show a progress bar.")] = True,
+    leave_out: Annotated[
+        str | None,
+        typer.Option(
+            "--leave-out",
+            help="Train on every source but this one (cmu, sim: the CMU train split, simulated operators) "
+            "for a cross-source evaluation with `hrc hmp eval --leave-out SOURCE`; default --out: "
+            "var/hmp_leave_out/SOURCE.pt.",
+        ),
+    ] = None,
+    sim_train_operators: Annotated[
+        int, typer.Option(min=1, help="With --leave-out: simulated operators to train on (2 more validate).")
+    ] = 12,
+    sim_train_seed: Annotated[
+        int, typer.Option(help="With --leave-out: seed of the first simulated operator trained on.")
+    ] = 2000,
+    sim_train_duration: Annotated[
+        float, typer.Option(min=2.0, help="With --leave-out: seconds recorded per simulated operator.")
+    ] = 60.0,
 ) -> None:
-    """Train the Graph-Mixer on clips (CMU train split + your own); write weights, quantiles, model card."""
+    """Train the Graph-Mixer on clips (CMU train split + your own); write weights, quantiles, model card.
+
+    With ``--leave-out SOURCE`` it trains on every source of :data:`SOURCES` but ``SOURCE`` instead."""
     from app.prediction.data import (
         DEFAULT_VAL_CLIPS,
         ClipError,
@@ -75,22 +115,41 @@ def train_cmd(
     from app.prediction.train import TrainConfig, train
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if leave_out is not None:
+        _check_source(leave_out)
+        last = sim_train_seed + sim_train_operators + 1
+        if sim_train_seed <= 1999 and last >= 1000:
+            raise _fail("--sim-train-seed: seeds 1000-1999 are the tuning seeds; train on others (2000 on)")
+    train_clips, val, test, notes, sources = [], [], [], [], []
     try:
-        base_dir = require_cmu_dir(clips)
-        base = load_clip_dir(base_dir, split="train" if (base_dir / "train").is_dir() else None)
-        test = load_clip_dir(base_dir, split="test") if (base_dir / "test").is_dir() else []
-        names = tuple(n.strip() for n in val_clips.split(",")) if val_clips else DEFAULT_VAL_CLIPS
-        train_clips, val = split_clips(base, names)
-        if not val:
-            raise ClipError(
-                f"none of the validation clips {', '.join(names)} is in {base_dir}; pass --val-clips"
+        if leave_out != "cmu":
+            base_dir = require_cmu_dir(clips)
+            base = load_clip_dir(base_dir, split="train" if (base_dir / "train").is_dir() else None)
+            test = load_clip_dir(base_dir, split="test") if (base_dir / "test").is_dir() else []
+            names = tuple(n.strip() for n in val_clips.split(",")) if val_clips else DEFAULT_VAL_CLIPS
+            train_clips, val = split_clips(base, names)
+            if not val:
+                raise ClipError(
+                    f"none of the validation clips {', '.join(names)} is in {base_dir}; pass --val-clips"
+                )
+            sources.append("cmu")
+            notes.append(f"Clip folder: {base_dir.name}")
+        if leave_out is not None and leave_out != "sim":
+            label, sim_clips = _sim_operator_clips(
+                sim_train_operators + 2, sim_train_seed, sim_train_duration, split="sim_train"
             )
+            train_clips = [*train_clips, *sim_clips[:-2]]
+            val = [*val, *(dataclasses.replace(c, split="sim_val") for c in sim_clips[-2:])]
+            sources.append("sim")
+            notes.append(f"{label} (the last two validate)")
         # clips of other folders keyed by their folder too: names repeat across folders
         extra = [
             dataclasses.replace(c, split=(d / c.split).as_posix())
             for d in (extra_clips or [])
             for c in load_clip_dir(d)
         ]
+        if extra:
+            sources.append("extra")
         check_disjoint(train=[*train_clips, *extra], validation=val, test=test)
     except ClipError as exc:
         raise _fail(str(exc)) from exc
@@ -105,19 +164,24 @@ def train_cmd(
         threads=threads,
         model=GraphMixerConfig(channels=channels, blocks=blocks),
     )
-    note = f"Clip folder: {base_dir.name}" + (
-        f"; extra clips: {', '.join(c.label for c in extra)}" if extra else ""
-    )
+    if extra:
+        notes.append(f"extra clips: {', '.join(c.label for c in extra)}")
+    if leave_out is not None:
+        notes.insert(0, f"Cross-source run: source {leave_out!r} left out of training")
+    default_out = DEFAULT_WEIGHTS if leave_out is None else _leave_out_weights(leave_out)
+    default_ckpt = Path("var") / "hmp_checkpoints" / (f"leave_out_{leave_out}" if leave_out else "")
     result = train(
         [*train_clips, *extra],
         val,
         cfg,
-        out=out or DEFAULT_WEIGHTS,
-        checkpoint_dir=checkpoint_dir or Path("var") / "hmp_checkpoints",
+        out=out or default_out,
+        checkpoint_dir=checkpoint_dir or default_ckpt,
         test_clips=test,
         resume=resume,
         progress=progress,
-        data_note=note,
+        data_note="; ".join(notes),
+        sources=sources,
+        left_out=leave_out,
     )
     typer.echo(
         f"wrote {result.weights} ({result.steps} steps, kept step {result.best_step}, "
@@ -127,9 +191,9 @@ def train_cmd(
     typer.echo(f"model card: {result.card}; error quantiles: {result.quantiles}")
 
 
-def _sim_operator_clips(count: int, seed: int, duration_s: float) -> tuple[str, list]:
+def _sim_operator_clips(count: int, seed: int, duration_s: float, *, split: str = "sim") -> tuple[str, list]:
     """Simulated operators of the configured cell at work (participant seeds ``seed`` .. ``seed + count -
-    1``) as clips of the ``sim`` split, and a line that says what they are."""
+    1``) as clips of the ``split`` split, and a line that says what they are."""
     from app.cell.recording import simulated_operator_sequences
     from app.config import Settings
     from app.prediction.data import Clip
@@ -137,7 +201,7 @@ def _sim_operator_clips(count: int, seed: int, duration_s: float) -> tuple[str, 
     cell = Settings().load_workcell()
     sequences = simulated_operator_sequences(cell, participants=count, duration_s=duration_s, seed=seed)
     clips = [
-        Clip(name=f"sim_operator_{seed + i}", positions=seq, action="work", split="sim")
+        Clip(name=f"sim_operator_{seed + i}", positions=seq, action="work", split=split)
         for i, seq in enumerate(sequences)
     ]
     last = seed + count - 1
@@ -187,11 +251,20 @@ def eval_cmd(
     sim_duration: Annotated[
         float, typer.Option(min=2.0, help="Seconds recorded per simulated operator.")
     ] = 60.0,
+    leave_out: Annotated[
+        str | None,
+        typer.Option(
+            "--leave-out",
+            help="Cross-source evaluation: evaluate weights trained without this source (cmu, sim; by "
+            "`hrc hmp train --leave-out SOURCE`, default var/hmp_leave_out/SOURCE.pt) on its held-out "
+            "data (cmu: the CMU test split; sim: --sim-operators, default 10, from --sim-seed).",
+        ),
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
     """MPJPE (mm) at 80..1000 ms of the Graph-Mixer and both baselines on clips (default: CMU test split) or
     on simulated operators (``--sim-operators N``), and of the arbitrated forecast with its margins'
-    coverage."""
+    coverage and mean margin."""
     import torch
 
     from app.prediction.data import ClipError, load_clip_dir, require_cmu_dir
@@ -199,6 +272,26 @@ def eval_cmd(
     from app.prediction.predictor import MotionPredictor
 
     torch.set_num_threads(1)
+    trained_on = None
+    if leave_out is not None:
+        from app.prediction.predictor import WeightsError, load_graphmixer
+
+        _check_source(leave_out)
+        weights = weights or _leave_out_weights(leave_out)
+        try:
+            info = load_graphmixer(weights).meta.get("info") or {}
+        except WeightsError as exc:
+            raise _fail(f"{exc} (train them with `hrc hmp train --leave-out {leave_out}`)") from exc
+        if info.get("left_out") != leave_out:
+            raise _fail(
+                f"{weights} was not trained with --leave-out {leave_out} (left out: {info.get('left_out')}, "
+                f"sources: {info.get('sources', 'not recorded')}); it may have seen {leave_out!r}"
+            )
+        trained_on = info.get("sources")
+        if leave_out == "sim":
+            sim_operators = sim_operators or 10
+        elif sim_operators > 0:
+            raise _fail("--leave-out cmu evaluates on the CMU clips; drop --sim-operators")
     try:
         if sim_operators > 0:
             directory, clip_set = _sim_operator_clips(sim_operators, sim_seed, sim_duration)
@@ -256,6 +349,9 @@ def eval_cmd(
         "mpjpe_mm": {k: v["mpjpe_mm"] for k, v in results.items()},
         "forecast": forecast,
     }
+    if leave_out is not None:
+        report["left_out"] = leave_out
+        report["trained_on"] = trained_on
     if as_json:
         typer.echo(json.dumps(report))
         return
@@ -266,6 +362,9 @@ def eval_cmd(
     typer.echo(f"{'forecast':<18}" + "".join(f"{forecast['mpjpe_mm'][str(ms)]:>8.1f}" for ms in HORIZONS_MS))
     typer.echo(
         f"{'  coverage':<18}" + "".join(f"{forecast['coverage'][str(ms)]:>8.3f}" for ms in HORIZONS_MS)
+    )
+    typer.echo(
+        f"{'  margin (mm)':<18}" + "".join(f"{forecast['margin_mm'][str(ms)]:>8.1f}" for ms in HORIZONS_MS)
     )
     if predictor.model is None:
         typer.echo("(no usable Graph-Mixer weights: baselines only)")

@@ -131,6 +131,8 @@ def train(
     resume: bool = False,
     progress: bool = True,
     data_note: str = "",
+    sources: Sequence[str] = (),
+    left_out: str | None = None,
 ) -> TrainResult:
     """Train a Graph-Mixer and write weights, error quantiles and model card.
 
@@ -147,6 +149,9 @@ def train(
         resume: Continue from ``checkpoint_dir/last.pt`` if it exists.
         progress: Show a tqdm progress bar.
         data_note: Free text about the data for the model card.
+        sources: The data sources trained on (``cmu``, ``sim``, ...), recorded with the weights.
+        left_out: The source left out of training (``hrc hmp train --leave-out``), recorded with the weights
+            so that ``hrc hmp eval --leave-out`` can check it.
     """
     import torch
     from tqdm import tqdm
@@ -299,6 +304,8 @@ def train(
         "torch": str(torch.__version__),
         "python": platform.python_version(),
         "data_note": data_note,
+        "sources": list(sources),
+        "left_out": left_out,
     }
     save_checkpoint(
         out,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.prediction.arbitration import ForecastArbiter
+from app.prediction.arbitration import FAR_ALPHA_FACTOR, ForecastArbiter
 from app.prediction.skeleton import NUM_JOINTS
 
 H, DT = 10, 1 / 30
@@ -131,11 +131,25 @@ def test_coverage_on_a_stream_with_a_known_error_distribution_is_the_target() ->
     rng = np.random.default_rng(5)
     sigma = 0.05
     poses, futures = _noisy_stream(rng, 1500, sigma)
-    arbiter = ForecastArbiter(["noisy"], horizon=H, dt_s=DT, coverage=0.95, floor_m=0.001)
+    arbiter = ForecastArbiter(
+        ["noisy"], horizon=H, dt_s=DT, coverage=0.95, floor_m=0.001, far_alpha_factor=1.0
+    )
     outs = _replay(arbiter, poses, futures)
     assert np.all(np.abs(arbiter.coverage()[1:] - 0.95) < 0.015)
     # and the margin is the distribution's own 95 % quantile
     assert outs[-1].margins[1:] == pytest.approx(np.full(H, _maxwell_quantile(0.95, sigma)), rel=0.1)
+
+
+def test_by_default_the_far_steps_aim_higher_and_each_step_tracks_its_own_target() -> None:
+    rng = np.random.default_rng(5)
+    poses, futures = _noisy_stream(rng, 1500, 0.05)
+    arbiter = ForecastArbiter(["noisy"], horizon=H, dt_s=DT, coverage=0.95, floor_m=0.001)
+    _replay(arbiter, poses, futures)
+    target = 1.0 - arbiter.alpha_k
+    assert target[0] == pytest.approx(0.95)
+    assert target[H] == pytest.approx(1.0 - 0.05 * FAR_ALPHA_FACTOR)
+    assert np.all(np.diff(target) > 0)
+    assert np.all(np.abs(arbiter.coverage()[1:] - target[1:]) < 0.015)
 
 
 def test_the_margin_quantile_is_numpys() -> None:
@@ -183,7 +197,7 @@ def test_the_prior_widens_with_what_the_fresh_steps_show() -> None:
     q95 = _maxwell_quantile(0.95, sigma)
     poses, futures = _noisy_stream(rng, 16, sigma)
     prior = np.full(H + 1, 0.25 * q95)  # 4x too narrow
-    kwargs = {"horizon": H, "dt_s": DT, "floor_m": 0.001, "prior_m": prior}
+    kwargs = {"horizon": H, "dt_s": DT, "floor_m": 0.001, "prior_m": prior, "far_alpha_factor": 1.0}
     plain = _replay(ForecastArbiter(["noisy"], rescale_prior=False, **kwargs), poses, futures)[-1]
     rescaled = _replay(ForecastArbiter(["noisy"], **kwargs), poses, futures)[-1]
     # after 16 frames the near steps are scored, the far ones not yet: the far margins are the prior, scaled
@@ -222,3 +236,46 @@ def test_the_far_steps_follow_the_near_steps_only_on_clear_evidence() -> None:
     close = {"network": lambda p, q: _hold(p, q) + 0.01, "hold": lambda p, q: _hold(p, q) + 0.008}
     out = _run(ForecastArbiter(["network", "hold"], transfer_ratio=0.5, **kwargs), still, close)[-1]
     assert out.chosen[1] == "hold" and out.chosen[H] == "network"
+
+
+def test_the_compiled_arbiter_gives_the_numpy_reference_numbers() -> None:
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(11)
+    poses, futures = _noisy_stream(rng, 200, 0.04)
+    other = poses[:, None] + rng.normal(0.0, 0.04, size=futures["noisy"].shape)
+    other[:, 0] = poses
+    futures = {"noisy": futures["noisy"], "other": other}
+    kwargs = {"horizon": H, "dt_s": DT, "window": 30, "min_scores": 5, "floor_m": 0.0}
+    compiled = ForecastArbiter(["noisy", "other"], **kwargs)
+    reference = ForecastArbiter(["noisy", "other"], compiled=False, **kwargs)
+    assert compiled._kernels is not None and reference._kernels is None
+    for a, b in zip(_replay(compiled, poses, futures), _replay(reference, poses, futures), strict=True):
+        np.testing.assert_allclose(a.margins, b.margins, rtol=1e-12, atol=0)
+        np.testing.assert_array_equal(a.joints, b.joints)
+        assert a.chosen == b.chosen
+    np.testing.assert_allclose(compiled._cand_err, reference._cand_err, rtol=1e-12)
+    np.testing.assert_allclose(compiled._alpha_t, reference._alpha_t, rtol=1e-12)
+    np.testing.assert_array_equal(compiled.covered, reference.covered)
+
+
+def test_the_compiled_quantile_is_numpys_at_every_level() -> None:
+    pytest.importorskip("numba")
+    from app.prediction._aci_kernels import step_quantiles
+
+    rng = np.random.default_rng(12)
+    err = rng.gamma(2.0, 0.05, size=(6, 7, 5))
+    err[2, :3] = 0.1  # ties
+    count = np.array([7, 3, 7, 1, 0, 5])
+    level = np.array([0.95, 0.5, 0.999, 0.3, 0.9, 1.0])
+    for levels in (level, np.array([0.0, 0.1, 0.05, 0.7, 0.2, 0.45])):
+        exact = step_quantiles(err, count, levels, np.full(6, np.inf))
+        for k in range(6):
+            if count[k] == 0:
+                assert exact[k] == np.inf
+            else:
+                expected = np.quantile(err[k, : count[k]].ravel(), levels[k])
+                assert exact[k] == pytest.approx(expected, rel=1e-12)
+        # a hint (last frame's quantiles) only saves work: too low, too high or right, the same numbers
+        for factor in (0.3, 1.0, 1.1, 5.0):
+            hinted = step_quantiles(err, count, levels, np.where(np.isfinite(exact), factor * exact, np.inf))
+            np.testing.assert_array_equal(hinted, exact)

@@ -269,6 +269,39 @@ def test_cli_train_and_eval(clip_dir: Path, tmp_path: Path) -> None:
     assert r.exit_code != 0 and "cannot read Graph-Mixer weights" in r.output
 
 
+def test_cli_leave_one_source_out(clip_dir: Path, tmp_path: Path) -> None:
+    runner = CliRunner()
+    out = tmp_path / "no_cmu.pt"
+    r = runner.invoke(
+        cli_app,
+        ["hmp", "train", "--leave-out", "cmu", "--sim-train-operators", "1", "--sim-train-duration", "3",
+         "--steps", "4", "--eval-every", "2", "--channels", "8", "--blocks", "1", "--out", str(out),
+         "--checkpoint-dir", str(tmp_path / "ck"), "--no-progress"],
+    )  # fmt: skip
+    assert r.exit_code == 0, r.output
+    info = load_graphmixer(out).meta["info"]
+    assert info["left_out"] == "cmu" and info["sources"] == ["sim"]
+    assert all(c.startswith("sim_train/") for c in info["train_clips"]) and info["test_clips"] == []
+    assert info["val_clips"] == ["sim_val/sim_operator_2001", "sim_val/sim_operator_2002"]
+    args = ["hmp", "eval", "--leave-out", "cmu", "--clips", str(clip_dir), "--weights", str(out), "--json"]
+    r = runner.invoke(cli_app, args)
+    assert r.exit_code == 0, r.output
+    report = json.loads(r.output)
+    assert report["left_out"] == "cmu" and report["trained_on"] == ["sim"]
+    assert report["clips"].endswith("(test)") and set(report["forecast"]["margin_mm"]) == set(
+        report["forecast"]["coverage"]
+    )
+    # weights that may have seen the source are refused, and so are unknown sources and missing weights
+    r = runner.invoke(cli_app, ["hmp", "eval", "--leave-out", "sim", "--weights", str(out)])
+    assert r.exit_code == 2 and "was not trained with --leave-out sim" in r.output
+    r = runner.invoke(cli_app, ["hmp", "eval", "--leave-out", "mocap"])
+    assert r.exit_code == 2 and "unknown source 'mocap'" in r.output
+    r = runner.invoke(cli_app, ["hmp", "eval", "--leave-out", "cmu", "--weights", str(tmp_path / "none.pt")])
+    assert r.exit_code == 2 and "none.pt" in r.output and "hrc hmp train --leave-out cmu" in r.output
+    r = runner.invoke(cli_app, ["hmp", "train", "--leave-out", "cmu", "--sim-train-seed", "1990"])
+    assert r.exit_code == 2 and "tuning seeds" in r.output
+
+
 def test_cli_eval_without_clips_says_what_to_do(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("HRC_CMU_DIR", str(tmp_path / "no_cmu_here"))
     r = CliRunner().invoke(cli_app, ["hmp", "eval"])
