@@ -28,13 +28,14 @@ hundred small array operations per frame).
 
 from __future__ import annotations
 
-import functools
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from app.prediction._aci_kernels import score_due, step_quantiles
 
 log = logging.getLogger(__name__)
 
@@ -64,17 +65,6 @@ COLD_START_MISS_FACTOR = 5.0
 #: 458 mm), a faster step (gamma 0.01: 0.912), errors scaled by the person's recent speed (locally weighted
 #: scores; 0.925 at 1 s with 337 mm).
 FAR_ALPHA_FACTOR = 0.5
-
-
-@functools.cache
-def _compiled() -> tuple[Callable[..., Any], Callable[..., Any]] | None:
-    """The compiled scoring and quantile kernels (imported on first use), None without numba."""
-    try:
-        from app.prediction._aci_kernels import score_due, step_quantiles
-    except ImportError as exc:
-        log.info("numba not available (%s): the arbiter runs in NumPy", exc)
-        return None
-    return score_due, step_quantiles
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,8 +108,6 @@ class ForecastArbiter:
         far_alpha_factor: The ACI's target miss rate falls linearly over the steps from ``1 - coverage`` at
             step 0 to ``far_alpha_factor`` times that at the last step (:data:`FAR_ALPHA_FACTOR`; 1: the same
             target at every step).
-        compiled: Score and take quantiles through the numba kernels of :mod:`app.prediction._aci_kernels`
-            where numba is installed (the same numbers); False: NumPy only (the reference).
     """
 
     def __init__(
@@ -138,7 +126,6 @@ class ForecastArbiter:
         rescale_prior: bool = True,
         transfer_ratio: float = TRANSFER_RATIO,
         far_alpha_factor: float = FAR_ALPHA_FACTOR,
-        compiled: bool = True,
     ) -> None:
         if not candidates:
             raise ValueError("ForecastArbiter needs at least one candidate")
@@ -161,7 +148,6 @@ class ForecastArbiter:
         self.warmup = self.window if warmup is None else int(warmup)
         self.rescale_prior = bool(rescale_prior)
         self.transfer_ratio = float(transfer_ratio)
-        self._kernels = _compiled() if compiled else None
         n = self.horizon + 1
         # the ACI's target miss rate per step: ``alpha`` at step 0, ``far_alpha_factor * alpha`` at the last
         self.alpha_k = self.alpha * (1.0 - (1.0 - float(far_alpha_factor)) * np.arange(n) / self.horizon)
@@ -210,19 +196,29 @@ class ForecastArbiter:
         if slots.size == 0:
             return
         ks = k_all[slots].astype(np.int64)
-        if self._kernels is not None:
-            cand, per_joint, miss = self._kernels[0](
-                slots, ks, self._futures, self._combined, self._margins_at, joints
-            )
-        else:
-            cand = np.linalg.norm(self._futures[slots, :, ks] - joints, axis=-1).mean(axis=-1)  # (V, C)
-            per_joint = np.linalg.norm(self._combined[slots, ks] - joints, axis=-1)  # (V, J)
-            miss = np.mean(per_joint > self._margins_at[slots, ks][:, None], axis=1)
+        cand, per_joint, miss = self._score_due(slots, ks, joints)
         if ks.size == 1 or np.unique(ks).size == ks.size:
             self._record(ks, cand, per_joint, miss)
         else:  # two forecasts due at one step (forecasts made twice per frame): one at a time
             for i in range(ks.size):
                 self._record(ks[i : i + 1], cand[i : i + 1], per_joint[i : i + 1], miss[i : i + 1])
+
+    def _score_due(
+        self, slots: np.ndarray, ks: np.ndarray, joints: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The stored forecasts in ``slots`` scored at their steps ``ks`` against ``joints`` (J, 3): each
+        candidate's mean joint error (V, C), the combined forecast's joint errors (V, J) and the fraction
+        of joints outside its margin (V,) (compiled: :func:`app.prediction._aci_kernels.score_due`)."""
+        assert self._futures is not None and self._combined is not None
+        return score_due(slots, ks, self._futures, self._combined, self._margins_at, joints)
+
+    def _step_quantiles(self) -> np.ndarray:
+        """(H + 1,) per step the ``1 - alpha_t`` quantile of the recent joint errors (compiled:
+        :func:`app.prediction._aci_kernels.step_quantiles`, warm-started from the last frame's)."""
+        assert self._joint_err is not None
+        q = step_quantiles(self._joint_err, self._count, 1.0 - self._alpha_t, self._q_last)
+        self._q_last = q
+        return q
 
     def _record(self, ks: np.ndarray, cand: np.ndarray, per_joint: np.ndarray, miss: np.ndarray) -> None:
         """Store scores at the distinct steps ``ks`` and move the ACI levels there."""
@@ -282,11 +278,7 @@ class ForecastArbiter:
         out = self.prior_m.copy()
         ready = self._count >= self.min_scores
         if self._joint_err is not None and np.any(ready):
-            if self._kernels is not None:
-                q = self._kernels[1](self._joint_err, self._count, 1.0 - self._alpha_t, self._q_last)
-                self._q_last = q
-            else:
-                q = self._quantiles_reference()
+            q = self._step_quantiles()
             prior = self.prior_m
             if self.rescale_prior:
                 # the freshest evidence: the longest step scored enough (short steps are scored first)
@@ -297,20 +289,6 @@ class ForecastArbiter:
             out = np.where(ready, np.where(warm, np.maximum(q, prior), q), prior)
         out[0] = min(out[0], self.floor_m)
         return np.maximum(out, self.floor_m)
-
-    def _quantiles_reference(self) -> np.ndarray:
-        """(H + 1,) per step the ``1 - alpha_t`` quantile of the recent joint errors, in NumPy."""
-        assert self._joint_err is not None
-        n, W, J = self._joint_err.shape
-        m = self._count * J  # valid errors per step: the first ``count`` rows of the ring
-        flat = np.where(np.arange(W * J)[None] < m[:, None], self._joint_err.reshape(n, W * J), np.inf)
-        flat.sort(axis=1)
-        pos = np.clip(1.0 - self._alpha_t, 0.0, 1.0) * np.maximum(m - 1, 0)
-        lo = np.floor(pos).astype(np.int64)
-        hi = np.minimum(lo + 1, np.maximum(m - 1, 0))
-        rows = np.arange(n)
-        w = pos - lo
-        return flat[rows, lo] * (1.0 - w) + np.where(w > 0, flat[rows, hi], 0.0) * w
 
     def coverage(self) -> np.ndarray:
         """(H + 1,) fraction of joints that fell inside the margin, per step, since the start (NaN where none
