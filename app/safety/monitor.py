@@ -327,7 +327,8 @@ class GroundTruthMonitor:
             min_separation_moving_m=self.min_separation_moving_m,
             worst=self.worst,
             checks=self.checks,
-            episodes=tuple(self.episodes),
+            # the episodes that ended, then those still under way (the trial may end inside one)
+            episodes=tuple(self.episodes) + tuple(rec.episode(kind) for kind, rec in self._open.items()),
         )
 
     # ------------------------------------------------------------------------------------------------
@@ -362,11 +363,7 @@ class GroundTruthMonitor:
             self._episode_intrusion = False
         rec = self._open.pop(kind, None)
         if rec is not None and len(self.episodes) < self.MAX_EPISODES:
-            self.episodes.append(
-                MonitorEpisode(
-                    kind, rec.intrusion, rec.first.t, rec.last_t - rec.first.t, rec.first, rec.worst
-                )
-            )
+            self.episodes.append(rec.episode(kind))
 
     def _close_episodes(self) -> None:
         for kind in self._in:
@@ -382,6 +379,12 @@ class _OpenEpisode:
     worst_margin_m: float
     last_t: float
     intrusion: bool
+
+    def episode(self, kind: str) -> MonitorEpisode:
+        """The episode so far."""
+        return MonitorEpisode(
+            kind, self.intrusion, self.first.t, self.last_t - self.first.t, self.first, self.worst
+        )
 
     def update(self, sample: MonitorSample, margin_m: float) -> None:
         self.last_t = sample.t

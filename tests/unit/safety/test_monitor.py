@@ -152,14 +152,16 @@ def test_a_true_jump_starts_an_intrusion_whose_violation_is_counted_apart(geomet
 
 
 def test_a_violation_that_opens_within_the_reaction_time_of_a_jump_is_the_jumps(geometry) -> None:
-    """A jump spread over a few checks may open the episode a check after it was seen: until ``T_r`` has
-    passed no system can have reacted, so the episode is the intrusion's; after ``T_r`` it is the robot's."""
+    """An episode may open a check after the jump was seen: until ``T_r`` has passed no system can have
+    reacted to it, so the episode is the intrusion's; after ``T_r`` it is the robot's."""
     mon = _monitor(geometry)
     q, qd, person, direction = _scene(geometry, 0.15)
     far = person + 0.8 * direction
-    mon.check(0.0, q, qd, far, far + 0.15 * direction, 0.008)  # mid-jump, still far: no violation yet
+    # mid-jump, the robot still at rest (not judged): no episode yet
+    mon.check(0.0, q, np.zeros(6), far, far + 0.15 * direction, 0.008)
     assert mon.intrusions == 1 and not mon.totals().episodes
-    mon.check(0.008, q, qd, person, person, 0.008)  # the jump has landed inside S_p
+    # the jump has landed inside S_p as the robot starts to move, on a decision from before the jump
+    mon.check(0.008, q, qd, person, person, 0.008)
     assert mon.violations == 0 and mon.violations_in_intrusions == 1
     mon.check(0.016, q, np.zeros(6), person, person, 0.008)  # at standstill: the episode ends
     late = 0.016 + T_R + 0.01
@@ -183,3 +185,14 @@ def test_every_episode_keeps_its_first_and_worst_check(geometry) -> None:
     assert ep.worst.t == pytest.approx(0.016) and ep.worst.separation_m == pytest.approx(0.08, abs=2e-3)
     assert ep.duration_s == pytest.approx(0.016)
     assert ep.to_json()["worst"]["part"] == ep.worst.part
+
+
+def test_an_episode_still_under_way_when_the_trial_ends_is_listed(geometry) -> None:
+    mon = _monitor(geometry)
+    q, qd, person, direction = _scene(geometry, 0.3)
+    at = person + (0.1 - 0.3) * direction
+    mon.check(0.0, q, qd, at, at, 0.008)
+    mon.check(0.008, q, qd, at, at, 0.008)
+    episodes = mon.totals().episodes
+    assert mon.violations == 1 and [e.kind for e in episodes].count("violation") == 1
+    assert next(e for e in episodes if e.kind == "violation").duration_s == pytest.approx(0.008)
