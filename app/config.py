@@ -308,6 +308,13 @@ class Settings(BaseSettings):
         "governor is predicted to allow along it, from the method's forecast (app.planning.ssm_timing); "
         "false: plans are timed at full speed and the governor slows them",
     )
+    robot_toward: bool = Field(
+        True,
+        description="the speed governor takes each robot part's speed toward the person (ISO/TS 15066 "
+        "5.5.4.2.3's directed v_r, measured along the path at every frame; a part moving away gains "
+        "separation) instead of its whole speed; false: every part judged as if it moved straight at "
+        "the person",
+    )
     fetch_reaction_s: float = Field(
         0.6,
         ge=0.0,

@@ -24,6 +24,7 @@ def max_scale_reference(
     rate: float,
     lo: float = 0.0,
     hi: float = 1.0,
+    v_top_mps: float | None = None,
 ) -> float:
     """:meth:`SeparationModel.max_scale` of ``model`` in NumPy, over the whole envelope at once."""
     d1 = np.asarray(separation_m, dtype=np.float64)
@@ -31,12 +32,12 @@ def max_scale_reference(
     vp1 = np.asarray(v_parts_mps, dtype=np.float64)
     if d1.size == 0:
         return 1.0
-    vtop = float(vp1.max())
+    vtop = float(vp1.max()) if v_top_mps is None else float(v_top_mps)
     lo, hi = max(float(lo), 0.0), min(float(hi), 1.0)
     # quick accept (most ticks): every term at its largest over a brake from the highest scale asked for
     t_b = hi / max(rate, 1e-6)
     x_b, v_b = model.human_approach(vh1, t_b)
-    worst = model.sp(hi * vp1, hi * vtop, v_b) + x_b + hi * vp1 * t_b
+    worst = model.sp(hi * vp1, hi * vtop, v_b) + x_b + hi * np.maximum(vp1, 0.0) * t_b
     if bool(np.all(d1 >= worst)):
         return hi
     inside = (SCALE_GRID - lo > 0.0) & (SCALE_GRID - hi < 0.0)
@@ -64,24 +65,35 @@ def separation_bound(sup: Supervisor, t: float) -> tuple[np.ndarray, np.ndarray]
     if not math.isfinite(sup._v_h_t):
         return parts.sep_m.copy(), np.full(sup.n_parts, sup.ssm.human_speed_max_mps)
     x1, v1 = sup.ssm.human_approach(parts.v_h0, t - sup._v_h_t)
-    return parts.sep_m - (x1 - parts.x_h0) - parts.travel_m, np.asarray(v1)
+    return parts.sep_m - (x1 - parts.x_h0), np.asarray(v1)
 
 
 def governed_scale_reference(
     sup: Supervisor, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
 ) -> float:
     """``sup._governed_scale`` (the compiled servo tick) in NumPy."""
+    robot = sup._robot_motion(vmax, s, dt, rate, hi)
+    toward = robot.v_toward
     # separation lower bound of each part at the next tick
     sep_lb, v_h = separation_bound(sup, t + dt)
-    sep_lb = sep_lb - s * vmax * dt
+    if math.isfinite(sup._v_h_t):  # what the robot closed counts from a measurement (none: not measured)
+        sep_lb = sep_lb - robot.closed_m
+    sep_lb = sep_lb - s * toward * dt
     m = np.full(vmax.shape, bool(np.any(vmax > 1e-4)))  # every part of a robot that moves
     s_target = max_scale_reference(
-        sup.ssm, sep_lb[m], v_human_mps=v_h[m], v_parts_mps=vmax[m], rate=rate, lo=lo, hi=hi
+        sup.ssm,
+        sep_lb[m],
+        v_human_mps=v_h[m],
+        v_parts_mps=toward[m],
+        rate=rate,
+        lo=lo,
+        hi=hi,
+        v_top_mps=float(vmax.max(initial=0.0)),
     )
     if sup.speed_scale_law is not None and np.any(m):
         # the standard's law with the person's measured speed (the envelope above already covers
         # their worst-case speed-up since it was measured, with the stopping time of this speed)
-        law = sup.speed_scale_law(sep_lb[m], vmax[m], np.maximum(sup._parts.v_h0[m], 0.0))
+        law = sup.speed_scale_law(sep_lb[m], toward[m], np.maximum(sup._parts.v_h0[m], 0.0))
         s_target = min(s_target, max(law, 0.0))
     return s_target
 
@@ -107,7 +119,18 @@ def predicted_scales_reference(
         joints, _ = forecast.poses_at(np.array([t[i], t[i] - window]))
         d = collision.pair_distances(q[i], joints)  # (2, L, M)
         sep, v_h = directed_approach(d[0], d[1], window, band_m=model.near_band_m)
-        s = model.scale(sep, v_h, np.maximum(v[i], v[i + 1]), float(max(w[i], w[i + 1])))
+        v_parts = np.maximum(v[i], v[i + 1])
+        toward = v_parts
+        if model.robot_toward:  # the path's average closing on the person held where they are then
+            steps = sorted({min(i + 1, n), min(i + max(ahead // 2, 1), n), min(i + max(ahead, 1), n)})
+            held = joints[:1]
+            rates = [
+                (sep - collision.pair_distances(q[j], held)[0].min(axis=1)) / max(tau[j] - tau[i], 1e-12)
+                for j in steps
+                if j > i
+            ]
+            toward = np.minimum(np.max(rates, axis=0), v_parts)
+        s = model.scale(sep, v_h, v_parts, float(max(w[i], w[i + 1])), toward)
         scales[i] = max(s, model.min_scale)
         t[i + 1] = t[i] + (tau[i + 1] - tau[i]) / scales[i]
     return tau, t, scales

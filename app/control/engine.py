@@ -97,6 +97,21 @@ class CellGeometry:
         d = self.pair_distances(q, poses)  # (2, L, M)
         return directed_approach(d[0], d[1], dt_s, band_m=band_m)
 
+    def path_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """(K, L) surface distance (m) of each part of the robot at each of ``q`` (K, 6) to the person at
+        ``joints`` (J, 3)."""
+        q = np.asarray(q, dtype=np.float64).reshape(-1, 6)
+        poses = np.broadcast_to(np.asarray(joints, dtype=np.float64), (q.shape[0], *np.shape(joints)))
+        segments = self.collision.robot_segments(q)
+        n_parts = segments[0].shape[0]
+        return np.stack(
+            [
+                self.collision.distance_to_human_paired(q, poses, segments=segments, links=np.array([i]))
+                for i in range(n_parts)
+            ],
+            axis=1,
+        )
+
     def separation(self, q: np.ndarray, joints: np.ndarray) -> float:
         """Minimum surface distance (m) robot-person for ``q`` (6,) and ``joints`` (J, 3)."""
         return float(self.part_separations(q, np.asarray(joints)[None]).min())
@@ -433,6 +448,7 @@ def supervisor_config(settings: Settings, method: Method, options: EngineOptions
         frame_period_s=settings.frame_period_s,
         planner_workers=settings.planner_workers,
         tracking_margin_m=options.tracking_margin_m,
+        robot_toward=settings.robot_toward,
     )
 
 
@@ -473,6 +489,7 @@ def governor_model(
         speed_noise_mps=SPEED_NOISE_GAIN * settings.tracker_noise_m / config.human_speed_window_s,
         lookahead_s=config.profile_window_s,
         law=SpeedScaleLaw(ssm),
+        robot_toward=config.robot_toward,
     )
 
 

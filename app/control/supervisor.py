@@ -72,9 +72,17 @@ from app.control.trajectory_views import (
 )
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
-from app.safety._kernels import PartSeparation, ServoGovernor
+from app.safety._kernels import PartSeparation, RobotMotion, ServoGovernor
 from app.safety._kernels import governed_scale as _kernel_governed_scale
-from app.safety.governor import BRAKE_INSTANTS, NO_LAW, SCALE_GRID, SeparationModel, SpeedScaleLaw, brake_rate
+from app.safety.governor import (
+    BRAKE_INSTANTS,
+    NO_LAW,
+    SCALE_GRID,
+    PathClosing,
+    SeparationModel,
+    SpeedScaleLaw,
+    brake_rate,
+)
 from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
@@ -116,6 +124,14 @@ class SupervisorConfig:
         check_min_scale: Scale floor used to time the plan in execution for checks when the robot is slowed
             or stopped (the robot is assumed to go at least this fast when it resumes).
         profile_window_s: Look-ahead of the speed governor along the path (s).
+        robot_toward: The governor takes each robot part's speed *toward* the person (ISO/TS 15066
+            5.5.4.2.3's directed ``v_r``, measured at every frame along the path ahead against the person
+            as seen: :func:`app.safety.governor.closing_bound`) instead of its whole speed, so a part
+            moving sideways or away is not slowed as if it approached. False: the whole speed (the robot
+            judged as if it moved straight at the person).
+        toward_horizon_s: How far along the path (path time, s) the directed speed is measured at each
+            frame; the governor falls back to the whole speed where a brake could end beyond it (or on a
+            plan switched to since the frame).
         emergency_horizon_s: Horizon of the emergency plan; default F + D.
     """
 
@@ -136,6 +152,8 @@ class SupervisorConfig:
     check_dt_s: float = 0.04
     check_min_scale: float = 0.5
     profile_window_s: float = 0.6
+    robot_toward: bool = True
+    toward_horizon_s: float = 0.9
     emergency_horizon_s: float | None = None
 
     def __post_init__(self) -> None:
@@ -143,6 +161,8 @@ class SupervisorConfig:
             raise ValueError(f"method must be 'proactive' or 'reactive', got {self.method!r}")
         if self.deadline_s <= 0 or self.frame_period_s <= 0:
             raise ValueError("deadline_s and frame_period_s must be positive")
+        if not (math.isfinite(self.toward_horizon_s) and self.toward_horizon_s > 0):
+            raise ValueError(f"toward_horizon_s must be a finite number > 0, got {self.toward_horizon_s!r}")
 
     @property
     def max_jobs(self) -> int:
@@ -348,6 +368,8 @@ class Supervisor:
         # per robot part: the separation (none yet), the person's approach speed measured over a window and
         # their worst-case approach from its middle to the frame, the travel since (the compiled tick's input)
         self._parts = PartSeparation(np.full(L, math.inf), np.zeros(L), np.zeros(L), np.zeros(L))
+        self._toward: tuple[_Active, PathClosing] | None = None  # the parts' closing along the plan in
+        # execution, measured at the last frame
         self._sep_person_t = -math.inf  # time of the frame the separation was measured on
         self._v_h_t = -math.inf  # the middle of the window the person's approach speed was measured over
         self._history: deque[HumanFrame] = deque(maxlen=16)
@@ -512,8 +534,15 @@ class Supervisor:
             sep_parts = d[0] - cfg.tracking_margin_m
             v_h0, t_mid = np.full(self.n_parts, self.ssm.human_speed_max_mps), frame.t
         sep = float(sep_parts.min())
+        toward = None
+        if cfg.robot_toward and active.kind != "hold":
+            closing = PathClosing.measure(
+                active.traj, active.profile, tau, frame.joints, self.geometry, horizon_s=cfg.toward_horizon_s
+            )
+            toward = None if closing is None else (active, closing)
         self._history.append(frame)
         with self._lock:
+            self._toward = toward
             self._parts = PartSeparation(
                 sep_parts,
                 np.asarray(self.ssm.human_approach(v_h0, frame.t - t_mid)[0], dtype=np.float64),
@@ -1112,6 +1141,17 @@ class Supervisor:
         _, v = self.ssm.human_approach(self._parts.v_h0, t - self._v_h_t)
         return np.asarray(v)
 
+    def _robot_motion(self, vmax: np.ndarray, s: float, dt: float, rate: float, hi: float) -> RobotMotion:
+        """The robot's motion as the governor's tick reads it (:meth:`PathClosing.motion`: the closing
+        measured at the last frame along the plan in execution where it covers this tick and a brake from
+        ``hi``), else every part's whole speed and travel. Caller holds the lock."""
+        tw = self._toward
+        if tw is not None and tw[0] is self._active:
+            motion = tw[1].motion(self._tau, vmax, self._parts.travel_m, dt=dt, rate=rate, hi=hi)
+            if motion is not None:
+                return motion
+        return RobotMotion(vmax, vmax, self._parts.travel_m)
+
     def _governed_scale(
         self, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
     ) -> float:
@@ -1119,7 +1159,8 @@ class Supervisor:
         :func:`app.safety._kernels.governed_scale`; the tests compare it with a NumPy reference in
         ``tests/governor_reference.py``). Caller holds the lock."""
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
-        return float(_kernel_governed_scale(self._parts, vmax, dt_h, s, dt, rate, lo, hi, self._governor))
+        robot = self._robot_motion(vmax, s, dt, rate, hi)
+        return float(_kernel_governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
 
     def recent_decide_s(self) -> tuple[float, ...]:
         with self._lock:

@@ -86,6 +86,11 @@ class RobotGeometry(Protocol):
         """Speed (K, L) in m/s of each part (its fastest point) for ``q``, ``qd`` (K, 6)."""
         ...
 
+    def path_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """Surface distance (K, L) in m between each part of the robot at each of ``q`` (K, 6) and the
+        person at ``joints`` (J, 3) (the same distance as :meth:`part_separations`)."""
+        ...
+
     def near_person(
         self, q: np.ndarray, joints: np.ndarray, joints_before: np.ndarray, dt_s: float, *, band_m: float
     ) -> tuple[np.ndarray, np.ndarray]:

@@ -58,9 +58,10 @@ def predicted_scales(
     :func:`app.planning._kernels.timing.predicted_scales`; the tests compare it with a NumPy reference).
 
     At each sample point the forecast person at the wall time the robot gets there (and a speed window
-    earlier) gives each part's separation and the person's directed speed toward it
-    (:func:`app.safety.governor.directed_approach`), and :meth:`GovernorModel.scale` the scale of the move
-    to the next point, at least ``model.min_scale``.
+    earlier) gives each part's separation, the person's directed speed toward it
+    (:func:`app.safety.governor.directed_approach`) and the part's speed toward the person held there
+    (the path's average closing to the points of :func:`app.planning._kernels.timing.toward_steps`), and
+    :meth:`GovernorModel.scale` the scale of the move to the next point, at least ``model.min_scale``.
 
     Args:
         traj: The path, timed at full speed.
@@ -86,7 +87,7 @@ def predicted_scales(
     ha, hb, hr = collision.human_capsules(np.asarray(forecast.joints, dtype=np.float64))
     path = TimingPath(tau, _f64(ra), _f64(rb - ra), _f64(rr), _f64(v), _f64(w))
     person = TimingPerson(_f64(forecast.times), _f64(ha), _f64(hb - ha), _f64(hr))
-    t, scales = _kernel_predicted_scales(path, person, _governor_arrays(model), float(t0))
+    t, scales = _kernel_predicted_scales(path, person, _governor_arrays(model, ahead), float(t0))
     return tau, t, scales
 
 
@@ -94,8 +95,8 @@ def _f64(x: Any) -> np.ndarray:
     return np.ascontiguousarray(x, dtype=np.float64)
 
 
-def _governor_arrays(model: GovernorModel) -> TimingGovernor:
-    """``model`` as the compiled walk reads it."""
+def _governor_arrays(model: GovernorModel, ahead: int) -> TimingGovernor:
+    """``model`` as the compiled walk reads it, its look-ahead ``ahead`` sample points."""
     misc = (
         model.tracking_margin_m,
         model.speed_window_s,
@@ -105,6 +106,8 @@ def _governor_arrays(model: GovernorModel) -> TimingGovernor:
         model.min_scale,
         model.brake_decel_mps2,
         model.brake_joint_decel,
+        float(ahead),
+        1.0 if model.robot_toward else 0.0,
     )
     law = np.zeros(0) if model.law is None else model.law.kernel_params
     return TimingGovernor(

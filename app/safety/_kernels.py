@@ -20,7 +20,7 @@ import numpy as np
 
 from app.jit import jit
 
-__all__ = ["PartSeparation", "ServoGovernor", "governed_scale", "law_scale", "max_scale"]
+__all__ = ["PartSeparation", "RobotMotion", "ServoGovernor", "governed_scale", "law_scale", "max_scale"]
 
 
 class PartSeparation(NamedTuple):
@@ -32,13 +32,34 @@ class PartSeparation(NamedTuple):
         x_h0: The person's worst-case approach from the middle of the speed window to the frame (m), already
             in ``sep_m``.
         v_h0: The person's approach speed toward each part, measured over the window (m/s).
-        travel_m: Each part's travel since the separation was measured (a bound, m).
+        travel_m: Each part's travel since the separation was measured (a bound, m; the supervisor's
+            bookkeeping: the tick reads what its motion closed from :class:`RobotMotion`).
     """
 
     sep_m: np.ndarray
     x_h0: np.ndarray
     v_h0: np.ndarray
     travel_m: np.ndarray
+
+
+class RobotMotion(NamedTuple):
+    """The robot's own motion as :func:`governed_scale` reads it, per robot part (L,) (built per tick).
+
+    ISO/TS 15066 5.5.4.2.3 takes the robot's speed *in the direction of the operator* for ``S_r`` and ``S_s``;
+    the stopping time ``T_s`` is the robot's, from the speed it really has.
+
+    Attributes:
+        v_part: Each part's fastest speed over the look-ahead at scale 1 (m/s): whether the robot moves,
+            and its stopping time.
+        v_toward: Each part's speed toward the person at scale 1 (m/s, at most ``v_part``; negative: moving
+            away): a bound of how fast its motion along the path closes its separation, over the look-ahead.
+        closed_m: How much of the measured separation each part's own motion may have closed since the
+            measurement (a bound, m).
+    """
+
+    v_part: np.ndarray
+    v_toward: np.ndarray
+    closed_m: np.ndarray
 
 
 class ServoGovernor(NamedTuple):
@@ -112,6 +133,7 @@ def max_scale(
     d: np.ndarray,
     vh: np.ndarray,
     vp: np.ndarray,
+    vtop: float,
     rate: float,
     lo: float,
     hi: float,
@@ -120,16 +142,14 @@ def max_scale(
     params: np.ndarray,
 ) -> float:
     """Largest safe path-speed scale in ``[lo, hi]`` for parts at separations ``d`` (L,) (m), the person
-    approaching each at ``vh`` (L,) (m/s), the parts moving at ``s * vp`` (L,) (m/s), a brake lowering the
-    scale at ``rate`` (1/s). ``scales``: the grid; ``env_u``: the instants of a brake (fractions of it);
+    approaching each at ``vh`` (L,) (m/s), the parts closing on the person at ``s * vp`` (L,) (m/s; negative:
+    moving away) on a robot whose fastest part moves at ``s * vtop`` (its stopping time), a brake lowering
+    the scale at ``rate`` (1/s). ``scales``: the grid; ``env_u``: the instants of a brake (fractions of it);
     ``params``: ``(s0_m, t_reaction_s, stop_decel_mps2, human_speed_max_mps, human_accel_mps2)``."""
     n = d.shape[0]
     if n == 0:
         return 1.0
     s0, t_r, decel, v_max_h, accel = params[0], params[1], params[2], params[3], params[4]
-    vtop = vp[0]
-    for i in range(1, n):
-        vtop = max(vtop, vp[i])
     lo = max(lo, 0.0)
     hi = min(hi, 1.0)
     # quick accept (most ticks): every term at its largest over a brake from the highest scale asked for
@@ -137,7 +157,8 @@ def max_scale(
     quick = True
     for i in range(n):
         x_b, v_b = _approach(vh[i], t_b, v_max_h, accel)
-        worst = _sp(hi * vp[i], hi * vtop, v_b, s0, t_r, decel) + x_b + hi * vp[i] * t_b
+        # (a part moving away gains separation over the brake, but none at its start)
+        worst = _sp(hi * vp[i], hi * vtop, v_b, s0, t_r, decel) + x_b + hi * max(vp[i], 0.0) * t_b
         if not (d[i] >= worst):
             quick = False
             break
@@ -187,7 +208,7 @@ def law_scale(d: np.ndarray, v_nom: np.ndarray, v_h: np.ndarray, law: np.ndarray
 @jit
 def governed_scale(
     parts: PartSeparation,
-    vmax: np.ndarray,
+    robot: RobotMotion,
     dt_h: float,
     s: float,
     dt: float,
@@ -201,11 +222,13 @@ def governed_scale(
     The separation of each part at the next tick is bounded below from the last measurement ``parts.sep_m``
     (m), the person's worst-case approach since (from ``parts.v_h0`` (m/s), ``dt_h`` (s) after the
     measurement, less the ``parts.x_h0`` (m) already counted; NaN ``dt_h``: no measurement, the fastest
-    approach), the part's travel since ``parts.travel_m`` and its travel this tick (``s * vmax * dt``). The
-    target is the braking envelope's largest safe scale in ``[lo, hi]`` (:func:`max_scale`) over every part
-    when any part moves (``vmax > 1e-4`` m/s), limited by the speed-scaling law at the measured ``v_h0``
-    when ``governor.law`` is not empty (:func:`law_scale`)."""
-    sep_m, x_h0, v_h0, travel_m = parts.sep_m, parts.x_h0, parts.v_h0, parts.travel_m
+    approach), what the part's own motion closed since (``robot.closed_m``) and may close this tick
+    (``s * robot.v_toward * dt``). The target is the braking envelope's largest safe scale in ``[lo, hi]``
+    (:func:`max_scale`, the parts closing at ``robot.v_toward``, the robot stopping from its fastest part's
+    speed) over every part when any part moves (``robot.v_part > 1e-4`` m/s), limited by the speed-scaling
+    law at the measured ``v_h0`` when ``governor.law`` is not empty (:func:`law_scale`)."""
+    sep_m, x_h0, v_h0 = parts.sep_m, parts.x_h0, parts.v_h0
+    vmax, toward, closed = robot.v_part, robot.v_toward, robot.closed_m
     params, law = governor.separation, governor.law
     n = sep_m.shape[0]
     v_max_h, accel = params[3], params[4]
@@ -216,7 +239,9 @@ def governed_scale(
     # a robot that moves at all is judged by every part: a part at rest on a moving robot must keep its
     # S_p too (ISO/TS 15066 asks the robot, not the part, to be at standstill within S_p)
     moving = False
+    vtop = 0.0
     for i in range(n):
+        vtop = max(vtop, vmax[i])
         if vmax[i] > 1e-4:
             moving = True
     k = 0
@@ -226,13 +251,13 @@ def governed_scale(
                 sep_lb, v_h = sep_m[i], v_max_h
             else:
                 x1, v_h = _approach(v_h0[i], dt_h, v_max_h, accel)
-                sep_lb = sep_m[i] - (x1 - x_h0[i]) - travel_m[i]
-            d[k] = sep_lb - s * vmax[i] * dt
+                sep_lb = sep_m[i] - (x1 - x_h0[i]) - closed[i]
+            d[k] = sep_lb - s * toward[i] * dt
             vh[k] = v_h
-            vp[k] = vmax[i]
+            vp[k] = toward[i]
             vm[k] = max(v_h0[i], 0.0)
             k += 1
-    target = max_scale(d[:k], vh[:k], vp[:k], rate, lo, hi, governor.scales, governor.env_u, params)
+    target = max_scale(d[:k], vh[:k], vp[:k], vtop, rate, lo, hi, governor.scales, governor.env_u, params)
     if law.shape[0] > 0 and k > 0:
         target = min(target, max(law_scale(d[:k], vp[:k], vm[:k], law), 0.0))
     return target

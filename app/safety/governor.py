@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from app.safety._kernels import RobotMotion
 from app.safety._kernels import max_scale as _kernel_max_scale
 
 # ----------------------------------------------------------------------------------------------------
@@ -145,20 +146,26 @@ class SeparationModel:
         rate: float,
         lo: float = 0.0,
         hi: float = 1.0,
+        v_top_mps: float | None = None,
     ) -> float:
-        """Largest path-speed scale in [0, 1] that is safe for every part: part i moves at
-        ``s * v_parts_mps[i]`` and a brake lowers the scale at ``rate`` (1/s), so every part stops after
-        ``s / rate``. Arrays (L,) (the parts that move).
+        """Largest path-speed scale in [0, 1] that is safe for every part: part i closes on the person at
+        ``s * v_parts_mps[i]`` (its speed toward the person, ISO/TS 15066's directed ``v_r``; its whole
+        speed where the direction is not known) and a brake lowers the scale at ``rate`` (1/s), so every
+        part stops after ``s / rate``. The robot's stopping time is that of its fastest part, at
+        ``s * v_top_mps`` (default: the largest of ``v_parts_mps``). Arrays (L,) (the parts that move).
 
         Only scales in ``[lo, hi]`` are examined (the grid's and both ends; the servo passes the range it
         can reach within one tick): the answer is the largest of them up to which every one is safe, ``hi``
         at most, and 0 when ``lo`` is not safe. Compiled (:func:`app.safety._kernels.max_scale`); the tests
         compare it with a NumPy reference (``tests/governor_reference.py``)."""
+        vp = np.ascontiguousarray(v_parts_mps, dtype=np.float64).reshape(-1)
+        vtop = float(vp.max(initial=0.0)) if v_top_mps is None else float(v_top_mps)
         return float(
             _kernel_max_scale(
                 np.ascontiguousarray(separation_m, dtype=np.float64).reshape(-1),
                 np.ascontiguousarray(v_human_mps, dtype=np.float64).reshape(-1),
-                np.ascontiguousarray(v_parts_mps, dtype=np.float64).reshape(-1),
+                vp,
+                vtop,
                 float(rate),
                 float(lo),
                 float(hi),
@@ -242,6 +249,101 @@ def directed_approach(
     return sep, np.where(near, approach, 0.0).max(axis=-1)
 
 
+def closing_bound(taus: np.ndarray, d: np.ndarray, v_lip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How fast a robot's own motion along its path can close each part's separation from a person held
+    where they were measured: ISO/TS 15066's speed of the robot *in the direction of the operator*.
+
+    ``d`` (K, L) is each part's separation from the held person at the path times ``taus`` (K,) (increasing,
+    ``taus[0]`` the robot's place now) and ``v_lip`` (L,) a bound of each part's speed over them (m/s). The
+    result ``(v_toward, slack)`` (L,) bounds the separation *between* the samples too:
+    ``d(tau) >= d[0] - v_toward * (tau - taus[0]) - slack`` for every ``tau`` in ``[taus[0], taus[-1]]``.
+    A separation changes no faster than the part's points move, so between two samples it stays above the
+    "V" of slopes ``-v_lip`` and ``+v_lip`` through them, whose lowest point (time ``t_k``, value ``e_k``) is
+    where a line of slope at most ``v_lip`` comes closest: ``v_toward`` is the largest of
+    ``(d[0] - slack - e_k) / (t_k - taus[0])``, ``slack`` covers the first interval. A part moving away has a
+    negative ``v_toward``: the separation it is sure to gain (the person's own approach is bounded apart:
+    the true separation is at least this one less how far the person has moved)."""
+    taus = np.asarray(taus, dtype=np.float64)
+    d = np.asarray(d, dtype=np.float64)
+    n_parts = d.shape[1]
+    if taus.shape[0] < 2:
+        return np.zeros(n_parts), np.zeros(n_parts)
+    h = np.diff(taus)[:, None]
+    dd = d[1:] - d[:-1]
+    # the samples themselves bound the speed from below (a coarse profile must not undercut them)
+    v = np.maximum(np.asarray(v_lip, dtype=np.float64)[None, :], np.abs(dd) / np.maximum(h, 1e-12))
+    low = 0.5 * (d[:-1] + d[1:] - v * h)  # (K - 1, L) the V's lowest value in each interval
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_low = taus[:-1, None] + np.where(v > 0.0, 0.5 * (h - dd / v), 0.5 * h)  # ... and its time
+    slack = np.maximum(d[0] - low[0], 0.0)  # the first interval
+    if taus.shape[0] < 3:
+        return np.zeros(n_parts), slack
+    el = np.maximum(t_low[1:] - taus[0], 1e-12)
+    rate = np.maximum(((d[0] - slack - low[1:]) / el).max(axis=0), -v.max(axis=0))
+    # a gain must hold over the first interval too: what it credits there goes into the slack
+    return rate, slack + np.maximum(-rate, 0.0) * h[0]
+
+
+@dataclass(frozen=True, slots=True)
+class PathClosing:
+    """Each robot part's closing on the person along a path, measured at a frame
+    (:func:`closing_bound`): what the part's own motion closes of its separation from the person as seen,
+    ``closed(tau) <= v_toward * (tau - tau0) + slack``, for path times ``tau0 <= tau <= tau_valid``.
+
+    Attributes:
+        tau0: Path time of the robot at the frame (s).
+        tau_valid: The last path time the bound covers (s; inf: to the path's end, where the robot stays).
+        v_toward: (L,) each part's speed toward the person at scale 1 (m/s; negative: moving away).
+        slack: (L,) what the first sample interval may close (m).
+    """
+
+    tau0: float
+    tau_valid: float
+    v_toward: np.ndarray
+    slack: np.ndarray
+
+    @classmethod
+    def measure(
+        cls, traj: Any, profile: Any, tau: float, joints: np.ndarray, geometry: Any, *, horizon_s: float
+    ) -> PathClosing | None:
+        """Along ``traj`` from path time ``tau`` over ``horizon_s`` (path time), every ``profile.step_s``,
+        against the person at ``joints`` (J, 3): ``geometry.path_separations`` gives each part's
+        separation, ``profile.v_mps`` (the parts' speeds along ``traj``, sampled from ``profile.tau0``)
+        bounds how fast it changes. None past the path's end."""
+        t_end = float(traj.t_end)
+        if tau >= t_end:
+            return None
+        horizon = tau + horizon_s
+        taus = np.append(np.arange(tau, min(horizon, t_end), profile.step_s), min(horizon, t_end))
+        q = np.asarray(traj.q(taus), dtype=np.float64).reshape(-1, 6)
+        d = np.asarray(geometry.path_separations(q, joints), dtype=np.float64)
+        # a bound of each part's speed over the samples: the profile's, one sample either side
+        i0 = max(int((tau - profile.tau0) / profile.step_s) - 1, 0)
+        i1 = int((taus[-1] - profile.tau0) / profile.step_s) + 2
+        v = profile.v_mps
+        v_lip = v[i0:i1].max(axis=0) if i0 < v.shape[0] else np.zeros(d.shape[1])
+        v_toward, slack = closing_bound(taus, d, v_lip)
+        # beyond the end the robot is at rest: the bound holds for ever there
+        return cls(float(tau), math.inf if horizon >= t_end else horizon, v_toward, slack)
+
+    def motion(
+        self, tau: float, vmax: np.ndarray, travel_m: np.ndarray, *, dt: float, rate: float, hi: float
+    ) -> RobotMotion | None:
+        """The robot's motion for the governor's tick (:class:`app.safety._kernels.RobotMotion`) at path time
+        ``tau``, the parts' whole speeds ``vmax`` (L,) over the look-ahead and travel ``travel_m`` (L,)
+        since the frame: per part, this bound or the whole speed's (not a mix), whichever closes less by the
+        end of a brake from scale ``hi`` (braking at ``rate``, 1/s) after a tick of ``dt``. None where this
+        bound does not cover that brake."""
+        brake_path = 0.0 if not math.isfinite(rate) else hi * hi / (2.0 * max(rate, 1e-9))
+        ahead = hi * dt + brake_path
+        if tau < self.tau0 - 1e-9 or tau + ahead > self.tau_valid:
+            return None
+        closed = self.v_toward * (tau - self.tau0) + self.slack
+        toward = np.minimum(self.v_toward, vmax)  # the whole speed bounds the rate from here too
+        use = closed + toward * ahead < travel_m + vmax * ahead
+        return RobotMotion(vmax, np.where(use, toward, vmax), np.where(use, closed, travel_m))
+
+
 @dataclass(frozen=True, slots=True)
 class GovernorModel:
     """What the speed governor of the supervisor will do, as the planner predicts it (SSM-aware timing).
@@ -276,6 +378,8 @@ class GovernorModel:
         min_scale: The smallest scale a plan is timed with: where the forecast leaves the robot no speed
             at all, the plan is timed as if it crept at this scale (the governor holds it until the
             person has moved; a plan timed as standing still forever would never arrive).
+        robot_toward: The governor takes each part's speed toward the person
+            (``SupervisorConfig.robot_toward``); False: their whole speeds.
     """
 
     separation: SeparationModel
@@ -289,6 +393,7 @@ class GovernorModel:
     lookahead_s: float = 0.6
     law: SpeedScaleLaw | None = None
     min_scale: float = 0.1
+    robot_toward: bool = True
 
     def __post_init__(self) -> None:
         for name in ("brake_decel_mps2", "brake_joint_decel", "speed_window_s"):
@@ -331,16 +436,22 @@ class GovernorModel:
         return brake_rate(v_top_mps, w_top_radps, self.brake_decel_mps2, self.brake_joint_decel)
 
     def scale(
-        self, sep_m: np.ndarray, v_human_mps: np.ndarray, v_parts_mps: np.ndarray, w_top_radps: float
+        self,
+        sep_m: np.ndarray,
+        v_human_mps: np.ndarray,
+        v_parts_mps: np.ndarray,
+        w_top_radps: float,
+        v_toward_mps: np.ndarray | None = None,
     ) -> float:
         """The governor's scale in [0, 1] for parts (L,) at separations ``sep_m`` (as measured, before the
         tracking margin), the person approaching each at ``v_human_mps`` (measured over the window), the
-        parts moving at ``v_parts_mps`` at scale 1 (over the governor's look-ahead) and the fastest joint at
-        ``w_top_radps``."""
+        parts moving at ``v_parts_mps`` at scale 1 (over the governor's look-ahead), closing on the person
+        at ``v_toward_mps`` (default: their whole speed) and the fastest joint at ``w_top_radps``."""
         v_parts = np.asarray(v_parts_mps, dtype=np.float64)
         vtop = float(v_parts.max(initial=0.0))
         if vtop <= 1e-4:
             return 1.0
+        toward = v_parts if v_toward_mps is None else np.asarray(v_toward_mps, dtype=np.float64)
         vh0 = np.asarray(v_human_mps, dtype=np.float64) + self.speed_noise_mps
         half = 0.5 * self.speed_window_s
         # from the middle of the speed window: the approach until the frame was taken is already in the
@@ -349,7 +460,7 @@ class GovernorModel:
         x1, v1 = self.separation.human_approach(vh0, half + self.sensing_age_s)
         sep_lb = np.asarray(sep_m, dtype=np.float64) - self.tracking_margin_m - (x1 - x0)
         rate = self.brake_rate(vtop, float(w_top_radps))
-        s = self.separation.max_scale(sep_lb, v_human_mps=v1, v_parts_mps=v_parts, rate=rate)
+        s = self.separation.max_scale(sep_lb, v_human_mps=v1, v_parts_mps=toward, rate=rate, v_top_mps=vtop)
         if self.law is not None:
-            s = min(s, max(self.law(sep_lb, v_parts, vh0), 0.0))
+            s = min(s, max(self.law(sep_lb, toward, vh0), 0.0))
         return s

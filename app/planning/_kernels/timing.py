@@ -2,8 +2,9 @@
 
 :func:`predicted_scales` is the loop of :func:`app.planning.ssm_timing.predicted_scales`: it walks along a
 path, asks the forecast where the person will be when the robot gets to each point (the wall time there
-depends on every scale before it, so the walk is sequential), measures the separation and the person's
-directed speed as the supervisor would, and applies the governor's model
+depends on every scale before it, so the walk is sequential), measures the separation, the person's
+directed speed and each part's speed toward the person (:func:`toward_rates`) as the supervisor would, and
+applies the governor's model
 (:meth:`app.safety.governor.GovernorModel.scale`, with the governor's own compiled envelope and law,
 :func:`app.safety._kernels.max_scale` and :func:`app.safety._kernels.law_scale`). The NumPy loop it replaces
 is kept with the tests (``tests/governor_reference.py``), which compare the two.
@@ -19,7 +20,7 @@ from app.jit import jit
 from app.planning._kernels.base import _seg_dist
 from app.safety._kernels import _approach, law_scale, max_scale
 
-__all__ = ["TimingGovernor", "TimingPath", "TimingPerson", "predicted_scales"]
+__all__ = ["TimingGovernor", "TimingPath", "TimingPerson", "predicted_scales", "toward_steps"]
 
 
 class TimingPath(NamedTuple):
@@ -67,7 +68,9 @@ class TimingGovernor(NamedTuple):
         scales: The grid of scales of the envelope.
         env_u: The instants of a brake (fractions of it).
         misc: ``(tracking_margin_m, speed_window_s, sensing_age_s, near_band_m, speed_noise_mps, min_scale,
-            brake_decel_mps2, brake_joint_decel)``.
+            brake_decel_mps2, brake_joint_decel, ahead, toward)``: ``ahead``, the governor's look-ahead in
+            sample points; ``toward`` 1 where the governor takes the parts' speeds toward the person, 0
+            where it takes their whole speeds.
     """
 
     separation: np.ndarray
@@ -107,11 +110,27 @@ def _person_distances(
 
 
 @jit
+def toward_steps(i: int, n: int, ahead: int) -> np.ndarray:
+    """The sample points ahead of point ``i`` (of ``0..n``) at which the walk measures each part's closing on
+    the person: the next one, half the governor's look-ahead (``ahead`` points) and all of it."""
+    out = np.empty(3, dtype=np.int64)
+    out[0] = min(i + 1, n)
+    out[1] = min(i + max(ahead // 2, 1), n)
+    out[2] = min(i + max(ahead, 1), n)
+    return out
+
+
+@jit
 def predicted_scales(
     path: TimingPath, person: TimingPerson, gov: TimingGovernor, t0: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """The wall times (N + 1,) at which the robot reaches each point of ``path`` (the first is ``t0``) and the
-    scale (N,) predicted for each move to the next point (see the module docstring)."""
+    scale (N,) predicted for each move to the next point (see the module docstring).
+
+    Each part's speed toward the person at point ``i`` is, like the supervisor's
+    (:func:`app.safety.governor.closing_bound`), the largest average rate at which the path closes its
+    separation from the person held where the forecast has them then, to the points :func:`toward_steps`
+    names (negative: moving away), at most its whole speed."""
     margin, window, age, band, noise, min_scale, decel, jdecel = (
         gov.misc[0], gov.misc[1], gov.misc[2], gov.misc[3], gov.misc[4], gov.misc[5], gov.misc[6], gov.misc[7]
     )  # fmt: skip
@@ -129,6 +148,9 @@ def predicted_scales(
     v1 = np.empty(n_parts)
     vh0 = np.empty(n_parts)
     vp = np.empty(n_parts)
+    toward = np.empty(n_parts)
+    d2 = np.empty((n_parts, n_caps))
+    ahead = int(gov.misc[8])
     half = 0.5 * window
     for i in range(n):
         vtop = 0.0
@@ -148,19 +170,36 @@ def predicted_scales(
                     if d0[p, m] <= sep + band:
                         v_h = max(v_h, max(d1[p, m] - d0[p, m], 0.0) / max(window, 1e-6))
                 vh0[p] = v_h + noise
+                toward[p] = -np.inf if gov.misc[9] > 0.0 else vp[p]
                 x0, _ = _approach(vh0[p], half, v_max_h, accel)
                 x1, v_1 = _approach(vh0[p], half + age, v_max_h, accel)
                 sep_lb[p] = sep - margin - (x1 - x0)
                 v1[p] = v_1
+            steps = toward_steps(i, n, ahead)
+            for k in range(steps.shape[0] if gov.misc[9] > 0.0 else 0):
+                j = steps[k]
+                if j <= i or (k > 0 and j == steps[k - 1]):
+                    continue
+                _person_distances(person, t[i], path.ra[j], path.rd[j], path.rr, d2)
+                for p in range(n_parts):
+                    sep_j = d2[p, 0]
+                    for m in range(1, n_caps):
+                        sep_j = min(sep_j, d2[p, m])
+                    sep_i = d0[p, 0]
+                    for m in range(1, n_caps):
+                        sep_i = min(sep_i, d0[p, m])
+                    toward[p] = max(toward[p], (sep_i - sep_j) / max(tau[j] - tau[i], 1e-12))
+            for p in range(n_parts):
+                toward[p] = min(toward[p], vp[p]) if toward[p] > -np.inf else 0.0
             w_top = max(path.w[i], path.w[i + 1])
             rate = np.inf
             if vtop > 1e-9:
                 rate = decel / vtop
             if w_top > 1e-9:
                 rate = min(rate, jdecel / w_top)
-            s = max_scale(sep_lb, v1, vp, rate, 0.0, 1.0, gov.scales, gov.env_u, gov.separation)
+            s = max_scale(sep_lb, v1, toward, vtop, rate, 0.0, 1.0, gov.scales, gov.env_u, gov.separation)
             if gov.law.shape[0] > 0:
-                s = min(s, max(law_scale(sep_lb, vp, vh0, gov.law), 0.0))
+                s = min(s, max(law_scale(sep_lb, toward, vh0, gov.law), 0.0))
         scales[i] = max(s, min_scale)
         t[i + 1] = t[i] + (tau[i + 1] - tau[i]) / scales[i]
     return t, scales
