@@ -528,7 +528,7 @@ class _Run:
             )  # fmt: skip
             ok[todo] = res == 1
         if sep.forecast is not None:
-            geo = sep._kernel
+            geo = sep.kernel
             assert geo is not None  # a compiled run's separation is compiled too
             dep = fl[0]
             # waits: the parent must be able to stand still until the departure (checked once per parent)
@@ -551,8 +551,8 @@ class _Run:
                 # the fields of Moves, packed (built as a plain tuple: this runs once per batch)
                 moves = (q_par, target, pts, cen, rad, rows, *fl, end, hold)
                 res, n_samples, n_exact = _kernels.moves_separation_ok(
-                    moves, p._k_tables, p._k_motion, float(self.hold_s), sep._k_requirement,
-                    sep._k_forecast, geo.robot, geo.person,
+                    moves, p._k_tables, p._k_motion, float(self.hold_s), sep.k_requirement,
+                    sep.k_forecast, geo.robot, geo.person,
                 )  # fmt: skip
                 sep.samples += n_samples
                 sep.exact_samples += n_exact
@@ -569,15 +569,15 @@ class _Run:
         K, sub = _wait_grid(cfg)
         n_w = K * sub
         sep = self.sep
-        geo = sep._kernel
+        geo = sep.kernel
         if self.compiled and geo is not None:  # the samples and their requirement compiled
             p = self.p
             qs, t_all, req, cen, rad, ts = _kernels.wait_samples(
                 todo, self._k_state, p._k_tables, self._start_k, n_w, cfg.wait_step_s / sub,
-                sep._k_requirement, sep._k_forecast,
+                sep.k_requirement, sep.k_forecast,
             )  # fmt: skip
             ok, exact = _kernels.sample_separation_ok(
-                qs, t_all, req, cen, rad, True, _NO_IDS, 0, sep._k_forecast, geo.robot, geo.person
+                qs, t_all, req, cen, rad, True, _NO_IDS, 0, sep.k_forecast, geo.robot, geo.person
             )
             sep.samples += t_all.size
             sep.exact_samples += exact
