@@ -183,8 +183,9 @@ class Knots(NamedTuple):
 
 
 class RoadmapTables(NamedTuple):
-    """The roadmap as the search's generation reads it (:class:`app.planning.search.tables._StaticTables`):
-    CSR adjacency and, per row ``e * 8 + b`` (CSR entry, parent branch), the branch options."""
+    """The roadmap as the search's generation reads it
+    (:attr:`app.planning.search.roadmap_view.RoadmapView.k_roadmap`): CSR adjacency and, per row ``e * 8 + b``
+    (CSR entry, parent branch), the branch options."""
 
     indptr: np.ndarray  #: (N_nodes + 1,) int64
     indices: np.ndarray  #: (E,) int64

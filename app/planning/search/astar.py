@@ -57,7 +57,8 @@ class _Search:
         t_last = math.inf if goal is None else self._latest_goal_arrival(sep, goal, t_start, hold_s)
         t_last = min(t_last, t_start + cfg.max_plan_s)
         run = _Run(
-            self,
+            self.view,
+            self.config,
             q_start,
             t_start,
             sep,

@@ -47,7 +47,7 @@ class _MoveChecks:
         result = np.ones(M, dtype=bool)
         if sep.forecast is None or M == 0:
             return result
-        if sep._kernel is not None:
+        if sep.kernel is not None:
             return self._moves_ok_compiled(
                 sep,
                 q_a,
@@ -173,15 +173,15 @@ class _MoveChecks:
                 hold=_per_move(hold, M, np.bool_),
             )
         )
-        geo = sep._kernel
+        geo = sep.kernel
         assert geo is not None
         ok, n_samples, n_exact = _kernels.moves_separation_ok(
             moves,
             tables,
             self._k_motion,
             float(hold_s),
-            sep._k_requirement,
-            sep._k_forecast,
+            sep.k_requirement,
+            sep.k_forecast,
             geo.robot,
             geo.person,
         )

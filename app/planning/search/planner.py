@@ -11,6 +11,7 @@ import inspect
 import math
 import time
 from collections.abc import Callable
+from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -19,6 +20,7 @@ from app.planning import _kernels
 from app.planning.roadmap import NUM_BRANCHES, Roadmap
 from app.planning.search.astar import _Search
 from app.planning.search.config import (
+    _TWO_PI,
     PlannerConfig,
     PlanResult,
     RobotModel,
@@ -26,6 +28,7 @@ from app.planning.search.config import (
 )
 from app.planning.search.moves import _MoveChecks
 from app.planning.search.open_list import _OpenList
+from app.planning.search.roadmap_view import RoadmapView
 from app.planning.search.run import _Run
 from app.planning.search.separation import _Separation
 from app.planning.search.shortcut import _Shortcuts
@@ -54,7 +57,9 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
 
     Construction precomputes, per roadmap edge and parent branch, the successor branches in order of joint
     distance (and per node and branch the robot's capsule points and bounding box); queries only read them.
-    Every query keeps its state in its own arrays: one planner can serve concurrent queries.
+    Every query keeps its state in its own arrays: one planner can serve concurrent queries. A query's search
+    reads the roadmap through :attr:`view` (a :class:`RoadmapView`, built here once), not through the
+    planner's own attributes.
     """
 
     def __init__(
@@ -105,7 +110,6 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         self._static_boxes = self._static_box_bounds()
         self._rev_graph = self._reverse_move_graph()
         self._h_cache: dict[int, np.ndarray] = {}
-        self._station_array = np.array(sorted(set(roadmap.station_nodes.values())), dtype=np.int64)
         # the exact verification can reuse its forward kinematics when the model takes segments
         opts = _paired_options(collision)
         self._subsets_ok = {"links", "capsules"} <= opts
@@ -139,18 +143,6 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
                     sample_dt=float(cfg.sample_dt_s),
                 )
             )
-            self._k_ik = _kernels.as_f64(self._ik)
-            self._k_roadmap = pack(
-                _kernels.RoadmapTables(
-                    indptr=self._k_indptr,
-                    indices=self._k_indices,
-                    ord_flat=self._ord_flat,
-                    L_flat=self._L_flat,
-                    same_flat=self._same_flat,
-                    delta0=self._delta0,
-                    ik=self._k_ik,
-                )
-            )
         self._human_r_max = float(np.max(collision.human_capsules(np.zeros((1, NUM_JOINTS, 3)))[2]))
         # which joints each person capsule runs between (joint indices fed in as coordinates) and its radius
         coded = np.repeat(np.arange(NUM_JOINTS, dtype=np.float64)[None, :, None], 3, axis=2)
@@ -163,11 +155,75 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         self._next_cache: dict[int, list[int]] = {}
         self._next_cache_k: dict[int, np.ndarray] = {}
         self._static_memo: dict[tuple[int, int, int, int], int] = {}
+        #: What a query sees of the roadmap (its tables and the functions over them), read-only.
+        self.view = self._roadmap_view()
         for node in roadmap.station_nodes.values():
             if self._valid[node].any():
                 self._heuristic_table(node)
         if warm_up and self._kernel_geometry is not None and self._k_align is not None:
             self._warm_up()
+
+    def _roadmap_view(self) -> RoadmapView:
+        """The tables and functions a query reads (:class:`RoadmapView`), with the lookahead's per-row data
+        and the compiled roadmap tables."""
+        rm = self.roadmap
+        # per row, the nearest branch's configuration minus the parent's, shifted by multiples of 2 pi next
+        # to it (without the limits: a shifted parent gets the same shift, see _Run.speculate)
+        q_u = self._ik.reshape(-1, 6)[self._src_state]
+        q_v = self._ik[np.repeat(rm.indices, NUM_BRANCHES), self._ord_flat[:, 0]]
+        delta0 = q_v + _TWO_PI * np.rint((q_u - q_v) * (1.0 / _TWO_PI)) - q_u
+        compiled = self._kernel_geometry is not None
+        k_ik = _kernels.as_f64(self._ik) if compiled else None
+        k_roadmap = None
+        if compiled:
+            k_roadmap = _kernels.pack(
+                _kernels.RoadmapTables(
+                    indptr=_kernels.as_i64(rm.indptr),
+                    indices=_kernels.as_i64(rm.indices),
+                    ord_flat=self._ord_flat,
+                    L_flat=self._L_flat,
+                    same_flat=self._same_flat,
+                    delta0=delta0,
+                    ik=k_ik,
+                )
+            )
+        return RoadmapView(
+            num_nodes=rm.num_nodes,
+            n_options=self._R,
+            accel=self._A,
+            q_min=self.q_min,
+            q_max=self.q_max,
+            ik=self._ik,
+            valid=self._valid,
+            stations=np.array(sorted(set(rm.station_nodes.values())), dtype=np.int64),
+            indptr=self._indptr,
+            indices=self._indices,
+            max_degree=int(np.diff(rm.indptr).max(initial=0)),
+            ord_flat=self._ord_flat,
+            L_flat=self._L_flat,
+            same_flat=self._same_flat,
+            delta0=delta0,
+            ord_list=self._ord_flat[:, 0].tolist(),
+            L_list=self._L_flat[:, 0].tolist(),
+            same_list=self._same_flat[:, 0].tolist(),
+            indices_list=rm.indices.tolist(),
+            pts_all=self._pts_all,
+            cen_all=self._cen_all,
+            rad_all=self._rad_all,
+            next_rows=MappingProxyType(self._next_cache),
+            next_rows_k=MappingProxyType(self._next_cache_k),
+            compiled=self._k_align is not None and compiled,
+            k_roadmap=k_roadmap,
+            k_limits=self._k_limits if compiled else None,
+            k_tables=self._k_tables if compiled else None,
+            k_motion=self._k_motion if compiled else None,
+            k_ik=k_ik,
+            align=self._align,
+            metric=self._metric,
+            points_and_spheres=self._points_and_spheres,
+            static_check=self._static_cached,
+            move_samples=self._move_samples,
+        )
 
     def _warm_up(self) -> None:
         """One small batched query between two stations with a person far away, so that the compiled
@@ -191,8 +247,8 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         # what that query did not need: failed moves, deferred and pushed-back states, the approach probe
         sep = self._separation(far, extra_m=0.0)
         run = _Run(
-            self, q0, 0.0, sep, goal=goal, stop_time=None, hold_s=0.0, h_tab=self._heuristic_table(goal),
-            t_last=math.inf,
+            self.view, self.config, q0, 0.0, sep, goal=goal, stop_time=None, hold_s=0.0,
+            h_tab=self._heuristic_table(goal), t_last=math.inf,
         )  # fmt: skip
         run.alternatives(np.zeros(0, dtype=np.int64))
         ol = _OpenList(run)

@@ -12,6 +12,7 @@ from app.planning import _kernels
 from app.planning.roadmap import NUM_BRANCHES
 from app.planning.search.config import (
     _EPS_T,
+    PlannerConfig,
 )
 from app.planning.search.profiles import (
     _NO_IDS,
@@ -20,6 +21,7 @@ from app.planning.search.profiles import (
     _profile_py,
     _wait_grid,
 )
+from app.planning.search.roadmap_view import RoadmapView
 from app.planning.search.separation import _Separation
 from app.planning.trajectory import Plan
 
@@ -32,6 +34,9 @@ class _Run:
     alternative it is (0 = nearest branch at cruise speed; others are generated when it fails) and the row of
     the option table it came from (its successor branches, for the alternatives). Row 0 is the start.
     Generation, timing and checking work on whole arrays of states at once.
+
+    It reads the roadmap only through ``view`` (the planner's :class:`RoadmapView`, shared and read-only), the
+    search settings from ``config`` and the person through ``sep``.
     """
 
     _FLOAT = ("t", "u", "u0", "dep", "fc", "L", "h", "peak", "wait_ok")
@@ -40,7 +45,8 @@ class _Run:
 
     def __init__(
         self,
-        planner: Any,  # the Planner (app.planning.search.planner imports this module, not the reverse)
+        view: RoadmapView,
+        config: PlannerConfig,
         q_start: np.ndarray,
         t_start: float,
         sep: _Separation,
@@ -51,7 +57,8 @@ class _Run:
         h_tab: np.ndarray | None,
         t_last: float,
     ) -> None:
-        self.p = planner
+        self.view = view
+        self.config = config
         self.sep = sep
         self.goal = goal
         self.stop_time = stop_time
@@ -60,12 +67,11 @@ class _Run:
         self.t_last = t_last
         self.t_nongoal = math.inf  # states at other nodes than the goal must arrive before this (s)
         self.h_pred: np.ndarray | None = None  # (N, 8) time lower bound to a roadmap neighbour of the goal
-        cfg = planner.config
-        self.f = cfg.speed_fraction
-        self.A = planner._A
-        self.min_edge = cfg.min_edge_s
-        self.w_h = cfg.heuristic_weight
-        self.AT = np.full(planner.roadmap.num_nodes, np.inf)
+        self.f = config.speed_fraction
+        self.A = view.accel
+        self.min_edge = config.min_edge_s
+        self.w_h = config.heuristic_weight
+        self.AT = np.full(view.num_nodes, np.inf)
         cap = 256
         # the records, packed: one row per field (the attributes named in _FLOAT/_INT/_BOOL are views)
         self._F = np.zeros((len(self._FLOAT), cap))
@@ -80,23 +86,23 @@ class _Run:
         self.fc[0] = self.f
         self.same[0] = self.accepted[0] = self.qset[0] = True
         self.status[0] = 1
-        self.next_rows = None if goal is None else planner._next_cache.get(goal)
+        self.next_rows = None if goal is None else view.next_rows.get(goal)
         # the compiled bookkeeping (with the compiled model; the NumPy code below is its reference)
-        self.compiled = planner._k_align is not None and planner._kernel_geometry is not None
+        self.compiled = view.compiled
         self._h_tab_k = _kernels.as_f64(h_tab) if h_tab is not None else np.zeros((0, NUM_BRANCHES))
         self._kinds: np.ndarray | None = None
         self._ctx_key: tuple[float, float, bool] | None = None
         self._ctx: tuple[Any, ...] | None = None  # SearchContext, packed
         self.wait_ok[:] = np.nan  # per checked state: until when standing still there is safe (NaN: unknown)
         self.q[0] = q_start
-        pts, cen, rad = planner._points_and_spheres(q_start[None])
+        pts, cen, rad = view.points_and_spheres(q_start[None])
         self.start_pts, self.start_cen, self.start_rad = pts[0], cen[0], rad[0]
         self._start_k = _kernels.pack(
             _kernels.CapsuleBounds(*(_kernels.as_f64(x) for x in (pts[0], cen[0], rad[0])))
         )
         # option tables: rows e * 8 + b of the planner's edge tables, then the start's rows (-1 - j)
-        self.start_b = np.zeros((1, planner._R), dtype=np.int64)
-        self.start_L = np.full((1, planner._R), np.inf)
+        self.start_b = np.zeros((1, view.n_options), dtype=np.int64)
+        self.start_L = np.full((1, view.n_options), np.inf)
         self._k_state = self._state()
 
     # -- records
@@ -138,15 +144,15 @@ class _Run:
 
     def _options(self, row: np.ndarray, k: int | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Branch, length and roadmap-checked flag of option ``k`` of each option-table row."""
-        p = self.p
+        view = self.view
         glob = row >= 0
         if glob.all():
-            return p._ord_flat[row, k], p._L_flat[row, k], p._same_flat[row, k]
+            return view.ord_flat[row, k], view.L_flat[row, k], view.same_flat[row, k]
         g = np.where(glob, row, 0)
         s = np.where(glob, 0, -1 - row)
-        b = np.where(glob, p._ord_flat[g, k], self.start_b[s, k])
-        L = np.where(glob, p._L_flat[g, k], self.start_L[s, k])
-        return b, L, glob & p._same_flat[g, k]
+        b = np.where(glob, view.ord_flat[g, k], self.start_b[s, k])
+        L = np.where(glob, view.L_flat[g, k], self.start_L[s, k])
+        return b, L, glob & view.same_flat[g, k]
 
     def moves(
         self,
@@ -222,21 +228,21 @@ class _Run:
     # -- generation
     def start_moves(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Moves from the start to its nearest roadmap nodes (each checked against the scene when popped)."""
-        p = self.p
+        view = self.view
         q = self.q[0]
         # a robot at rest at a task pose is common: try the stations before the whole roadmap
-        st = p._station_array
-        Ls = np.where(p._valid[st], p._metric(p._align(p._ik[st], q[None, None, :]) - q), np.inf)
+        st = view.stations
+        Ls = np.where(view.valid[st], view.metric(view.align(view.ik[st], q[None, None, :]) - q), np.inf)
         hit = np.flatnonzero(Ls.min(axis=1) <= 1e-9)
         if hit.size and int(st[hit[0]]) != self.goal:
             n = int(st[hit[0]])
             self.node[0], self.branch[0] = n, int(np.argmin(Ls[hit[0]]))
             self.AT[n] = self.t[0]
             return self.children(np.zeros(1, dtype=np.int64))
-        aligned = p._align(p._ik, q[None, None, :])
-        L = np.where(p._valid, p._metric(aligned - q), np.inf)
+        aligned = view.align(view.ik, q[None, None, :])
+        L = np.where(view.valid, view.metric(aligned - q), np.inf)
         best = L.min(axis=1)
-        k = min(p.config.start_neighbors, int(np.isfinite(best).sum()))
+        k = min(self.config.start_neighbors, int(np.isfinite(best).sum()))
         if k == 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
         nodes = np.argpartition(best, k - 1)[:k]
@@ -248,7 +254,7 @@ class _Run:
                 self.node[0], self.branch[0] = n, int(np.argmin(L[n]))
                 self.AT[n] = self.t[0]
                 return self.children(np.zeros(1, dtype=np.int64))
-        order = np.argsort(L[nodes], axis=1, kind="stable")[:, : p._R]
+        order = np.argsort(L[nodes], axis=1, kind="stable")[:, : view.n_options]
         self.start_b = order.astype(np.int64)
         self.start_L = np.take_along_axis(L[nodes], order, axis=1)
         row = -1 - np.arange(k)
@@ -290,16 +296,16 @@ class _Run:
 
     def children(self, sids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Moves from checked states to all their roadmap neighbours (nearest branch, cruise speed)."""
-        p = self.p
+        view = self.view
         if self.compiled:
-            self._grow(p._max_degree * sids.size)
+            self._grow(view.max_degree * sids.size)
             return self._recorded(
                 *_kernels.children_moves(
-                    sids, p._k_roadmap, self.f, NUM_BRANCHES, self._context(), self._k_state, self.n
+                    sids, view.k_roadmap, self.f, NUM_BRANCHES, self._context(), self._k_state, self.n
                 )
             )
         u, bu = self.node[sids], self.branch[sids]
-        a, z = p._indptr[u], p._indptr[u + 1]
+        a, z = view.indptr[u], view.indptr[u + 1]
         cnt = z - a
         owner = np.repeat(np.arange(sids.size), cnt)
         e = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt - a, cnt)
@@ -308,14 +314,14 @@ class _Run:
         spec = self.spec_child[par]
         has = spec >= 0
         if has.any():  # the speculative chain already holds that move
-            keep = ~has | (p._indices[e] != self.node[np.maximum(spec, 0)])
+            keep = ~has | (view.indices[e] != self.node[np.maximum(spec, 0)])
             e, row, par = e[keep], row[keep], par[keep]
         return self.moves(
             par,
-            p._indices[e],
-            p._ord_flat[row, 0],
-            p._L_flat[row, 0],
-            p._same_flat[row, 0],
+            view.indices[e],
+            view.ord_flat[row, 0],
+            view.L_flat[row, 0],
+            view.same_flat[row, 0],
             self.t[par],
             self.u[par],
             self.f,
@@ -335,18 +341,18 @@ class _Run:
         nxt = self.next_rows
         if nxt is None or max_len <= 0:
             return np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
-        p = self.p
+        view = self.view
         if self.compiled:
             self._grow(max_len)
             return self._recorded(
                 *_kernels.speculate_chain(
-                    sid, max_len, p._next_cache_k[self.goal], p._k_roadmap, p._k_limits, self._context(),
+                    sid, max_len, view.next_rows_k[self.goal], view.k_roadmap, view.k_limits, self._context(),
                     self._k_state, self.n,
                 )
             )  # fmt: skip
         node, b = int(self.node[sid]), int(self.branch[sid])
         par = int(self.parent[sid])
-        q_prev = p._align(p._ik[node, b], self.q[par]) if not self.qset[sid] else self.q[sid]
+        q_prev = view.align(view.ik[node, b], self.q[par]) if not self.qset[sid] else self.q[sid]
         self.q[sid] = q_prev
         self.qset[sid] = True
         t, u = float(self.t[sid]), float(self.u[sid])
@@ -358,9 +364,9 @@ class _Run:
             row = nxt[node * NUM_BRANCHES + b]
             if row < 0:
                 break
-            v = p._indices_list[row // NUM_BRANCHES]
-            bv = p._ord_list[row]
-            L = p._L_list[row]
+            v = view.indices_list[row // NUM_BRANCHES]
+            bv = view.ord_list[row]
+            L = view.L_list[row]
             end = v == goal
             h, u1, peak = _profile_py(u, L, f, A, end)
             if L > 1e-12:
@@ -371,12 +377,12 @@ class _Run:
                 break
             if v != goal and ta + (0.0 if self.h_pred is None else self.h_pred[v, bv]) >= self.t_nongoal:
                 break
-            q_next = q_prev + p._delta0[row]  # the nearest 2 pi shift, as _align finds it within the limits
-            if not np.all((q_next >= p.q_min) & (q_next <= p.q_max)):
-                q_next = p._align(p._ik[v, bv], q_prev)
+            q_next = q_prev + view.delta0[row]  # the nearest 2 pi shift, as _align finds it within the limits
+            if not np.all((q_next >= view.q_min) & (q_next <= view.q_max)):
+                q_next = view.align(view.ik[v, bv], q_prev)
             q_prev = q_next
             qs.append(q_prev)
-            chain.append((row, v, bv, L, p._same_list[row], t, min(u, f), h, u1, peak))
+            chain.append((row, v, bv, L, view.same_list[row], t, min(u, f), h, u1, peak))
             node, b, t, u = v, bv, ta, u1
         m = len(chain)
         if m == 0:
@@ -409,16 +415,16 @@ class _Run:
     def alternatives(self, failed: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """When the nearest branch at cruise speed fails: the next branches (alternative 1), the nearest one
         slower (2), after waiting (3), after stopping at the slowest speed (4)."""
-        cfg = self.p.config
+        cfg = self.config
         if self.compiled:
             if self._kinds is None:
                 self._kinds = np.array(self._alternative_kinds(), dtype=np.float64).reshape(-1, 4)
-            p = self.p
+            view = self.view
             self._grow(failed.size * self._kinds.shape[0])
             return self._recorded(
                 *_kernels.alternative_moves(
                     failed, self._kinds, _NO_ROW, float(cfg.wait_step_s), float(self.sep.t_static),
-                    self.start_b, _kernels.as_f64(self.start_L), p._k_roadmap, self._context(),
+                    self.start_b, _kernels.as_f64(self.start_L), view.k_roadmap, self._context(),
                     self._k_state, self.n,
                 )
             )  # fmt: skip
@@ -457,8 +463,8 @@ class _Run:
 
     def _alternative_kinds(self) -> list[tuple[int, int, float, int]]:
         """(kind, option, cruise speed, wait steps) of each alternative of a failed move, in order."""
-        cfg = self.p.config
-        kinds = [(1, k, self.f, 0) for k in range(1, self.p._R)]
+        cfg = self.config
+        kinds = [(1, k, self.f, 0) for k in range(1, self.view.n_options)]
         if self.sep.forecast is not None:
             slow = [fs for fs in cfg.slow_speed_fractions if fs < self.f]
             kinds += [(2, 0, fs, 0) for fs in slow]
@@ -473,12 +479,12 @@ class _Run:
         """Check a batch of moves; stores the configuration of every move that passes. Returns (M,) bool."""
         if self.compiled:
             return self._check_fast(batch)
-        p = self.p
+        view = self.view
         par = self.parent[batch]
         cv = self.node[batch]
         b = self.branch[batch]
         q_par = self.q[par]
-        target = p._align(p._ik[cv, b], q_par)
+        target = view.align(view.ik[cv, b], q_par)
         pre = self.qset[batch]
         if pre.any():  # a speculative chain: its configurations were aligned one after the other
             target[pre] = self.q[batch[pre]]
@@ -489,13 +495,15 @@ class _Run:
         pb = self.branch[par]
         chk = np.flatnonzero(same)
         if chk.size:
-            ref = p._ik[pn[chk], pb[chk]]
-            ref_t = p._align(p._ik[cv[chk], b[chk]], ref)
+            ref = view.ik[pn[chk], pb[chk]]
+            ref_t = view.align(view.ik[cv[chk], b[chk]], ref)
             moved = np.abs((ref_t - ref) - (target[chk] - q_par[chk])).max(axis=1) > 1e-9
             same[chk[moved]] = False
         todo = np.flatnonzero(~same)
         if todo.size:
-            ok[todo] = p._static_cached(pn[todo], pb[todo], cv[todo], b[todo], q_par[todo], target[todo]) == 1
+            ok[todo] = (
+                view.static_check(pn[todo], pb[todo], cv[todo], b[todo], q_par[todo], target[todo]) == 1
+            )
         if self.sep.forecast is not None:
             live = np.flatnonzero(ok)
             if live.size:
@@ -510,10 +518,10 @@ class _Run:
     def _check_fast(self, batch: np.ndarray) -> np.ndarray:
         """:meth:`check` with the compiled set-up (:func:`app.planning._kernels.check_prepare`) and the
         compiled move check called directly: the same checks in the same order, the same result."""
-        p = self.p
+        view = self.view
         sep = self.sep
         target, same, q_par, pts, cen, rad, fl, hold, end, waits, rows, par, stored = _kernels.check_prepare(
-            batch, self._k_state, p._k_ik, p._k_limits, p._k_tables, self._start_k,
+            batch, self._k_state, view.k_ik, view.k_limits, view.k_tables, self._start_k,
             -2 if self.goal is None else self.goal, self.hold_s > 0,
         )  # fmt: skip
         M = batch.size
@@ -522,13 +530,13 @@ class _Run:
         if not same.all():
             todo = np.flatnonzero(~same)
             pt, st = par[todo], batch[todo]
-            res = p._static_cached(
+            res = view.static_check(
                 self.node[pt], self.branch[pt], self.node[st], self.branch[st], q_par[todo], target[todo],
                 same_move=stored[todo],
             )  # fmt: skip
             ok[todo] = res == 1
         if sep.forecast is not None:
-            geo = sep._kernel
+            geo = sep.kernel
             assert geo is not None  # a compiled run's separation is compiled too
             dep = fl[0]
             # waits: the parent must be able to stand still until the departure (checked once per parent)
@@ -551,8 +559,8 @@ class _Run:
                 # the fields of Moves, packed (built as a plain tuple: this runs once per batch)
                 moves = (q_par, target, pts, cen, rad, rows, *fl, end, hold)
                 res, n_samples, n_exact = _kernels.moves_separation_ok(
-                    moves, p._k_tables, p._k_motion, float(self.hold_s), sep._k_requirement,
-                    sep._k_forecast, geo.robot, geo.person,
+                    moves, view.k_tables, view.k_motion, float(self.hold_s), sep.k_requirement,
+                    sep.k_forecast, geo.robot, geo.person,
                 )  # fmt: skip
                 sep.samples += n_samples
                 sep.exact_samples += n_exact
@@ -565,19 +573,19 @@ class _Run:
 
     def _check_waits(self, todo: np.ndarray) -> None:
         """Until when standing still at each of the checked states ``todo`` is safe (``wait_ok``)."""
-        cfg = self.p.config
+        cfg = self.config
         K, sub = _wait_grid(cfg)
         n_w = K * sub
         sep = self.sep
-        geo = sep._kernel
+        geo = sep.kernel
         if self.compiled and geo is not None:  # the samples and their requirement compiled
-            p = self.p
+            view = self.view
             qs, t_all, req, cen, rad, ts = _kernels.wait_samples(
-                todo, self._k_state, p._k_tables, self._start_k, n_w, cfg.wait_step_s / sub,
-                sep._k_requirement, sep._k_forecast,
+                todo, self._k_state, view.k_tables, self._start_k, n_w, cfg.wait_step_s / sub,
+                sep.k_requirement, sep.k_forecast,
             )  # fmt: skip
             ok, exact = _kernels.sample_separation_ok(
-                qs, t_all, req, cen, rad, True, _NO_IDS, 0, sep._k_forecast, geo.robot, geo.person
+                qs, t_all, req, cen, rad, True, _NO_IDS, 0, sep.k_forecast, geo.robot, geo.person
             )
             sep.samples += t_all.size
             sep.exact_samples += exact
@@ -592,16 +600,16 @@ class _Run:
         self.wait_ok[todo] = np.where(res_w.all(axis=1), np.inf, first_bad)
 
     def _parent_geometry(self, par: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        p = self.p
+        view = self.view
         pn = self.node[par]
         pb = self.branch[par]
         on = pn >= 0
         if on.all():
-            return p._pts_all[pn, pb], p._cen_all[pn, pb], p._rad_all[pn, pb]
+            return view.pts_all[pn, pb], view.cen_all[pn, pb], view.rad_all[pn, pb]
         pn, pb = pn.clip(0), pb.clip(0)
-        pts = np.where(on[:, None, None], p._pts_all[pn, pb], self.start_pts[None])
-        cen = np.where(on[:, None, None], p._cen_all[pn, pb], self.start_cen[None])
-        rad = np.where(on[:, None], p._rad_all[pn, pb], self.start_rad[None])
+        pts = np.where(on[:, None, None], view.pts_all[pn, pb], self.start_pts[None])
+        cen = np.where(on[:, None, None], view.cen_all[pn, pb], self.start_cen[None])
+        rad = np.where(on[:, None], view.rad_all[pn, pb], self.start_rad[None])
         return pts, cen, rad
 
     def _check_forecast(
@@ -615,8 +623,8 @@ class _Run:
     ) -> np.ndarray:
         """Moves against the forecast, with the waits before them, in one vectorised check (the NumPy
         reference of :meth:`_check_fast`: a run is compiled whenever its planner's checks are)."""
-        p = self.p
-        cfg = p.config
+        view = self.view
+        cfg = self.config
         sep = self.sep
         ok = np.ones(idx.size, dtype=bool)
         # waits: the parent must be able to stand still until the departure (checked once per parent)
@@ -637,7 +645,7 @@ class _Run:
         n_wait = parts[0][0].shape[0] if parts else 0
         pts, cen, rad = self._parent_geometry(par)
         hold = cv == self.goal if self.goal is not None else np.full(idx.size, self.hold_s > 0)
-        sel, owner, *samples = p._move_samples(
+        sel, owner, *samples = view.move_samples(
             sep,
             q_par,
             pts,

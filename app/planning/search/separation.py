@@ -4,7 +4,7 @@ time-sampled check of the search's moves and of the verification, with its broad
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -150,6 +150,33 @@ class _Separation:
                 self._clo_tab.append(np.minimum(plo[:-half], plo[half:]))
                 self._chi_tab.append(np.maximum(phi[:-half], phi[half:]))
                 k += 1
+
+    @property
+    def kernel(self) -> _kernels.KernelGeometry | None:
+        """The compiled robot and person geometry (:meth:`CollisionModel.kernel_geometry`) when the check is
+        compiled; None with a NumPy model or without a forecast."""
+        return self._kernel
+
+    @property
+    def k_requirement(self) -> tuple[Any, ...]:
+        """The required clearance's parameters as the compiled checks take them
+        (:class:`app.planning._kernels.Requirement`, packed). Only with a forecast and a :attr:`kernel`."""
+        return self._compiled("_k_requirement")
+
+    @property
+    def k_forecast(self) -> tuple[Any, ...]:
+        """The forecast as the compiled checks take it (:class:`app.planning._kernels.PersonForecast`,
+        packed). Only with a forecast and a :attr:`kernel`."""
+        return self._compiled("_k_forecast")
+
+    def _compiled(self, name: str) -> tuple[Any, ...]:
+        value = getattr(self, name, None)
+        if value is None:
+            raise AttributeError(
+                f"_Separation.{name[1:]} exists only for a compiled check with a forecast: test "
+                "`forecast is not None and kernel is not None` first"
+            )
+        return value
 
     def _boxes(self, t0: np.ndarray, t1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Boxes that contain the person over each window [t0, t1] (t0 <= t1): lower corners (n, 3) and

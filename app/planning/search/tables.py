@@ -75,18 +75,7 @@ class _StaticTables:
         self._same_flat = self._same_tab.reshape(E * NUM_BRANCHES, R)
         self._indptr = rm.indptr
         self._indices = rm.indices
-        self._k_indptr, self._k_indices = _kernels.as_i64(rm.indptr), _kernels.as_i64(rm.indices)
-        self._max_degree = int(np.diff(rm.indptr).max(initial=0))
         self._src_state = (src[:, None] * NUM_BRANCHES + np.arange(NUM_BRANCHES)).reshape(-1)
-        # per row, the nearest branch's configuration minus the parent's, shifted by multiples of 2 pi next
-        # to it (without the limits: a shifted parent gets the same shift, see _Run.speculate)
-        q_u = self._ik[np.repeat(src, NUM_BRANCHES), np.tile(np.arange(NUM_BRANCHES), E)]
-        q_v = self._ik[np.repeat(rm.indices, NUM_BRANCHES), self._ord_flat[:, 0]]
-        self._delta0 = q_v + _TWO_PI * np.rint((q_u - q_v) * (1.0 / _TWO_PI)) - q_u
-        self._ord_list = self._ord_flat[:, 0].tolist()
-        self._L_list = self._L_flat[:, 0].tolist()
-        self._same_list = self._same_flat[:, 0].tolist()
-        self._indices_list = rm.indices.tolist()
 
     def _static_box_bounds(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """World-axis bounds (B, 3) x 2 of the static boxes and the (link, box) pairs that count, if known."""

@@ -518,7 +518,7 @@ def test_compiled_wait_checks_equal_the_numpy_wait_checks(cell, planners, offset
     goal = rm.resolve(qr.goal)
     sep = fast._separation(qr.forecast, extra_m=0.02, offsets=offsets)
     run = _Run(
-        fast, qr.q_start, qr.t_start, sep, goal=goal, stop_time=None, hold_s=0.3,
+        fast.view, fast.config, qr.q_start, qr.t_start, sep, goal=goal, stop_time=None, hold_s=0.3,
         h_tab=fast._heuristic_table(goal), t_last=math.inf,
     )  # fmt: skip
     m = 60
@@ -542,6 +542,6 @@ def test_compiled_wait_checks_equal_the_numpy_wait_checks(cell, planners, offset
     assert np.isinf(got).any() and np.isfinite(got).any()  # both outcomes are exercised
     # the requirement of each wait sample, compiled, is NumPy's to the bit
     _, t_all, req, *_ = _kernels.wait_samples(
-        todo, run._k_state, fast._k_tables, run._start_k, 6, 0.05, sep._k_requirement, sep._k_forecast
+        todo, run._k_state, fast.view.k_tables, run._start_k, 6, 0.05, sep.k_requirement, sep.k_forecast
     )
     np.testing.assert_array_equal(req.reshape(-1), sep._required(np.zeros(t_all.size), t_all.reshape(-1)))
