@@ -421,7 +421,8 @@ class EngineOptions:
             for the speed governor, which slows a robot that passes close to a person.
         human_accel_mps2, human_speed_max_mps: The person's worst case for the speed governor (see
             :class:`~app.safety.governor.SeparationModel`): how fast their speed may change between
-            frames and during a brake, and their fastest approach (None: ``Settings.human_speed_max_mps``).
+            frames and during a brake, and their fastest approach (None: ``Settings.human_accel_max_mps2``,
+            ``Settings.human_speed_max_mps``).
         pick_dwell_s, place_dwell_s: Gripper times (s).
     """
 
@@ -430,7 +431,7 @@ class EngineOptions:
     intrusion_speed_mps: float = 5.0
     record_frames: bool = True
     tracking_margin_m: float = 0.02
-    human_accel_mps2: float = 8.0
+    human_accel_mps2: float | None = None
     human_speed_max_mps: float | None = None
     plan_margin_m: float = 0.0
     pick_dwell_s: float = 0.4
@@ -472,10 +473,13 @@ def governor_model(
             if options.human_speed_max_mps is None
             else options.human_speed_max_mps
         )
+        accel = options.human_accel_mps2
+        if accel is None:
+            accel = settings.human_accel_max_mps2
         separation = SeparationModel.from_ssm(
             ssm,
             human_speed_max_mps=v_max,
-            human_accel_mps2=options.human_accel_mps2,
+            human_accel_mps2=accel,
             stop_decel_mps2=UR5E_STOP.decel_mps2,
         )
     return GovernorModel(
