@@ -15,6 +15,12 @@ from app.planning.ssm_timing import STEP_S, _ahead_max, part_speeds
 from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, GovernorModel, SeparationModel, directed_approach
 
 
+def _sp(model: SeparationModel, v_part: Any, t_s: Any, v_human: Any) -> Any:
+    """``S_p`` (m) of a part closing at ``v_part`` on a robot that stops in ``t_s`` (s) (broadcast)."""
+    t_r = model.t_reaction_s
+    return model.s0_m + np.maximum(v_human, 0.0) * (t_r + t_s) + np.maximum(v_part, 0.0) * (t_r + 0.5 * t_s)
+
+
 def max_scale_reference(
     model: SeparationModel,
     separation_m: np.ndarray,
@@ -24,7 +30,6 @@ def max_scale_reference(
     rate: float,
     lo: float = 0.0,
     hi: float = 1.0,
-    v_top_mps: float | None = None,
 ) -> float:
     """:meth:`SeparationModel.max_scale` of ``model`` in NumPy, over the whole envelope at once."""
     d1 = np.asarray(separation_m, dtype=np.float64)
@@ -32,12 +37,11 @@ def max_scale_reference(
     vp1 = np.asarray(v_parts_mps, dtype=np.float64)
     if d1.size == 0:
         return 1.0
-    vtop = float(vp1.max()) if v_top_mps is None else float(v_top_mps)
     lo, hi = max(float(lo), 0.0), min(float(hi), 1.0)
     # quick accept (most ticks): every term at its largest over a brake from the highest scale asked for
     t_b = hi / max(rate, 1e-6)
     x_b, v_b = model.human_approach(vh1, t_b)
-    worst = model.sp(hi * vp1, hi * vtop, v_b) + x_b + hi * np.maximum(vp1, 0.0) * t_b
+    worst = _sp(model, hi * vp1, t_b, v_b) + x_b + hi * np.maximum(vp1, 0.0) * t_b
     if bool(np.all(d1 >= worst)):
         return hi
     inside = (SCALE_GRID - lo > 0.0) & (SCALE_GRID - hi < 0.0)
@@ -51,7 +55,7 @@ def max_scale_reference(
     v = sc * vp
     travel = v * t - 0.5 * a * t**2
     s_t = sc - rate * t  # the scale during the brake
-    need = model.sp(s_t * vp, s_t * vtop, v_h)
+    need = _sp(model, s_t * vp, s_t / max(rate, 1e-6), v_h)
     ok = np.all(d - x_h - travel - need >= 0.0, axis=2).all(axis=0)  # (NS,) every part
     n_ok = int(np.cumprod(ok).sum())
     return float(scales[n_ok - 1]) if n_ok > 0 else 0.0
@@ -88,7 +92,6 @@ def governed_scale_reference(
         rate=rate,
         lo=lo,
         hi=hi,
-        v_top_mps=float(vmax.max(initial=0.0)),
     )
     if sup.speed_scale_law is not None and np.any(m):
         # the standard's law with the person's measured speed (the envelope above already covers

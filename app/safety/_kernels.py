@@ -49,8 +49,7 @@ class RobotMotion(NamedTuple):
     the stopping time ``T_s`` is the robot's, from the speed it really has.
 
     Attributes:
-        v_part: Each part's fastest speed over the look-ahead at scale 1 (m/s): whether the robot moves,
-            and its stopping time.
+        v_part: Each part's fastest speed over the look-ahead at scale 1 (m/s): whether the robot moves.
         v_toward: Each part's speed toward the person at scale 1 (m/s, at most ``v_part``; negative: moving
             away): a bound of how fast its motion along the path closes its separation, over the look-ahead.
         closed_m: How much of the measured separation each part's own motion may have closed since the
@@ -94,10 +93,9 @@ def _approach(v0: float, dt: float, v_max_h: float, accel: float) -> tuple[float
 
 
 @jit(inline="always")
-def _sp(v_part: float, v_top: float, v_human: float, s0: float, t_r: float, decel: float) -> float:
-    """``S_p`` (m) of a part at ``v_part`` on a robot whose fastest part moves at ``v_top``."""
+def _sp(v_part: float, t_s: float, v_human: float, s0: float, t_r: float) -> float:
+    """``S_p`` (m) of a part closing at ``v_part`` on a robot that stops in ``t_s`` (s)."""
     v_part = max(v_part, 0.0)
-    t_s = max(v_top, 0.0) / decel
     return s0 + max(v_human, 0.0) * (t_r + t_s) + v_part * (t_r + 0.5 * t_s)
 
 
@@ -107,12 +105,11 @@ def _scale_ok(
     d: np.ndarray,
     vh: np.ndarray,
     vp: np.ndarray,
-    vtop: float,
     rate: float,
     env_u: np.ndarray,
     params: np.ndarray,
 ) -> bool:
-    s0, t_r, decel, v_max_h, accel = params[0], params[1], params[2], params[3], params[4]
+    s0, t_r, v_max_h, accel = params[0], params[1], params[3], params[4]
     r = max(rate, 1e-6)
     for i in range(d.shape[0]):
         a = rate * vp[i]
@@ -122,7 +119,7 @@ def _scale_ok(
             x_h, v_h = _approach(vh[i], t, v_max_h, accel)
             travel = v * t - 0.5 * a * t * t
             s_t = sc - rate * t
-            need = _sp(s_t * vp[i], s_t * vtop, v_h, s0, t_r, decel)
+            need = _sp(s_t * vp[i], s_t / r, v_h, s0, t_r)
             if not (d[i] - x_h - travel - need >= 0.0):
                 return False
     return True
@@ -133,7 +130,6 @@ def max_scale(
     d: np.ndarray,
     vh: np.ndarray,
     vp: np.ndarray,
-    vtop: float,
     rate: float,
     lo: float,
     hi: float,
@@ -143,13 +139,15 @@ def max_scale(
 ) -> float:
     """Largest safe path-speed scale in ``[lo, hi]`` for parts at separations ``d`` (L,) (m), the person
     approaching each at ``vh`` (L,) (m/s), the parts closing on the person at ``s * vp`` (L,) (m/s; negative:
-    moving away) on a robot whose fastest part moves at ``s * vtop`` (its stopping time), a brake lowering
-    the scale at ``rate`` (1/s). ``scales``: the grid; ``env_u``: the instants of a brake (fractions of it);
-    ``params``: ``(s0_m, t_reaction_s, stop_decel_mps2, human_speed_max_mps, human_accel_mps2)``."""
+    moving away), a brake lowering the scale at ``rate`` (1/s): the robot's stopping time from scale ``s`` is
+    ``s / rate``, the stopping model's (:mod:`app.safety.stopping`; the brake's rate is the slower of its
+    fastest point's and fastest joint's deceleration). ``scales``: the grid; ``env_u``: the instants of a
+    brake (fractions of it); ``params``: ``(s0_m, t_reaction_s, stop_decel_mps2, human_speed_max_mps,
+    human_accel_mps2)``."""
     n = d.shape[0]
     if n == 0:
         return 1.0
-    s0, t_r, decel, v_max_h, accel = params[0], params[1], params[2], params[3], params[4]
+    s0, t_r, v_max_h, accel = params[0], params[1], params[3], params[4]
     lo = max(lo, 0.0)
     hi = min(hi, 1.0)
     # quick accept (most ticks): every term at its largest over a brake from the highest scale asked for
@@ -158,7 +156,7 @@ def max_scale(
     for i in range(n):
         x_b, v_b = _approach(vh[i], t_b, v_max_h, accel)
         # (a part moving away gains separation over the brake, but none at its start)
-        worst = _sp(hi * vp[i], hi * vtop, v_b, s0, t_r, decel) + x_b + hi * max(vp[i], 0.0) * t_b
+        worst = _sp(hi * vp[i], t_b, v_b, s0, t_r) + x_b + hi * max(vp[i], 0.0) * t_b
         if not (d[i] >= worst):
             quick = False
             break
@@ -166,7 +164,7 @@ def max_scale(
         return hi
     # the candidates in increasing order: lo, the grid strictly inside (lo, hi), hi; the answer is the
     # last one of the leading run of safe ones
-    if not _scale_ok(lo, d, vh, vp, vtop, rate, env_u, params):
+    if not _scale_ok(lo, d, vh, vp, rate, env_u, params):
         return 0.0
     if not hi > lo:
         return lo
@@ -174,10 +172,10 @@ def max_scale(
     for j in range(scales.shape[0]):
         sc = scales[j]
         if sc - lo > 0.0 and sc - hi < 0.0:
-            if not _scale_ok(sc, d, vh, vp, vtop, rate, env_u, params):
+            if not _scale_ok(sc, d, vh, vp, rate, env_u, params):
                 return best
             best = sc
-    if _scale_ok(hi, d, vh, vp, vtop, rate, env_u, params):
+    if _scale_ok(hi, d, vh, vp, rate, env_u, params):
         return hi
     return best
 
@@ -224,9 +222,9 @@ def governed_scale(
     measurement, less the ``parts.x_h0`` (m) already counted; NaN ``dt_h``: no measurement, the fastest
     approach), what the part's own motion closed since (``robot.closed_m``) and may close this tick
     (``s * robot.v_toward * dt``). The target is the braking envelope's largest safe scale in ``[lo, hi]``
-    (:func:`max_scale`, the parts closing at ``robot.v_toward``, the robot stopping from its fastest part's
-    speed) over every part when any part moves (``robot.v_part > 1e-4`` m/s), limited by the speed-scaling
-    law at the measured ``v_h0`` when ``governor.law`` is not empty (:func:`law_scale`)."""
+    (:func:`max_scale`, the parts closing at ``robot.v_toward``) over every part when any part moves
+    (``robot.v_part > 1e-4`` m/s), limited by the speed-scaling law at the measured ``v_h0`` when
+    ``governor.law`` is not empty (:func:`law_scale`)."""
     sep_m, x_h0, v_h0 = parts.sep_m, parts.x_h0, parts.v_h0
     vmax, toward, closed = robot.v_part, robot.v_toward, robot.closed_m
     params, law = governor.separation, governor.law
@@ -239,9 +237,7 @@ def governed_scale(
     # a robot that moves at all is judged by every part: a part at rest on a moving robot must keep its
     # S_p too (ISO/TS 15066 asks the robot, not the part, to be at standstill within S_p)
     moving = False
-    vtop = 0.0
     for i in range(n):
-        vtop = max(vtop, vmax[i])
         if vmax[i] > 1e-4:
             moving = True
     k = 0
@@ -257,7 +253,7 @@ def governed_scale(
             vp[k] = toward[i]
             vm[k] = max(v_h0[i], 0.0)
             k += 1
-    target = max_scale(d[:k], vh[:k], vp[:k], vtop, rate, lo, hi, governor.scales, governor.env_u, params)
+    target = max_scale(d[:k], vh[:k], vp[:k], rate, lo, hi, governor.scales, governor.env_u, params)
     if law.shape[0] > 0 and k > 0:
         target = min(target, max(law_scale(d[:k], vp[:k], vm[:k], law), 0.0))
     return target

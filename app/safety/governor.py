@@ -25,10 +25,12 @@ class SeparationModel:
     ``S_p = S_h + S_r + S_s + C + Z_d + Z_r`` with ``S_h = v_h (T_r + T_s)``, ``S_r = v_r T_r``,
     ``S_s = v_r T_s / 2``, where ``v_r`` is the speed of the robot part, ``v_h`` the person's speed toward it
     (ISO/TS 15066 5.5.4.2.3: the measured speed where the system monitors it, as here) and ``T_s`` the
-    robot's stopping time *from its current speed*: ``T_s = v_top / stop_decel_mps2`` with ``v_top`` the
-    speed of the robot's fastest part (a robot creeping at 1 cm/s stops in milliseconds, not in the 0.2 s
-    it needs at 1 m/s). With :class:`app.safety.ssm.SSMParams` (:meth:`from_ssm`):
-    ``s0 = C + Z_d + Z_r``, ``T_r = t_reaction_s``.
+    robot's stopping time *from its current speed* (a robot creeping at 1 cm/s stops in milliseconds, not
+    in the 0.2 s it needs at 1 m/s): in :meth:`max_scale`, the governor's check, the duration of the brake
+    itself, the stopping model's (:mod:`app.safety.stopping`: the slower of the fastest point's and the
+    fastest joint's deceleration); in :meth:`sp` and :meth:`max_speed`, of a robot moving as one part,
+    ``T_s = v_top / stop_decel_mps2`` with ``v_top`` the speed of its fastest part. With
+    :class:`app.safety.ssm.SSMParams` (:meth:`from_ssm`): ``s0 = C + Z_d + Z_r``, ``T_r = t_reaction_s``.
 
     The *envelope* answers: how fast may the robot move at separation ``d`` so that, braking now, the
     separation stays at or above ``S_p`` at every instant until it is at rest, while the person approaches
@@ -146,26 +148,23 @@ class SeparationModel:
         rate: float,
         lo: float = 0.0,
         hi: float = 1.0,
-        v_top_mps: float | None = None,
     ) -> float:
         """Largest path-speed scale in [0, 1] that is safe for every part: part i closes on the person at
         ``s * v_parts_mps[i]`` (its speed toward the person, ISO/TS 15066's directed ``v_r``; its whole
         speed where the direction is not known) and a brake lowers the scale at ``rate`` (1/s), so every
-        part stops after ``s / rate``. The robot's stopping time is that of its fastest part, at
-        ``s * v_top_mps`` (default: the largest of ``v_parts_mps``). Arrays (L,) (the parts that move).
+        part stops after ``s / rate``: that is the robot's stopping time ``T_s`` in ``S_p`` (the brake's rate
+        is the stopping model's, the slower of its fastest point's and fastest joint's deceleration, as
+        :func:`brake_rate` gives it). Arrays (L,) (the parts that move).
 
         Only scales in ``[lo, hi]`` are examined (the grid's and both ends; the servo passes the range it
         can reach within one tick): the answer is the largest of them up to which every one is safe, ``hi``
         at most, and 0 when ``lo`` is not safe. Compiled (:func:`app.safety._kernels.max_scale`); the tests
         compare it with a NumPy reference (``tests/governor_reference.py``)."""
-        vp = np.ascontiguousarray(v_parts_mps, dtype=np.float64).reshape(-1)
-        vtop = float(vp.max(initial=0.0)) if v_top_mps is None else float(v_top_mps)
         return float(
             _kernel_max_scale(
                 np.ascontiguousarray(separation_m, dtype=np.float64).reshape(-1),
                 np.ascontiguousarray(v_human_mps, dtype=np.float64).reshape(-1),
-                vp,
-                vtop,
+                np.ascontiguousarray(v_parts_mps, dtype=np.float64).reshape(-1),
                 float(rate),
                 float(lo),
                 float(hi),
@@ -460,7 +459,7 @@ class GovernorModel:
         x1, v1 = self.separation.human_approach(vh0, half + self.sensing_age_s)
         sep_lb = np.asarray(sep_m, dtype=np.float64) - self.tracking_margin_m - (x1 - x0)
         rate = self.brake_rate(vtop, float(w_top_radps))
-        s = self.separation.max_scale(sep_lb, v_human_mps=v1, v_parts_mps=toward, rate=rate, v_top_mps=vtop)
+        s = self.separation.max_scale(sep_lb, v_human_mps=v1, v_parts_mps=toward, rate=rate)
         if self.law is not None:
             s = min(s, max(self.law(sep_lb, toward, vh0), 0.0))
         return s

@@ -197,7 +197,7 @@ def predicted_scales(
                 rate = decel / vtop
             if w_top > 1e-9:
                 rate = min(rate, jdecel / w_top)
-            s = max_scale(sep_lb, v1, toward, vtop, rate, 0.0, 1.0, gov.scales, gov.env_u, gov.separation)
+            s = max_scale(sep_lb, v1, toward, rate, 0.0, 1.0, gov.scales, gov.env_u, gov.separation)
             if gov.law.shape[0] > 0:
                 s = min(s, max(law_scale(sep_lb, toward, vh0, gov.law), 0.0))
         scales[i] = max(s, min_scale)

@@ -31,8 +31,9 @@ R_HUMAN = 0.1  # radius of the point person (m)
 CLEAR = 0.5  # clearance the fake planner requires (m)
 SPEED = 0.5  # fake plan speed (m/s)
 FAR = np.array([10.0, 0.0, 0.0])
-#: S_p = 0.1 m + v_h (0.1 s + T_s) + v_r (0.1 s + T_s / 2), T_s = v_r / (2 m/s^2); a person speeds up at
-#: most at 8 m/s^2, up to 2 m/s
+#: S_p = 0.1 m + v_h (0.1 s + T_s) + v_r (0.1 s + T_s / 2), T_s the supervisor's brake (its default, the
+#: UR5e's stopping model; ``sp`` and ``max_speed`` of a robot moving as one part: v_r / (2 m/s^2)); a person
+#: speeds up at most at 8 m/s^2, up to 2 m/s
 SSM = SeparationModel(
     s0_m=0.1, t_reaction_s=0.1, stop_decel_mps2=2.0, human_speed_max_mps=2.0, human_accel_mps2=8.0
 )
@@ -281,7 +282,8 @@ def _monitor_violations(h: Harness) -> int:
         d = h.geometry.separation(q, h.person(t))
         d_before = h.geometry.separation(q, h.person(t - h.dt))
         v_h = max((d_before - d) / h.dt, 0.0)
-        t_s = v / 2.0  # stopping time from v at 2 m/s^2
+        # stopping time from v with the supervisor's brake (the point robot's joint speed is its speed)
+        t_s = max(v / h.config.brake_decel_mps2, v / h.config.brake_joint_decel)
         need = 0.1 + v_h * (0.1 + t_s) + v * (0.1 + t_s / 2)
         if d < need - 1e-9:
             bad += 1
@@ -611,9 +613,9 @@ def test_speed_is_scaled_near_a_person_and_the_monitor_stays_clean() -> None:
 
 def test_a_robot_moving_away_from_a_person_is_not_slowed(monkeypatch: pytest.MonkeyPatch) -> None:
     """ISO/TS 15066 takes the robot's speed *toward* the person: a robot setting off straight away from a
-    person 0.5 m behind it runs exactly as with nobody near, while the same motion judged by its whole
+    person 0.48 m behind it runs exactly as with nobody near, while the same motion judged by its whole
     speed (as if it moved at the person) is slowed; the monitor stays clean both ways."""
-    monkeypatch.setattr(sys.modules[__name__], "CLEAR", 0.15)  # the fake planner: start 0.5 m from them
+    monkeypatch.setattr(sys.modules[__name__], "CLEAR", 0.15)  # the fake planner: start 0.48 m from them
 
     def run(person: np.ndarray, toward: bool) -> tuple[np.ndarray, int]:
         cfg = SupervisorConfig(deadline_s=0.1, frame_period_s=1 / 30, robot_toward=toward)
@@ -623,12 +625,14 @@ def test_a_robot_moving_away_from_a_person_is_not_slowed(monkeypatch: pytest.Mon
         assert h.sup.take_arrival() == "B"
         return np.array([s for _, _, s, _ in h.log]), _monitor_violations(h)
 
-    behind = np.array([-0.6, 0.0, 0.0])  # the robot starts at the origin and moves along +x
+    behind = np.array([-0.58, 0.0, 0.0])  # the robot starts at the origin and moves along +x
     alone, _ = run(FAR, True)
     away, v_away = run(behind, True)
     whole, v_whole = run(behind, False)
     np.testing.assert_array_equal(away, alone)  # not slowed at all
-    assert whole.sum() < alone.sum() - 0.2  # the whole-speed governor slowed it (by 2 ticks' worth at least)
+    under_way = slice(60, 300)  # after the ramp up (the robot sets off at 0.3 s), before the arrival
+    assert alone[under_way].min() == 1.0
+    assert whole[under_way].min() < 0.9  # the whole-speed governor slowed it
     assert v_away == v_whole == 0
 
 
@@ -892,5 +896,5 @@ def test_the_ssm_timing_predicts_how_long_the_governor_takes_past_a_person(
     full = traj.t_end - traj.t_start
     print(side_m, strict, t[-1], measured, full)
     if strict and side_m < 0.8:
-        assert measured > 2.0 * full  # the governor slowed this move a lot ...
+        assert measured > 1.5 * full  # the governor slowed this move a lot ...
     assert t[-1] == pytest.approx(measured, rel=0.2)  # ... and the prediction knew by how much
