@@ -647,7 +647,10 @@ def test_the_closing_bound_holds_between_its_samples() -> None:
     for k in range(300):
         p0 = rng.uniform(-1.0, 1.0, 3)
         vel = rng.uniform(-1.0, 1.0, 3)
-        curve = rng.uniform(-2.0, 2.0, 3) * (k % 2)  # straight, or bending
+        curve = rng.uniform(-2.0, 2.0, 3) * (k % 3 == 1)  # straight, or bending
+        if k % 3 == 2:  # straight away, braking to rest at the end of the window
+            vel = p0 / np.linalg.norm(p0) * rng.uniform(0.2, 1.0)
+            curve = -vel / (2 * 0.9)
         taus = np.arange(0.0, 0.9 + 1e-9, 0.02)
 
         def dist(t: np.ndarray, p0=p0, vel=vel, curve=curve) -> np.ndarray:
