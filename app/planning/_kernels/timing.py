@@ -149,6 +149,7 @@ def predicted_scales(
     vh0 = np.empty(n_parts)
     vp = np.empty(n_parts)
     toward = np.empty(n_parts)
+    sep_now = np.empty(n_parts)
     d2 = np.empty((n_parts, n_caps))
     ahead = int(gov.misc[8])
     half = 0.5 * window
@@ -170,6 +171,7 @@ def predicted_scales(
                     if d0[p, m] <= sep + band:
                         v_h = max(v_h, max(d1[p, m] - d0[p, m], 0.0) / max(window, 1e-6))
                 vh0[p] = v_h + noise
+                sep_now[p] = sep
                 toward[p] = -np.inf if gov.misc[9] > 0.0 else vp[p]
                 x0, _ = _approach(vh0[p], half, v_max_h, accel)
                 x1, v_1 = _approach(vh0[p], half + age, v_max_h, accel)
@@ -185,10 +187,7 @@ def predicted_scales(
                     sep_j = d2[p, 0]
                     for m in range(1, n_caps):
                         sep_j = min(sep_j, d2[p, m])
-                    sep_i = d0[p, 0]
-                    for m in range(1, n_caps):
-                        sep_i = min(sep_i, d0[p, m])
-                    toward[p] = max(toward[p], (sep_i - sep_j) / max(tau[j] - tau[i], 1e-12))
+                    toward[p] = max(toward[p], (sep_now[p] - sep_j) / max(tau[j] - tau[i], 1e-12))
             for p in range(n_parts):
                 toward[p] = min(toward[p], vp[p]) if toward[p] > -np.inf else 0.0
             w_top = max(path.w[i], path.w[i + 1])
