@@ -13,12 +13,14 @@ import numpy as np
 from app.control.supervisor import Supervisor
 from app.planning.ssm_timing import STEP_S, _ahead_max, part_speeds
 from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, GovernorModel, SeparationModel, directed_approach
+from app.safety.ssm import required_separation
 
 
 def _sp(model: SeparationModel, v_part: Any, t_s: Any, v_human: Any) -> Any:
-    """``S_p`` (m) of a part closing at ``v_part`` on a robot that stops in ``t_s`` (s) (broadcast)."""
-    t_r = model.t_reaction_s
-    return model.s0_m + np.maximum(v_human, 0.0) * (t_r + t_s) + np.maximum(v_part, 0.0) * (t_r + 0.5 * t_s)
+    """``S_p`` (m) of a part closing at ``v_part`` on a robot that stops in ``t_s`` (s) (broadcast): the one
+    formula, :func:`app.safety.ssm.required_separation`."""
+    t_r, s0 = model.t_reaction_s, model.s0_m
+    return required_separation(v_human, v_part, t_reaction_s=t_r, t_stop_s=t_s, constant_m=s0)
 
 
 def max_scale_reference(

@@ -94,9 +94,10 @@ def _approach(v0: float, dt: float, v_max_h: float, accel: float) -> tuple[float
 
 @jit(inline="always")
 def _sp(v_part: float, t_s: float, v_human: float, s0: float, t_r: float) -> float:
-    """``S_p`` (m) of a part closing at ``v_part`` on a robot that stops in ``t_s`` (s)."""
+    """``S_p`` (m) of a part closing at ``v_part`` on a robot that stops in ``t_s`` (s): the compiled twin of
+    :func:`app.safety.ssm.required_separation`, in its order of operations."""
     v_part = max(v_part, 0.0)
-    return s0 + max(v_human, 0.0) * (t_r + t_s) + v_part * (t_r + 0.5 * t_s)
+    return max(v_human, 0.0) * (t_r + t_s) + (v_part * t_r + v_part * (0.5 * t_s) + s0)
 
 
 @jit

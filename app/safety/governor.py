@@ -12,6 +12,7 @@ import numpy as np
 
 from app.safety._kernels import RobotMotion
 from app.safety._kernels import max_scale as _kernel_max_scale
+from app.safety.ssm import required_separation
 
 # ----------------------------------------------------------------------------------------------------
 # Speed governor: ISO/TS 15066 separation at every servo tick
@@ -89,10 +90,10 @@ class SeparationModel:
     def sp(self, v_part: Any, v_top: Any, v_human: Any) -> Any:
         """``S_p`` (m) of a part moving at ``v_part`` on a robot whose fastest part moves at ``v_top``, the
         person approaching at ``v_human`` (arrays broadcast)."""
-        v_part = np.maximum(v_part, 0.0)
         t_s = np.maximum(v_top, 0.0) / self.stop_decel_mps2
-        t_r = self.t_reaction_s
-        return self.s0_m + np.maximum(v_human, 0.0) * (t_r + t_s) + v_part * (t_r + 0.5 * t_s)
+        return required_separation(
+            v_human, v_part, t_reaction_s=self.t_reaction_s, t_stop_s=t_s, constant_m=self.s0_m
+        )
 
     def required(self, v_robot_mps: float, v_human_mps: float = 0.0) -> float:
         """``S_p`` (m) of the robot's fastest part."""

@@ -37,7 +37,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from app.safety.ssm import SSMParams
+from app.safety.ssm import SSMParams, required_separation
 from app.safety.stopping import UR5E_STOP, StoppingModel
 
 __all__ = [
@@ -293,14 +293,16 @@ class GroundTruthMonitor:
         v_r = np.where(near, v_r_pair, 0.0).max(axis=1)
         v_top = float(np.asarray(self.geometry.part_speeds(q[None], qd[None])).max())
         t_s = self.stopping.stop_time_s(v_top, w_top)
-        robot_part = v_r * self.t_r + self.stopping.stop_distance_m(v_r, t_s) + self._constant_m
-        req = v_h * (self.t_r + t_s) + robot_part
+        s_s = self.stopping.stop_distance_m(v_r, t_s)
+        sp = dict(t_reaction_s=self.t_r, t_stop_s=t_s, constant_m=self._constant_m)
+        req = required_separation(v_h, v_r, **sp, stop_distance_m=s_s)
         margin = sep - req
         i = int(np.argmin(margin))
         violation = bool(margin[i] < 0.0)
         contact = bool(sep.min() <= 0.0)
         # ISO 13855's constant speeds, per pair of capsules
-        req_iso = self.iso_speeds[None, :] * (self.t_r + t_s) + robot_part[:, None]
+        iso_h = self.iso_speeds[None, :]
+        req_iso = required_separation(iso_h, v_r[:, None], **sp, stop_distance_m=s_s[:, None])
         iso = bool(np.any(d0 < req_iso))
         sample = MonitorSample(
             t, self._part(i), float(sep[i]), float(req[i]), float(v_r[i]), float(v_h[i]), violation, contact

@@ -134,17 +134,56 @@ def forecast_clearance(
     return float(out) if np.ndim(out) == 0 else out
 
 
+def required_separation(
+    v_human_mps: float | np.ndarray,
+    v_robot_mps: float | np.ndarray,
+    *,
+    t_reaction_s: float,
+    t_stop_s: float | np.ndarray,
+    constant_m: float,
+    stop_distance_m: float | np.ndarray | None = None,
+) -> float | np.ndarray:
+    """ISO/TS 15066's protective separation ``S_p`` (m) with directed speeds, the one formula of the cell:
+    ``v_h (T_r + T_s) + v_r T_r + S_s + constant``.
+
+    The speed governor's envelope (its compiled twin, ``app.safety._kernels._sp``, which the tests compare
+    with this), the ground-truth monitor and :func:`protective_separation` all compute it here.
+
+    Args:
+        v_human_mps: The person's speed toward the robot part (m/s); negative counts as 0.
+        v_robot_mps: The robot part's speed toward the person (m/s); negative counts as 0.
+        t_reaction_s: ``T_r`` (s).
+        t_stop_s: ``T_s``, the robot's stopping time (s).
+        constant_m: ``C + Z_d + Z_r`` (the monitor, which sees the true person: ``C + Z_r``) (m).
+        stop_distance_m: ``S_s`` (m) from a stopping model; default ``v_r T_s / 2`` (a constant deceleration).
+
+    Element-wise (arrays broadcast); a float for scalar arguments.
+    """
+    v_h = np.maximum(v_human_mps, 0.0)
+    v_r = np.maximum(v_robot_mps, 0.0)
+    s_s = v_r * (0.5 * np.asarray(t_stop_s)) if stop_distance_m is None else stop_distance_m
+    out = v_h * (t_reaction_s + t_stop_s) + (v_r * t_reaction_s + s_s + constant_m)
+    return float(out) if np.ndim(out) == 0 else out
+
+
 def protective_separation(
     v_robot_mps: float | np.ndarray, params: SSMParams, *, v_human_mps: float | None = None
 ) -> float | np.ndarray:
-    """ISO/TS 15066 protective separation distance ``S_p`` (m) for a robot speed ``v_robot_mps`` (m/s).
+    """ISO/TS 15066 protective separation distance ``S_p`` (m) for a robot speed ``v_robot_mps`` (m/s), with
+    the fixed ``T_r`` and ``T_s`` of ``params`` (:func:`required_separation`).
 
     Args:
         v_robot_mps: Robot speed toward the person (m/s); negative values count as 0. Scalar or array.
         params: The SSM parameters.
         v_human_mps: The person's speed (m/s) when it is measured; default ``params.v_human_mps``.
     """
-    return params.human_distance_m(v_human_mps) + robot_clearance(v_robot_mps, params)
+    return required_separation(
+        params.v_human_mps if v_human_mps is None else v_human_mps,
+        v_robot_mps,
+        t_reaction_s=params.t_reaction_s,
+        t_stop_s=params.t_stop_s,
+        constant_m=params.constant_m,
+    )
 
 
 def max_safe_speed(
