@@ -78,7 +78,7 @@ def governed_scale_reference(
     sup: Supervisor, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
 ) -> float:
     """``sup._governed_scale`` (the compiled servo tick) in NumPy."""
-    robot = sup._robot_motion(vmax, s, dt, rate, hi)
+    robot = sup._robot_motion(vmax, dt, rate, hi)
     toward = robot.v_toward
     # separation lower bound of each part at the next tick
     sep_lb, v_h = separation_bound(sup, t + dt)

@@ -367,7 +367,8 @@ class Supervisor:
         L = self.n_parts
         # per robot part: the separation (none yet), the person's approach speed measured over a window and
         # their worst-case approach from its middle to the frame, the travel since (the compiled tick's input)
-        self._parts = PartSeparation(np.full(L, math.inf), np.zeros(L), np.zeros(L), np.zeros(L))
+        self._parts = PartSeparation(np.full(L, math.inf), np.zeros(L), np.zeros(L))
+        self._travel = np.zeros(L)  # each part's travel since the robot's pose of the measurement (a bound)
         self._toward: tuple[_Active, PathClosing] | None = None  # the parts' closing along the plan in
         # execution, measured at the last frame
         self._sep_person_t = -math.inf  # time of the frame the separation was measured on
@@ -516,7 +517,7 @@ class Supervisor:
             gen = self._generation
             active = self._active
             tau, s = self._tau, self._s
-            travel0 = self._parts.travel_m.copy()
+            travel0 = self._travel.copy()
         # separation of each robot part now (robot at its last commanded pose vs the person as seen), and
         # the person's approach speed: how fast their motion closed the distance over the last window
         old = self._older_frame(frame.t - cfg.human_speed_window_s)
@@ -547,8 +548,8 @@ class Supervisor:
                 sep_parts,
                 np.asarray(self.ssm.human_approach(v_h0, frame.t - t_mid)[0], dtype=np.float64),
                 v_h0,
-                np.maximum(self._parts.travel_m - travel0, 0.0),  # travel since q_now was read
             )
+            self._travel = np.maximum(self._travel - travel0, 0.0)  # travel since q_now was read
             self._sep_person_t = frame.t
             self._v_h_t = t_mid
             if self._estop or self._fault:
@@ -835,8 +836,7 @@ class Supervisor:
             qd = qd * self._s
             if not active.under_way(self._tau):
                 qd = np.zeros(6)
-            travel = self._parts.travel_m  # in place: the governor's input
-            travel += self._v_cmd * dt
+            self._travel += self._v_cmd * dt
             self._q_cmd = q
             self._account(dt)
             return ServoCommand(t, q.copy(), qd, self._s, bool(not np.any(qd)))
@@ -1141,16 +1141,16 @@ class Supervisor:
         _, v = self.ssm.human_approach(self._parts.v_h0, t - self._v_h_t)
         return np.asarray(v)
 
-    def _robot_motion(self, vmax: np.ndarray, s: float, dt: float, rate: float, hi: float) -> RobotMotion:
+    def _robot_motion(self, vmax: np.ndarray, dt: float, rate: float, hi: float) -> RobotMotion:
         """The robot's motion as the governor's tick reads it (:meth:`PathClosing.motion`: the closing
         measured at the last frame along the plan in execution where it covers this tick and a brake from
         ``hi``), else every part's whole speed and travel. Caller holds the lock."""
         tw = self._toward
         if tw is not None and tw[0] is self._active:
-            motion = tw[1].motion(self._tau, vmax, self._parts.travel_m, dt=dt, rate=rate, hi=hi)
+            motion = tw[1].motion(self._tau, vmax, self._travel, dt=dt, rate=rate, hi=hi)
             if motion is not None:
                 return motion
-        return RobotMotion(vmax, vmax, self._parts.travel_m)
+        return RobotMotion(vmax, vmax, self._travel)
 
     def _governed_scale(
         self, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
@@ -1159,7 +1159,7 @@ class Supervisor:
         :func:`app.safety._kernels.governed_scale`; the tests compare it with a NumPy reference in
         ``tests/governor_reference.py``). Caller holds the lock."""
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
-        robot = self._robot_motion(vmax, s, dt, rate, hi)
+        robot = self._robot_motion(vmax, dt, rate, hi)
         return float(_kernel_governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
 
     def recent_decide_s(self) -> tuple[float, ...]:

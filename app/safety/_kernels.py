@@ -25,21 +25,18 @@ __all__ = ["PartSeparation", "RobotMotion", "ServoGovernor", "governed_scale", "
 
 class PartSeparation(NamedTuple):
     """The governor's last measurement of the person, per robot part (L,), as :func:`governed_scale` reads
-    it (built once per camera frame; the servo tick adds to ``travel_m`` in place).
+    it (built once per camera frame).
 
     Attributes:
         sep_m: Each part's separation from the person at the measurement, less the tracking margin (m).
         x_h0: The person's worst-case approach from the middle of the speed window to the frame (m), already
             in ``sep_m``.
         v_h0: The person's approach speed toward each part, measured over the window (m/s).
-        travel_m: Each part's travel since the separation was measured (a bound, m; the supervisor's
-            bookkeeping: the tick reads what its motion closed from :class:`RobotMotion`).
     """
 
     sep_m: np.ndarray
     x_h0: np.ndarray
     v_h0: np.ndarray
-    travel_m: np.ndarray
 
 
 class RobotMotion(NamedTuple):

@@ -294,15 +294,17 @@ class GroundTruthMonitor:
         v_top = float(np.asarray(self.geometry.part_speeds(q[None], qd[None])).max())
         t_s = self.stopping.stop_time_s(v_top, w_top)
         s_s = self.stopping.stop_distance_m(v_r, t_s)
-        sp = dict(t_reaction_s=self.t_r, t_stop_s=t_s, constant_m=self._constant_m)
-        req = required_separation(v_h, v_r, **sp, stop_distance_m=s_s)
+        t_r, c = self.t_r, self._constant_m
+        req = required_separation(v_h, v_r, t_reaction_s=t_r, t_stop_s=t_s, constant_m=c, stop_distance_m=s_s)
         margin = sep - req
         i = int(np.argmin(margin))
         violation = bool(margin[i] < 0.0)
         contact = bool(sep.min() <= 0.0)
         # ISO 13855's constant speeds, per pair of capsules
-        iso_h = self.iso_speeds[None, :]
-        req_iso = required_separation(iso_h, v_r[:, None], **sp, stop_distance_m=s_s[:, None])
+        req_iso = required_separation(
+            self.iso_speeds[None, :], v_r[:, None], t_reaction_s=t_r, t_stop_s=t_s, constant_m=c,
+            stop_distance_m=s_s[:, None],
+        )  # fmt: skip
         iso = bool(np.any(d0 < req_iso))
         sample = MonitorSample(
             t, self._part(i), float(sep[i]), float(req[i]), float(v_r[i]), float(v_h[i]), violation, contact

@@ -3,10 +3,10 @@
 :func:`predicted_scales` is the loop of :func:`app.planning.ssm_timing.predicted_scales`: it walks along a
 path, asks the forecast where the person will be when the robot gets to each point (the wall time there
 depends on every scale before it, so the walk is sequential), measures the separation, the person's
-directed speed and each part's speed toward the person (:func:`toward_rates`) as the supervisor would, and
-applies the governor's model
-(:meth:`app.safety.governor.GovernorModel.scale`, with the governor's own compiled envelope and law,
-:func:`app.safety._kernels.max_scale` and :func:`app.safety._kernels.law_scale`). The NumPy loop it replaces
+directed speed and each part's speed toward the person (at the points of :func:`toward_steps`) as the
+supervisor would, and applies the governor's model (:meth:`app.safety.governor.GovernorModel.scale`, with
+the governor's own compiled envelope and law, :func:`app.safety._kernels.max_scale` and
+:func:`app.safety._kernels.law_scale`). The NumPy loop it replaces
 is kept with the tests (``tests/governor_reference.py``), which compare the two.
 """
 

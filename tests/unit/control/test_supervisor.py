@@ -796,7 +796,8 @@ def test_the_compiled_governor_equals_the_numpy_reference() -> None:
         v_h0 = rng.uniform(-0.5, 2.5, L)
         sup._v_h_t = float(rng.uniform(-0.1, 0.0)) if measured else -math.inf
         x_h0 = np.asarray(SSM.human_approach(v_h0, -sup._v_h_t if measured else 0.0)[0])
-        sup._parts = _kernels.PartSeparation(sep_m, x_h0, v_h0, rng.uniform(0.0, 0.05, L))
+        sup._parts = _kernels.PartSeparation(sep_m, x_h0, v_h0)
+        sup._travel = rng.uniform(0.0, 0.05, L)
         vmax = rng.uniform(0.0, 1.5, L) * (rng.uniform(size=L) > 0.2)
         # the closing along the path measured at the frame (a part moving away: negative), where it covers
         # the tick and the brake (or not), or none
