@@ -90,16 +90,17 @@ def train_cmd(
         ),
     ] = None,
     sim_train_operators: Annotated[
-        int, typer.Option(min=1, help="With --leave-out: simulated operators to train on (2 more validate).")
+        int, typer.Option(min=1, help="Simulated operators to train on (2 more validate).")
     ] = 12,
     sim_train_seed: Annotated[
-        int, typer.Option(help="With --leave-out: seed of the first simulated operator trained on.")
+        int, typer.Option(help="Seed of the first simulated operator trained on (not 1000-1999).")
     ] = 2000,
     sim_train_duration: Annotated[
-        float, typer.Option(min=2.0, help="With --leave-out: seconds recorded per simulated operator.")
+        float, typer.Option(min=2.0, help="Seconds recorded per simulated operator.")
     ] = 60.0,
 ) -> None:
-    """Train the Graph-Mixer on clips (CMU train split + your own); write weights, quantiles, model card.
+    """Train the Graph-Mixer on every source (the CMU train split, simulated operators of the configured
+    cell) and your own clips; write weights, quantiles, model card.
 
     With ``--leave-out SOURCE`` it trains on every source of :data:`SOURCES` but ``SOURCE`` instead."""
     from app.prediction.data import (
@@ -117,6 +118,7 @@ def train_cmd(
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     if leave_out is not None:
         _check_source(leave_out)
+    if leave_out != "sim":
         last = sim_train_seed + sim_train_operators + 1
         if sim_train_seed <= 1999 and last >= 1000:
             raise _fail("--sim-train-seed: seeds 1000-1999 are the tuning seeds; train on others (2000 on)")
@@ -134,7 +136,7 @@ def train_cmd(
                 )
             sources.append("cmu")
             notes.append(f"Clip folder: {base_dir.name}")
-        if leave_out is not None and leave_out != "sim":
+        if leave_out != "sim":
             label, sim_clips = _sim_operator_clips(
                 sim_train_operators + 2, sim_train_seed, sim_train_duration, split="sim_train"
             )

@@ -252,12 +252,22 @@ def mirror(x: np.ndarray) -> np.ndarray:
 class Augmentation:
     """Random augmentation of training windows.
 
+    Besides the usual geometric ones, two stand for the motion of a work cell that sports clips lack:
+    slow arm work (a window played at ``slow_speed``) and pauses (the person comes to rest for a while
+    inside the window, then moves on). Each window is either of them, or neither.
+
     Attributes:
         rotate: Rotate about the vertical by a uniform angle in [-pi, pi).
         translate_m: Uniform horizontal shift in [-translate_m, translate_m] (m) per axis.
         mirror_p: Probability of mirroring (x-z plane, left and right swapped).
         speed: Range of the playback speed factor (resampled by linear interpolation).
         noise_m: Standard deviation of Gaussian noise (m) added to the observed frames only.
+        slow_p: Probability that a window is slow work: its speed factor drawn from ``slow_speed`` instead.
+        slow_speed: Range of the slow-work speed factor.
+        pause_p: Probability that a window holds a pause: the playback slows to rest over ``PAUSE_RAMP``
+            frames at a uniform frame of the window, rests for a uniform ``pause_frames`` frames (those past
+            the window's end cut) and speeds up again the same way.
+        pause_frames: Range of the pause's length (frames at rest).
     """
 
     rotate: bool = True
@@ -265,6 +275,34 @@ class Augmentation:
     mirror_p: float = 0.5
     speed: tuple[float, float] = (0.8, 1.25)
     noise_m: float = 0.0
+    slow_p: float = 0.15
+    slow_speed: tuple[float, float] = (0.3, 0.8)
+    pause_p: float = 0.15
+    pause_frames: tuple[int, int] = (3, 30)
+
+
+#: Frames over which a pause of :class:`Augmentation` brings the playback to rest (and back), with a cosine
+#: profile: at 30 Hz 0.13 s, so a joint at 1 m/s stops at about 12 m/s^2, the human bound the governor uses.
+PAUSE_RAMP = 4
+
+
+def _playback_rates(rng: np.random.Generator, length: int, aug: Augmentation | None) -> np.ndarray:
+    """Clip frames advanced per window frame (``length - 1`` steps): the window's time warp."""
+    if aug is None:
+        return np.ones(length - 1)
+    kind = rng.random()
+    if kind < aug.slow_p:
+        return np.full(length - 1, rng.uniform(*aug.slow_speed))
+    speed = rng.uniform(*aug.speed)
+    rates = np.full(length - 1, speed)
+    if kind < aug.slow_p + aug.pause_p:
+        at = int(rng.integers(0, length - 1))
+        rest = int(rng.integers(aug.pause_frames[0], aug.pause_frames[1] + 1))
+        ramp = 0.5 * (1.0 + np.cos(np.pi * np.arange(1, PAUSE_RAMP + 1) / (PAUSE_RAMP + 1)))
+        profile = np.concatenate([ramp, np.zeros(rest), ramp[::-1]])
+        end = min(length - 1, at + profile.size)
+        rates[at:end] *= profile[: end - at]
+    return rates
 
 
 class WindowSampler:
@@ -283,7 +321,7 @@ class WindowSampler:
         self.length = length
         self.aug = augmentation
         self.rng = np.random.default_rng(seed)
-        max_speed = augmentation.speed[1] if augmentation else 1.0
+        max_speed = max(augmentation.speed[1], augmentation.slow_speed[1]) if augmentation else 1.0
         need = int(np.ceil((length - 1) * max_speed)) + 2
         self.clips = [c for c in clips if c.frames >= need]
         if not self.clips:
@@ -298,10 +336,9 @@ class WindowSampler:
         idx = self.rng.choice(len(self.clips), size=batch, p=self.p)
         for b, ci in enumerate(idx):
             pos = self.clips[ci].positions
-            speed = self.rng.uniform(*aug.speed) if aug else 1.0
-            span = (self.length - 1) * speed
-            start = self.rng.uniform(0.0, pos.shape[0] - 1 - span)
-            t = start + speed * np.arange(self.length)
+            steps = np.concatenate([[0.0], np.cumsum(_playback_rates(self.rng, self.length, aug))])
+            start = self.rng.uniform(0.0, pos.shape[0] - 1 - steps[-1])
+            t = start + steps
             i0 = np.minimum(np.floor(t).astype(np.int64), pos.shape[0] - 2)
             w = (t - i0)[:, None, None]
             out[b] = pos[i0] * (1.0 - w) + pos[i0 + 1] * w

@@ -63,7 +63,8 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        d["augmentation"]["speed"] = list(self.augmentation.speed)
+        for key in ("speed", "slow_speed", "pause_frames"):
+            d["augmentation"][key] = list(getattr(self.augmentation, key))
         return d
 
 
@@ -416,7 +417,9 @@ def model_card(
         f"{cfg.weight_decay}, batch {cfg.batch}, gradient clipping 1.0, loss MPJPE, seed {cfg.seed}.",
         f"- Augmentation: rotation about z {'uniform' if aug.rotate else 'off'}, horizontal translation "
         f"+-{aug.translate_m} m, mirroring p={aug.mirror_p}, speed x{aug.speed[0]}..x{aug.speed[1]} "
-        f"(resampled), input noise {aug.noise_m} m.",
+        f"(resampled), input noise {aug.noise_m} m; work-cell motion: slow work p={aug.slow_p} "
+        f"(speed x{aug.slow_speed[0]}..x{aug.slow_speed[1]}), pauses p={aug.pause_p} "
+        f"({aug.pause_frames[0]}-{aug.pause_frames[1]} frames at rest).",
         f"- Run: {info['steps']} steps in {info['minutes']} min on {cfg.threads} CPU thread(s) (stopped "
         f"by {info['stopped']}); kept the model of step {info['best_step']}; torch {info['torch']}.",
         "",

@@ -247,10 +247,16 @@ def test_cli_train_and_eval(clip_dir: Path, tmp_path: Path) -> None:
         cli_app,
         ["hmp", "train", "--clips", str(clip_dir), "--val-clips", "walk_5", "--steps", "6",
          "--eval-every", "3", "--channels", "8", "--blocks", "1", "--out", str(out),
+         "--sim-train-operators", "1", "--sim-train-duration", "3",
          "--checkpoint-dir", str(tmp_path / "ck"), "--no-progress"],
     )  # fmt: skip
     assert r.exit_code == 0, r.output
     assert out.is_file() and out.with_suffix(".md").is_file()
+    # one network on every source: the clips and simulated operators, each validated on its own held-out part
+    info = load_graphmixer(out).meta["info"]
+    assert info["sources"] == ["cmu", "sim"] and info["left_out"] is None
+    assert "sim_train/sim_operator_2000" in info["train_clips"]
+    assert {"sim_val/sim_operator_2001", "sim_val/sim_operator_2002"} <= set(info["val_clips"])
     r = runner.invoke(cli_app, ["hmp", "eval", "--clips", str(clip_dir), "--weights", str(out), "--json"])
     assert r.exit_code == 0, r.output
     report = json.loads(r.output)
