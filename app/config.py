@@ -374,7 +374,7 @@ class Settings(BaseSettings):
         "default is tuned on the CMU training clips (the 99th percentile of joint accelerations over 0.3 s)",
     )
     forecast_arbitration: bool = Field(
-        False,
+        True,
         description="proactive method: the forecast arbitrated online between the network and the "
         "constant- and zero-velocity baselines per horizon, with adaptive conformal margins "
         "(app.prediction.arbitration)",

@@ -263,6 +263,13 @@ def eval_cmd(
         ),
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
+    card: Annotated[
+        Path | None,
+        typer.Option(
+            help="Also write the results as a section of this model card (e.g. "
+            "app/assets/hmp_graphmixer.md), replacing the section of the same data if it is there.",
+        ),
+    ] = None,
 ) -> None:
     """MPJPE (mm) at 80..1000 ms of the Graph-Mixer and both baselines on clips (default: CMU test split) or
     on simulated operators (``--sim-operators N``), and of the arbitrated forecast with its margins'
@@ -354,6 +361,17 @@ def eval_cmd(
     if leave_out is not None:
         report["left_out"] = leave_out
         report["trained_on"] = trained_on
+    if card is not None:
+        from app.prediction.evaluate import report_markdown, write_card_section
+
+        if not card.parent.is_dir():
+            raise _fail(f"--card: folder {card.parent} does not exist")
+        if sim_operators:
+            key = f"simulated operators from seed {sim_seed}, {sim_operators} x {sim_duration:g} s"
+        else:
+            key = f"{Path(str(directory)).name} ({split or 'all'})"
+        key += f", {leave_out} left out of training" if leave_out else ""
+        write_card_section(card, key, report_markdown(report))
     if as_json:
         typer.echo(json.dumps(report))
         return

@@ -54,23 +54,13 @@ BEYOND_HORIZON_MAX_MARGIN_M = 0.15
 FORECAST_MARGIN_QUANTILE = "p50"
 
 
-#: The Graph-Mixer tuned to the simulated operator (``hrc hmp record-sim`` + ``hrc hmp train --extra-clips``)
-#: and its error quantiles on held-out simulated operators (``hrc hmp calibrate``): the predictor of the
-#: ``sim`` source, the way a lab tunes it to recordings of its own operators. Real sources get the shipped,
-#: CMU-trained network (the paper's setting: no fine-tuning) unless ``HRC_HMP_WEIGHTS`` says otherwise.
-SIM_OPERATOR_WEIGHTS = Path(__file__).resolve().parents[1] / "assets" / "hmp_graphmixer.sim_operator.pt"
-SIM_OPERATOR_QUANTILES = SIM_OPERATOR_WEIGHTS.with_suffix(".quantiles.json")
-
-
-def forecast_model(settings: Settings, source: str) -> tuple[Path | None, Path | None]:
-    """``(weights, quantiles)`` of the predictor for a human source (None: the predictor's defaults):
-    the settings' when set, the simulated operator's for the ``sim`` source, else the shipped ones."""
+def forecast_model(settings: Settings) -> tuple[Path | None, Path | None]:
+    """``(weights, quantiles)`` of the predictor (None: the predictor's defaults): the settings' when set,
+    else the shipped network, which is one for every human source (trained on the CMU clips and simulated
+    operators; ``app/assets/hmp_graphmixer.md``)."""
     quantiles = None if settings.hmp_quantiles is None else Path(settings.hmp_quantiles)
-    if settings.hmp_weights is not None:
-        return Path(settings.hmp_weights), quantiles
-    if source == "sim" and SIM_OPERATOR_WEIGHTS.is_file():
-        return SIM_OPERATOR_WEIGHTS, quantiles or SIM_OPERATOR_QUANTILES
-    return None, quantiles
+    weights = None if settings.hmp_weights is None else Path(settings.hmp_weights)
+    return weights, quantiles
 
 
 def make_predictor(
@@ -232,7 +222,7 @@ def run_headless_trial(
             max_margin_m=BEYOND_HORIZON_MAX_MARGIN_M,
         )
     if method == "proactive" and predictor is None:
-        weights, quantiles = forecast_model(settings, source)
+        weights, quantiles = forecast_model(settings)
         predictor = make_predictor(
             method,
             tracking_margin_m=options.tracking_margin_m,

@@ -346,7 +346,7 @@ class Runtime:
                 self._robot = make_robot(self.settings, self.clock, q0=np.asarray(self.cell.robot.home_q))
             self._open_source(seed=0)
             if self._predictor is None:
-                weights, quantiles = forecast_model(self.settings, self.settings.human_source)
+                weights, quantiles = forecast_model(self.settings)
                 self._predictor = make_predictor(
                     "proactive",
                     tracking_margin_m=self.options.tracking_margin_m,

@@ -262,6 +262,19 @@ def test_cli_train_and_eval(clip_dir: Path, tmp_path: Path) -> None:
     report = json.loads(r.output)
     assert set(report["mpjpe_mm"]) == {"graphmixer", "constant_velocity", "zero_velocity"}
     assert report["windows"] == 2 * (90 - 40 + 1)
+    # the model card gets the same numbers as a section of its own, replaced (not repeated) on a new run
+    card = out.with_suffix(".md")
+    args = ["hmp", "eval", "--clips", str(clip_dir), "--weights", str(out), "--json", "--card", str(card)]
+    for _ in range(2):
+        assert runner.invoke(cli_app, args).exit_code == 0
+    text = card.read_text()
+    assert (
+        text.startswith("# Model card") and text.count(f"<!-- hrc hmp eval: {clip_dir.name} (test) -->") == 1
+    )
+    cv = report["mpjpe_mm"]["constant_velocity"]["1000"]
+    assert "| constant_velocity | " in text and f"{cv:.1f} |" in text and "| coverage (target 0.95) |" in text
+    r = runner.invoke(cli_app, [*args[:-1], str(tmp_path / "no" / "card.md")])
+    assert r.exit_code == 2 and "does not exist" in r.output
     # constant velocity is exact on straight walking, except for the swinging hand
     assert report["mpjpe_mm"]["constant_velocity"]["1000"] < report["mpjpe_mm"]["zero_velocity"]["1000"]
     r = runner.invoke(cli_app, ["hmp", "eval", "--clips", str(tmp_path / "missing")])
