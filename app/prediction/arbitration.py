@@ -348,7 +348,6 @@ class ForecastArbiter:
                 factor = np.quantile(self._scaled_err[ref, : self._count[ref]], level)
                 prior = np.maximum(prior, factor * scale)
             out = np.where(ready, np.where(warm, np.maximum(q, prior), q), prior)
-        out = out.copy()
         out[0] = min(out[0], self.floor_m)
         return np.maximum(out, self.floor_m)
 

@@ -282,7 +282,8 @@ class Augmentation:
 
 
 #: Frames over which a pause of :class:`Augmentation` brings the playback to rest (and back), with a cosine
-#: profile: at 30 Hz 0.13 s, so a joint at 1 m/s stops at about 12 m/s^2, the human bound the governor uses.
+#: profile: at 30 Hz 0.13 s, so a joint at 1 m/s stops at up to 9.3 m/s^2, within the 12 m/s^2 a person's
+#: speed may change by (the governor's bound, measured on the CMU clips).
 PAUSE_RAMP = 4
 
 

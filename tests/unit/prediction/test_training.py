@@ -12,6 +12,7 @@ from app.cli import app as cli_app
 from app.prediction.adapters import CMU38_NAMES
 from app.prediction.data import (
     Augmentation,
+    Clip,
     ClipError,
     WindowSampler,
     load_clip,
@@ -134,6 +135,34 @@ def test_resample_speed() -> None:
     np.testing.assert_allclose(fast[5], pos[10])
     slow = resample(pos, 0.5)
     np.testing.assert_allclose(slow[1], 0.5 * (pos[0] + pos[1]))
+
+
+def test_work_cell_augmentation_slows_and_pauses_the_motion() -> None:
+    # a clip moving at exactly 1 m/s along x: the sampled window's speed is the playback rate
+    pos = np.zeros((400, NUM_JOINTS, 3))
+    pos[..., 0] = (np.arange(400) / 30.0)[:, None]
+    clips = [Clip(name="line", positions=pos, action="walk")]
+    plain = {"rotate": False, "translate_m": 0.0, "mirror_p": 0.0}
+
+    def speeds(aug: Augmentation) -> np.ndarray:  # (windows, frames - 1) m/s of the pelvis
+        w = WindowSampler(clips, 40, augmentation=aug, seed=0).sample(64)
+        return np.diff(w[:, :, 0, 0], axis=1) * 30.0
+
+    slow = speeds(Augmentation(**plain, slow_p=1.0, pause_p=0.0))
+    assert np.all(slow > 0.3 - 1e-9) and np.all(slow < 0.8 + 1e-9)
+    assert np.ptp(slow, axis=1).max() < 1e-9  # one rate per window
+    paused = speeds(Augmentation(**plain, slow_p=0.0, pause_p=1.0))
+    at_rest = paused < 1e-9
+    # every window slows down; most come to rest (a pause drawn near the window's end is cut before it)
+    assert np.all(paused.min(axis=1) < paused.max(axis=1) - 1e-9) and at_rest.any(axis=1).mean() > 0.8
+    runs = [np.flatnonzero(r) for r in at_rest if r.any()]
+    assert all(np.all(np.diff(r) == 1) for r in runs)  # one pause per window
+    assert max(r.size for r in runs) >= 20 and min(r.size for r in runs) >= 1
+    # it slows down smoothly: no step changes the speed by more than 0.31 of the playback rate (9.3 m/s^2
+    # at 1 m/s, within the 12 m/s^2 a person's speed may change by)
+    assert np.abs(np.diff(paused, axis=1)).max() <= 0.31 * 1.25 + 1e-9
+    plain_rate = speeds(Augmentation(**plain, slow_p=0.0, pause_p=0.0))
+    assert np.all(plain_rate > 0.8 - 1e-9) and np.all(plain_rate < 1.25 + 1e-9)
 
 
 def test_window_sampler_is_seeded(clip_dir: Path) -> None:
