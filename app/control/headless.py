@@ -46,11 +46,13 @@ Observer = Callable[[float, TrialEngine], None]
 #: baseline's 6); 0.1 m/s up to 0.15 m (just above the CMU network's p50 error at 1 s, 0.137 m) gave 6-7.
 BEYOND_HORIZON_GROWTH_MPS = 0.1
 BEYOND_HORIZON_MAX_MARGIN_M = 0.15
-#: Which error quantile of the forecast (measured on the predictor's validation clips) becomes its margin.
-#: The forecast makes plans efficient; safety does not rest on it (every plan is re-checked at every frame
-#: and the speed governor keeps ISO/TS 15066's S_p to the person as seen), so the median error is covered,
-#: not the tail: the p95 of the recorded clips (people walking about) exceeds 0.6 m at 1 s and would block
-#: every drop station of this cell, which lie within 0.35-0.5 m of the operator's hands.
+#: With ``HRC_FORECAST_ARBITRATION=false`` (by default the forecast is arbitrated, its margins adaptive
+#: conformal ones at ``HRC_FORECAST_COVERAGE``), which error quantile of the forecast (measured on the
+#: predictor's validation clips) becomes its margin. The forecast makes plans efficient; safety does not rest
+#: on it (every plan is re-checked at every frame and the speed governor keeps ISO/TS 15066's S_p to the
+#: person as seen), so the median error is covered, not the tail: the p95 of the recorded clips (people
+#: walking about) exceeds 0.6 m at 1 s and would block every drop station of this cell, which lie within
+#: 0.35-0.5 m of the operator's hands.
 FORECAST_MARGIN_QUANTILE = "p50"
 
 
@@ -63,24 +65,16 @@ def forecast_model(settings: Settings) -> tuple[Path | None, Path | None]:
     return weights, quantiles
 
 
-def make_predictor(
-    method: Method,
-    *,
-    tracking_margin_m: float = 0.02,
-    weights: str | Path | None = None,
-    quantiles: str | Path | None = None,
-    arbitrate: bool = False,
-    coverage: float = 0.95,
-) -> Any | None:
-    """The predictor of a method: a Graph-Mixer for ``proactive`` (``weights``, default the shipped one;
-    constant velocity with a warning if they are missing), none for ``reactive`` (the current pose is held).
-    ``quantiles``: the error-quantile file of its margins (default: the one next to the weights);
-    ``arbitrate``: the forecast arbitrated online with the baselines, its margins adaptive conformal ones
-    at ``coverage`` (``Settings.forecast_arbitration``, ``Settings.forecast_coverage``)."""
+def make_predictor(method: Method, settings: Settings, *, tracking_margin_m: float = 0.02) -> Any | None:
+    """The predictor of a method: for ``proactive`` the Graph-Mixer of :func:`forecast_model` (constant
+    velocity with a warning if the weights are missing), arbitrated online with the baselines and with
+    adaptive conformal margins at ``Settings.forecast_coverage`` when ``Settings.forecast_arbitration`` says
+    so; none for ``reactive`` (the current pose is held)."""
     if method == "reactive":
         return None
     from app.prediction.predictor import MotionPredictor
 
+    weights, quantiles = forecast_model(settings)
     return MotionPredictor(
         kind="graphmixer",
         weights=weights,
@@ -89,8 +83,8 @@ def make_predictor(
         tracking_margin_m=tracking_margin_m,
         growth_mps=BEYOND_HORIZON_GROWTH_MPS,
         max_margin_m=BEYOND_HORIZON_MAX_MARGIN_M,
-        arbitrate=arbitrate,
-        coverage=coverage,
+        arbitrate=settings.forecast_arbitration,
+        coverage=settings.forecast_coverage,
     )
 
 
@@ -222,15 +216,7 @@ def run_headless_trial(
             max_margin_m=BEYOND_HORIZON_MAX_MARGIN_M,
         )
     if method == "proactive" and predictor is None:
-        weights, quantiles = forecast_model(settings)
-        predictor = make_predictor(
-            method,
-            tracking_margin_m=options.tracking_margin_m,
-            weights=weights,
-            quantiles=quantiles,
-            arbitrate=settings.forecast_arbitration,
-            coverage=settings.forecast_coverage,
-        )
+        predictor = make_predictor(method, settings, tracking_margin_m=options.tracking_margin_m)
     clock = SimClock(0.0)
     q0 = np.asarray(cell.robot.home_q, dtype=np.float64)
     robot = SimRobot(clock, q0=q0) if robot_factory is None else robot_factory(clock, q0)

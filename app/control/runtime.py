@@ -50,7 +50,7 @@ from app.control.engine import (
     TrialResult,
     make_validated_source,
 )
-from app.control.headless import forecast_model, make_predictor, run_headless_trial
+from app.control.headless import make_predictor, run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
 from app.control.supervisor import SupervisorConfig
 
@@ -346,14 +346,8 @@ class Runtime:
                 self._robot = make_robot(self.settings, self.clock, q0=np.asarray(self.cell.robot.home_q))
             self._open_source(seed=0)
             if self._predictor is None:
-                weights, quantiles = forecast_model(self.settings)
                 self._predictor = make_predictor(
-                    "proactive",
-                    tracking_margin_m=self.options.tracking_margin_m,
-                    weights=weights,
-                    quantiles=quantiles,
-                    arbitrate=self.settings.forecast_arbitration,
-                    coverage=self.settings.forecast_coverage,
+                    "proactive", self.settings, tracking_margin_m=self.options.tracking_margin_m
                 )
             if not _warm_up_compiled(self.settings, self.cell, self._stack, self._predictor):
                 _warm_up(self._predictor, self.cell)  # the trial of the first start ran this predictor
