@@ -337,10 +337,8 @@ def test_one_predictor_for_every_human_source_unless_the_settings_say_otherwise(
     from app.control.headless import forecast_model
 
     assert not list(DEFAULT_WEIGHTS.parent.glob("hmp_graphmixer.*.pt"))  # one shipped network
-    assert forecast_model(Settings(_env_file=None)) == (
-        None,
-        None,
-    )  # the predictor's default: the shipped one
+    plain = Settings(_env_file=None)
+    assert forecast_model(plain) == (None, None)  # the predictor's default: the shipped one
     (tmp_path / "w.pt").write_bytes(b"")
     (tmp_path / "q.json").write_text("{}")
     own = Settings(_env_file=None, hmp_weights=tmp_path / "w.pt", hmp_quantiles=tmp_path / "q.json")

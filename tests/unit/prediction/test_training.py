@@ -157,7 +157,7 @@ def test_work_cell_augmentation_slows_and_pauses_the_motion() -> None:
     assert np.all(paused.min(axis=1) < paused.max(axis=1) - 1e-9) and at_rest.any(axis=1).mean() > 0.8
     runs = [np.flatnonzero(r) for r in at_rest if r.any()]
     assert all(np.all(np.diff(r) == 1) for r in runs)  # one pause per window
-    assert max(r.size for r in runs) >= 20 and min(r.size for r in runs) >= 1
+    assert max(r.size for r in runs) >= 20  # pauses of up to 30 frames at rest
     # it slows down smoothly: no step changes the speed by more than 0.31 of the playback rate (9.3 m/s^2
     # at 1 m/s, within the 12 m/s^2 a person's speed may change by)
     assert np.abs(np.diff(paused, axis=1)).max() <= 0.31 * 1.25 + 1e-9
