@@ -201,6 +201,18 @@ def count_violations(traj: Any, forecast: Any, model: Any, ssm: Any, *, hold_s: 
     return int(np.any(d < forecast_clearance(v, margins, ssm) - 1e-9))
 
 
+def _planner_config() -> Any:
+    """The runtime's planner settings: its clearance with the ``T_r`` of the default installation
+    (:meth:`app.control.engine.PlanningStack.for_cell`)."""
+    from app.config import Settings
+    from app.control.engine import EngineOptions
+    from app.planning.search import PlannerConfig
+
+    config = PlannerConfig()
+    t_r = Settings().reaction_time_s(EngineOptions().servo_period_s)
+    return dataclasses.replace(config, ssm=dataclasses.replace(config.ssm, t_reaction_s=t_r))
+
+
 def _governor_model(ssm: Any) -> Any:
     """The speed governor of a trial under the default settings, as the planner predicts it (the runtime's
     SSM-aware timing, ``HRC_SSM_TIMING``)."""
@@ -326,7 +338,7 @@ def _scaling(
             scaling[name] = None
             nodes[name] = None
             continue
-        planner = Planner(got[0], model)
+        planner = Planner(got[0], model, config=_planner_config())
         timing = _governor_model(planner.config.ssm)
         sub = queries[: (6 if quick else 20)]
         _warm_goals(planner, sub)
@@ -353,7 +365,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
     assert got is not None
     rm, build_s, load_s = got
     t0 = time.perf_counter()
-    planner = Planner(rm, model)
+    planner = Planner(rm, model, config=_planner_config())
     init_s = time.perf_counter() - t0
     generous_planner = Planner(
         rm, model, config=dataclasses.replace(planner.config, max_expansions=GENEROUS_EXPANSIONS)

@@ -138,13 +138,18 @@ class PlanningStack:
     ssm: Any
 
     @classmethod
-    def for_cell(cls, cell: WorkCell, *, cache_dir: str | Path | None = None) -> PlanningStack:
-        """The stack of ``cell`` (roadmap from the on-disk cache, built when missing)."""
-        key = (cell.fingerprint(), None if cache_dir is None else str(cache_dir))
+    def for_cell(
+        cls, cell: WorkCell, *, t_reaction_s: float | None = None, cache_dir: str | Path | None = None
+    ) -> PlanningStack:
+        """The stack of ``cell`` (roadmap from the on-disk cache, built when missing), its planner's clearance
+        with the reaction time ``t_reaction_s`` of the installation
+        (:meth:`app.config.Settings.reaction_time_s`: the ``T_r`` of the governor and the monitor; default
+        :class:`app.safety.ssm.SSMParams`'). Cached per process, cell and ``T_r``."""
+        key = (cell.fingerprint(), None if cache_dir is None else str(cache_dir), t_reaction_s)
         with _STACK_LOCK:
             stack = _STACKS.get(key)
             if stack is None:
-                stack = _build_stack(cell, key[1])
+                stack = _build_stack(cell, key[1], t_reaction_s=t_reaction_s)
                 _STACKS[key] = stack
                 while len(_STACKS) > 4:
                     _STACKS.pop(next(iter(_STACKS)))
@@ -157,16 +162,34 @@ class PlanningStack:
         *,
         roadmap_config: Any | None = None,
         planner_config: Any | None = None,
+        t_reaction_s: float | None = None,
         cache_dir: str | Path | None = None,
     ) -> PlanningStack:
         """A new stack (not cached in the process) with explicit roadmap and planner settings
-        (:class:`app.planning.roadmap.RoadmapConfig`, :class:`app.planning.search.PlannerConfig`)."""
+        (:class:`app.planning.roadmap.RoadmapConfig`, :class:`app.planning.search.PlannerConfig`);
+        ``t_reaction_s`` replaces the planner settings' ``T_r`` (see :meth:`for_cell`)."""
         return _build_stack(
             cell,
             None if cache_dir is None else str(cache_dir),
             roadmap_config=roadmap_config,
             planner_config=planner_config,
+            t_reaction_s=t_reaction_s,
         )
+
+    def with_reaction_time(self, t_reaction_s: float) -> PlanningStack:
+        """This stack with its planner's clearance at the reaction time ``t_reaction_s`` (``T_r``; see
+        :meth:`for_cell`): a new planner on the same roadmap and collision model, or this stack when it has
+        that ``T_r`` already."""
+        from app.planning.search import Planner
+
+        if self.ssm.t_reaction_s == t_reaction_s:
+            return self
+        config = self.planner.config
+        config = dataclasses.replace(
+            config, ssm=dataclasses.replace(config.ssm, t_reaction_s=float(t_reaction_s))
+        )
+        planner = Planner(self.roadmap, self.collision, config=config)
+        return dataclasses.replace(self, planner=planner, ssm=config.ssm)
 
     def make_trajectory(self, plan: Any, qd0: np.ndarray | None) -> Any:
         from app.planning.trajectory import Trajectory
@@ -177,7 +200,7 @@ class PlanningStack:
         return list(self.roadmap.station_nodes)
 
 
-_STACKS: dict[tuple[str, str | None], PlanningStack] = {}
+_STACKS: dict[tuple[str, str | None, float | None], PlanningStack] = {}
 _STACK_LOCK = threading.Lock()
 
 
@@ -187,6 +210,7 @@ def _build_stack(
     *,
     roadmap_config: Any | None = None,
     planner_config: Any | None = None,
+    t_reaction_s: float | None = None,
 ) -> PlanningStack:
     from app.planning.collision import CollisionModel
     from app.planning.roadmap import load_or_build_roadmap
@@ -196,6 +220,10 @@ def _build_stack(
     collision = CollisionModel(cell)
     roadmap = load_or_build_roadmap(cell, config=roadmap_config, cache_dir=cache_dir, collision=collision)
     config = planner_config or PlannerConfig()
+    if t_reaction_s is not None:
+        config = dataclasses.replace(
+            config, ssm=dataclasses.replace(config.ssm, t_reaction_s=float(t_reaction_s))
+        )
     planner = Planner(roadmap, collision, config=config)
     log.info("planning stack for cell %s ready in %.2f s", cell.name, time.perf_counter() - t0)
     return PlanningStack(
@@ -561,6 +589,13 @@ class TrialEngine:
         # model: the governor and the monitor use the same figures; and what the governor will do, for the
         # SSM-aware timing of plans (the same separation model and law as the supervisor's)
         self.reaction_time_s = settings.reaction_time_s(self.options.servo_period_s)
+        if not math.isclose(stack.ssm.t_reaction_s, self.reaction_time_s, rel_tol=0.0, abs_tol=1e-9):
+            raise ValueError(
+                f"the planning stack's clearance assumes T_r = {stack.ssm.t_reaction_s:.4f} s, this "
+                f"system's is {self.reaction_time_s:.4f} s (tracker latency, frame, processing, controller "
+                "cycle): build it with PlanningStack.for_cell(cell, t_reaction_s=...) or "
+                "stack.with_reaction_time(...)"
+            )
         self.governor_model = governor_model(
             settings, stack.ssm, self.config, self.options, separation=separation
         )

@@ -172,7 +172,6 @@ def run_headless_trial(
     if not servo_rate_hz > 0:
         raise ValueError(f"servo_rate_hz must be > 0, got {servo_rate_hz}")
     cell = cell if cell is not None else settings.load_workcell()
-    stack = stack if stack is not None else PlanningStack.for_cell(cell)
     p_seed = seed if participant_seed is None else participant_seed
     options = options or EngineOptions()
     tracker_model = None
@@ -217,6 +216,8 @@ def run_headless_trial(
         )
     if method == "proactive" and predictor is None:
         predictor = make_predictor(method, settings, tracking_margin_m=options.tracking_margin_m)
+    if stack is None:  # after the tracker's latency is known: T_r of the planner's clearance
+        stack = PlanningStack.for_cell(cell, t_reaction_s=settings.reaction_time_s(1.0 / servo_rate_hz))
     clock = SimClock(0.0)
     q0 = np.asarray(cell.robot.home_q, dtype=np.float64)
     robot = SimRobot(clock, q0=q0) if robot_factory is None else robot_factory(clock, q0)

@@ -339,7 +339,8 @@ class Runtime:
             if self._started:
                 return
             if self._stack is None:
-                self._stack = PlanningStack.for_cell(self.cell)
+                t_r = self.settings.reaction_time_s(1.0 / self.servo_rate_hz)
+                self._stack = PlanningStack.for_cell(self.cell, t_reaction_s=t_r)
             if self._robot is None:
                 from app.cell.backends import make_robot
 
@@ -349,7 +350,9 @@ class Runtime:
                 self._predictor = make_predictor(
                     "proactive", self.settings, tracking_margin_m=self.options.tracking_margin_m
                 )
-            if not _warm_up_compiled(self.settings, self.cell, self._stack, self._predictor):
+            if not _warm_up_compiled(
+                self.settings, self.cell, self._stack, self._predictor, servo_rate_hz=self.servo_rate_hz
+            ):
                 _warm_up(self._predictor, self.cell)  # the trial of the first start ran this predictor
             self._stop.clear()
             self._started = True
@@ -783,7 +786,9 @@ _COMPILED_READY = False
 _COMPILED_LOCK = threading.Lock()
 
 
-def _warm_up_compiled(settings: Settings, cell: WorkCell, stack: Any, predictor: Any) -> bool:
+def _warm_up_compiled(
+    settings: Settings, cell: WorkCell, stack: Any, predictor: Any, *, servo_rate_hz: float = 125.0
+) -> bool:
     """Load the compiled inner loops (numba kernels of the speed governor, the simulated arm and operator,
     the planner's checks, the monitor and the forecast) before the runtime's threads start: a 2-s headless
     trial on the simulated cell, once per process.
@@ -809,6 +814,7 @@ def _warm_up_compiled(settings: Settings, cell: WorkCell, stack: Any, predictor:
                 source="sim",
                 stack=stack,
                 predictor=predictor,
+                servo_rate_hz=servo_rate_hz,
             )
             ran = True
         except Exception:

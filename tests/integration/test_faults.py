@@ -25,7 +25,12 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> PlanningStack:
     from app.planning.roadmap import RoadmapConfig
 
     cache = tmp_path_factory.mktemp("roadmaps")
-    return PlanningStack.build(load_workcell(), roadmap_config=RoadmapConfig(num_nodes=250), cache_dir=cache)
+    return PlanningStack.build(
+        load_workcell(),
+        roadmap_config=RoadmapConfig(num_nodes=250),
+        t_reaction_s=Settings().reaction_time_s(1 / 125),
+        cache_dir=cache,
+    )
 
 
 def _run(stack: PlanningStack, **kw: Any):

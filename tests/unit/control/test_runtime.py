@@ -29,6 +29,7 @@ from app.control.runtime import (
 )
 from app.prediction.predictor import DEFAULT_WEIGHTS
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS
+from app.safety.ssm import SSMParams
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +37,17 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> PlanningStack:
     from app.planning.roadmap import RoadmapConfig
 
     cache = tmp_path_factory.mktemp("roadmaps")
-    return PlanningStack.build(load_workcell(), roadmap_config=RoadmapConfig(num_nodes=250), cache_dir=cache)
+    return PlanningStack.build(
+        load_workcell(),
+        roadmap_config=RoadmapConfig(num_nodes=250),
+        t_reaction_s=Settings().reaction_time_s(1 / 125),
+        cache_dir=cache,
+    )
+
+
+def _for_tracker(stack: PlanningStack, tracker: TrackerModel) -> PlanningStack:
+    """``stack`` with the planner's ``T_r`` of a system with ``tracker``."""
+    return stack.with_reaction_time(Settings(tracker_latency_s=tracker.latency_s).reaction_time_s(1 / 125))
 
 
 def _settings() -> Settings:
@@ -266,14 +277,15 @@ def test_the_proactive_forecast_expects_the_fetch_of_each_placed_block(stack: Pl
 
     # an ideal tracker: this is about the forecast (a noisy, late tracker slows the first task past 20 s); the
     # arbitrated forecast's calibrated margins hold the robot back a few seconds longer than the network's p50
+    ideal = TrackerModel.ideal()
     res = run_headless_trial(
         settings=Settings(),
         method="proactive",
         duration_s=30.0,
         seed=5,
-        stack=stack,
+        stack=_for_tracker(stack, ideal),
         observer=observer,
-        tracker=TrackerModel.ideal(),
+        tracker=ideal,
     )
     assert res.status == "completed" and res.metrics.completed_tasks >= 1 and res.metrics.violations == 0
     placed = [e.payload["station"] for e in res.events if e.kind == "task_completed"]
@@ -301,6 +313,29 @@ def test_simulate_cli_explains_a_misplaced_oracle() -> None:
         res = CliRunner().invoke(cli_app, ["simulate", "--duration", "1", "--forecast", "oracle", *args])
         assert res.exit_code == 2
         assert "--forecast" in res.output
+
+
+def test_the_planner_clears_the_person_with_the_installations_reaction_time(
+    stack: PlanningStack, tmp_path: Path
+) -> None:
+    """The planner's clearance (S_r = v_r T_r) takes the T_r of the governor and the monitor: the tracker's
+    latency of these settings; a stack built for another T_r is refused, never run with the wrong one."""
+    from app.planning.roadmap import RoadmapConfig
+
+    slow = Settings(tracker_latency_s=0.2)
+    t_r = slow.reaction_time_s(1 / 125)
+    assert t_r > Settings().reaction_time_s(1 / 125) + 0.1
+    built = stack.with_reaction_time(t_r)
+    assert built.ssm.t_reaction_s == built.planner.config.ssm.t_reaction_s == t_r
+    assert built.roadmap is stack.roadmap and stack.with_reaction_time(stack.ssm.t_reaction_s) is stack
+    small = {"roadmap_config": RoadmapConfig(num_nodes=250), "cache_dir": tmp_path}
+    assert PlanningStack.build(stack.cell, **small).ssm.t_reaction_s == SSMParams().t_reaction_s
+    assert PlanningStack.build(stack.cell, t_reaction_s=t_r, **small).planner.config.ssm.t_reaction_s == t_r
+    args = {"method": "reactive", "duration_s": 0.2, "seed": 0, "fixed_compute_s": 0.02}
+    res = run_headless_trial(settings=slow, stack=built, **args)
+    assert res.status == "completed"
+    with pytest.raises(ValueError, match=r"T_r = 0\.111\d s, this system's is 0\.251\d s"):
+        run_headless_trial(settings=slow, stack=stack, **args)
 
 
 def test_headless_replay_needs_a_clip(stack: PlanningStack, tmp_path: Path) -> None:
@@ -425,7 +460,7 @@ def test_the_time_budget_sums_to_the_trial_and_arrivals_are_compared_with_the_pl
         method="reactive",
         duration_s=12.0,
         seed=4,
-        stack=stack,
+        stack=_for_tracker(stack, TrackerModel.ideal()),
         tracker=TrackerModel.ideal(),
     )
     budget = res.time_budget_s
