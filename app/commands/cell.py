@@ -64,3 +64,81 @@ def demo(
     if "operator" in report:
         o = report["operator"]
         typer.echo(f"operator: {o['fetches']} fetches, {o['reaches_across']} reaches across; {o['params']}")
+
+
+@cell_app.command("check")
+def check(
+    clips: Annotated[
+        list[Path] | None,
+        typer.Option(
+            "--clip",
+            help="A recording of the person at work in this cell's world frame (.npz: a tracker recording "
+            "or the CMU format; repeat for more); default: simulated participants.",
+        ),
+    ] = None,
+    place: Annotated[
+        bool, typer.Option("--place", help="Place each clip in the operator's area (recorded elsewhere).")
+    ] = False,
+    participants: Annotated[
+        int, typer.Option("--participants", min=1, help="Simulated participants (without --clip).")
+    ] = 3,
+    seed: Annotated[int, typer.Option("--seed", help="Participant seed of the first one.")] = 1,
+    duration: Annotated[
+        float, typer.Option("--duration", min=1.0, help="Seconds recorded per simulated participant.")
+    ] = 60.0,
+    speed: Annotated[
+        float, typer.Option("--speed", min=0.001, help="Speed (m/s) to ask of the robot at each task pose.")
+    ] = 0.1,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
+) -> None:
+    """Check the cell's layout under the safety model: at each task pose, how close the person at work comes
+    and how often the speed governor lets the robot move there at --speed (see app/control/layout.py)."""
+    import numpy as np
+
+    from app.cell.human import load_clip, place_clip
+    from app.cell.recording import simulated_operator_sequences
+    from app.config import Settings
+    from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
+    from app.control.layout import check_layout
+
+    settings, options = Settings(), EngineOptions()
+    cell = settings.load_workcell()
+    fps = 1.0 / settings.frame_period_s
+    if clips:
+        recordings, label = [], ", ".join(str(c) for c in clips)
+        for path in clips:
+            if not path.is_file():
+                raise typer.BadParameter(f"clip {path} does not exist", param_hint="--clip")
+            try:
+                clip = load_clip(path, fps=fps)
+            except ValueError as exc:
+                raise typer.BadParameter(str(exc), param_hint="--clip") from None
+            recordings.append(place_clip(clip.joints, cell) if place else np.asarray(clip.joints))
+    else:
+        recordings = simulated_operator_sequences(
+            cell, participants=participants, duration_s=duration, seed=seed, fps=fps
+        )
+        label = f"{participants} simulated participants from seed {seed}, {duration:g} s each"
+    stack = PlanningStack.for_cell(cell, t_reaction_s=settings.reaction_time_s(options.servo_period_s))
+    governor = governor_model(settings, stack.ssm, supervisor_config(settings, "proactive", options), options)
+    try:
+        report = check_layout(stack, governor, recordings, fps=fps, speed_mps=speed)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--clip") from None
+    if as_json:
+        typer.echo(json.dumps({"cell": cell.name, "person": label, **report.to_json()}))
+        return
+    typer.echo(f"cell {cell.name!r} against {label} ({report.frames} frames)")
+    typer.echo(
+        f"the governor lets a part move at {speed:g} m/s only beyond {report.zone_m:.2f} m of a person "
+        "standing still"
+    )
+    typer.echo(f"{'pose':<18}{'separation p5/p50 (m)':>24}{'allowed speed p50 (m/s)':>26}{'free':>8}")
+    for p in report.poses:
+        sep = f"{p.separation_m[0]:.2f} / {p.separation_m[1]:.2f}"
+        typer.echo(f"{p.name:<18}{sep:>24}{p.allowed_speed_mps[1]:>26.3f}{p.free:>8.0%}")
+    for p in report.blocked():
+        typer.echo(
+            f"warning: at {p.name} the robot may move at {speed:g} m/s in only {p.free:.0%} of the frames: "
+            "the person works within the governor's zone of it"
+        )

@@ -431,6 +431,30 @@ class GovernorModel:
         creep = d[min(int(np.searchsorted(vmax, v_creep_mps, side="left")), d.size - 1)]
         return np.where(v <= v_creep_mps, 0.0, np.maximum(need - creep, 0.0))
 
+    def max_speed(self, sep_m: Any, v_human_mps: Any, *, v_cap_mps: float = 3.0) -> np.ndarray:
+        """The fastest (m/s) the governor lets a robot part move toward the person, braking at
+        :attr:`brake_decel_mps2`, at the separation ``sep_m`` (as measured, before the tracking margin) from a
+        person whose directed speed toward it was *measured* at ``v_human_mps`` over the speed window (from
+        tracked frames: their noise is in it already, unlike a forecast's in :meth:`scale`): the braking
+        envelope with the person's worst case since the middle of the window and the frame's age, and the
+        speed-scaling law where this model has one. Arrays broadcast."""
+        vh0 = np.maximum(np.asarray(v_human_mps, dtype=np.float64), 0.0)
+        half = 0.5 * self.speed_window_s
+        x0, _ = self.separation.human_approach(vh0, half)
+        x1, v1 = self.separation.human_approach(vh0, half + self.sensing_age_s)
+        sep_lb = np.asarray(sep_m, dtype=np.float64) - self.tracking_margin_m - (x1 - x0)
+        v = np.asarray(
+            self.separation.max_speed(
+                sep_lb, v_human_mps=v1, decel_mps2=self.brake_decel_mps2, v_cap_mps=v_cap_mps
+            ),
+            dtype=np.float64,
+        )
+        if self.law is not None:  # the law's speed (app.safety.ssm.max_safe_speed), at the measured speed
+            p = self.law.params
+            slack = sep_lb - vh0 * (p.t_reaction_s + p.t_stop_s) - p.constant_m
+            v = np.minimum(v, np.maximum(slack, 0.0) / p.robot_time_s)
+        return v
+
     def brake_rate(self, v_top_mps: float, w_top_radps: float) -> float:
         """:func:`brake_rate` with this governor's brake."""
         return brake_rate(v_top_mps, w_top_radps, self.brake_decel_mps2, self.brake_joint_decel)

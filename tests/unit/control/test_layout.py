@@ -1,0 +1,109 @@
+"""The layout check (``hrc cell check``): where the speed governor lets the robot work beside the person.
+
+The governor's speed for a part at rest (:meth:`GovernorModel.max_speed`) is checked against the scale it
+gives a moving part (:meth:`GovernorModel.scale`); the check of the task poses on the shipped cell against
+a person standing far away, on a drop station, and the simulated participants at work.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from app.cli import app as cli_app
+from app.config import Settings, load_workcell
+from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
+from app.control.layout import check_layout
+from app.prediction.skeleton import JOINT_INDEX
+from tests.unit.planning.test_collision import _standing_person
+from tests.unit.planning.test_ssm_timing import governor
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> PlanningStack:
+    from app.planning.roadmap import RoadmapConfig
+
+    return PlanningStack.build(
+        load_workcell(),
+        roadmap_config=RoadmapConfig(num_nodes=250),
+        t_reaction_s=Settings().reaction_time_s(1 / 125),
+        cache_dir=tmp_path_factory.mktemp("roadmaps"),
+    )
+
+
+@pytest.fixture(scope="module")
+def model(stack: PlanningStack):
+    settings, options = Settings(), EngineOptions()
+    return governor_model(settings, stack.ssm, supervisor_config(settings, "proactive", options), options)
+
+
+def _still(joints: np.ndarray, frames: int = 30) -> np.ndarray:
+    """``joints`` (J, 3) held for ``frames`` frames."""
+    return np.repeat(joints[None], frames, axis=0)
+
+
+def test_the_speed_for_a_part_is_the_one_the_governor_scales_a_moving_part_to() -> None:
+    g = governor()
+    sep = np.array([0.2, 0.35, 0.5, 0.8, 1.2])
+    for v_h in (0.0, 0.3, 1.0):
+        v = g.max_speed(sep, v_h)
+        assert np.all(np.diff(v) >= 0)  # farther: faster
+        assert np.all(g.max_speed(sep, v_h + 0.5) <= v + 1e-12)  # a faster person: slower
+        for d, v_d in zip(sep, v, strict=True):
+            # a part moving at 1 m/s at scale 1 is scaled to the speed the governor allows it (within its
+            # grids: 3 m/s over 96 speeds, 40 scales)
+            s = g.scale(np.array([d]), np.array([v_h]), np.array([1.0]), 0.0)
+            assert s == pytest.approx(min(v_d, 1.0), abs=0.04)
+    assert g.max_speed(0.11, 0.0) == 0.0  # within S_p(0) of a still person: no speed at all
+
+
+def test_a_person_far_away_leaves_every_task_pose_free(stack: PlanningStack, model) -> None:
+    far = _still(_standing_person(3.5, 0.0))
+    report = check_layout(stack, model, [far], fps=30.0)
+    assert {p.name for p in report.poses} == set(stack.roadmap.station_nodes)
+    assert report.frames == 27  # each first speed window (3 frames at 30 Hz) measures no speed
+    for p in report.poses:
+        assert p.free == 1.0 and p.allowed_speed_mps[0] >= 0.1 and p.separation_m[0] > 2.0, p
+
+
+def test_a_person_reaching_into_a_drop_station_blocks_it(stack: PlanningStack, model) -> None:
+    cell = stack.cell
+    b = np.asarray(next(s.xyz for s in cell.drop_stations if s.name == "B"))
+    person = _standing_person(1.3, 0.0)
+    person = person + (b - person[JOINT_INDEX["r_hand"]])  # the right hand on station B
+    report = {p.name: p for p in check_layout(stack, model, [_still(person)], fps=30.0).poses}
+    assert report["B"].free == 0.0 and report["B"].separation_m[1] < 0.1
+    assert report["B"].allowed_speed_mps == (0.0, 0.0)
+    # the zone: no speed asked of a pose closer than it to a still person is allowed
+    z = check_layout(stack, model, [_still(person)], fps=30.0).zone_m
+    assert all(p.free == 0.0 for p in report.values() if p.separation_m[1] < z - 0.02)
+
+
+def test_check_refuses_recordings_shorter_than_the_speed_window(stack: PlanningStack, model) -> None:
+    with pytest.raises(ValueError, match="no recording has more than 3 frames"):
+        check_layout(stack, model, [_still(_standing_person(3.5), frames=3)], fps=30.0)
+
+
+def test_cli_checks_the_shipped_cell_and_names_a_missing_clip(tmp_path: Path) -> None:
+    res = CliRunner().invoke(
+        cli_app, ["cell", "check", "--participants", "1", "--duration", "8", "--json"], catch_exceptions=False
+    )
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.output.strip().splitlines()[-1])
+    poses = out["poses"]
+    assert {"pickup", "A", "B", "C", "D", "home"} <= set(poses)
+    assert 0.3 < out["zone_m"] < 1.5 and out["frames"] > 200
+    # the pickup is farther from the person at work than the drop stations they fetch from
+    stations = [poses[s]["separation_m"]["p50"] for s in "ABCD"]
+    assert poses["pickup"]["separation_m"]["p50"] > max(stations)
+    assert poses["pickup"]["free"] >= max(poses[s]["free"] for s in "ABCD")
+    missing = tmp_path / "nobody.npz"
+    bad = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(missing)])
+    assert bad.exit_code == 2 and "nobody.npz" in bad.output and "does not exist" in bad.output
+    np.savez(tmp_path / "wrong.npz", something=np.zeros(3))
+    wrong = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(tmp_path / "wrong.npz")])
+    assert wrong.exit_code == 2 and "wrong.npz" in wrong.output
