@@ -83,7 +83,8 @@ class Clip:
 
 
 def load_clip(path: str | Path, *, fps: float | None = None) -> Clip:
-    """Read a clip: the shared CMU format (``positions`` (T, 38, 3), ``fps``) or a canonical recording
+    """Read a clip: the shared CMU format (``positions`` (T, 38, 3), ``fps``), the clips of ``hrc export
+    --clips`` (``positions`` (T, J, 3) of the canonical ``joint_names``, ``fps``) or a canonical recording
     (``joints`` (T, J, 3) with ``t`` (T,) or ``fps``, optional ``confidence`` (T, J)).
 
     Raises:
@@ -100,11 +101,17 @@ def load_clip(path: str | Path, *, fps: float | None = None) -> Clip:
             from app.prediction.adapters import from_cmu38
 
             pos = np.asarray(data["positions"], dtype=np.float64)
-            if pos.ndim != 3 or pos.shape[1:] != (38, 3):
-                raise ValueError(f"clip {p}: CMU positions must be (T, 38, 3), got {pos.shape}")
-            joints = from_cmu38(pos)
+            names = tuple(str(n) for n in data["joint_names"]) if "joint_names" in keys else None
+            if names == JOINTS and pos.ndim == 3 and pos.shape[1:] == (NUM_JOINTS, 3):
+                joints, source = pos, "canonical"  # an exported clip (hrc export --clips)
+            elif pos.ndim != 3 or pos.shape[1:] != (38, 3):
+                raise ValueError(
+                    f"clip {p}: positions must be the CMU format (T, 38, 3) or the canonical joints (T, "
+                    f"{NUM_JOINTS}, 3) named in joint_names, got {pos.shape}"
+                )
+            else:
+                joints, source = from_cmu38(pos), "cmu38"
             conf = np.ones(joints.shape[:2])
-            source = "cmu38"
             rate = float(fps or (data["fps"] if "fps" in keys else 30.0))
             times = np.arange(len(joints)) / rate
         elif "joints" in keys:

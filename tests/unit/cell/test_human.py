@@ -27,7 +27,7 @@ from app.cell.validation import CellVolume, FrameRejected, FrameValidator
 from app.config import Settings, load_workcell
 from app.prediction import adapters
 from app.prediction.profiles import min_jerk
-from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, bone_lengths
+from app.prediction.skeleton import JOINT_INDEX, JOINTS, NUM_JOINTS, bone_lengths
 
 CELL = load_workcell()
 FPS = 30.0
@@ -285,13 +285,32 @@ def test_cmu_clip_replays_in_the_operator_area(cmu_dir: Path) -> None:
     assert f.t == pytest.approx(src.duration_s)  # the last frame, then backwards
 
 
+def test_exported_clips_replay_as_recorded(tmp_path: Path) -> None:
+    """The clips of ``hrc export --clips`` (canonical ``positions`` named in ``joint_names``) are read as the
+    canonical recording they are, not as the CMU format (the replay source and ``hrc cell check``)."""
+    rec = load_clip(_sim_clip(tmp_path))
+    np.savez_compressed(
+        tmp_path / "exported.npz",
+        positions=rec.joints.astype(np.float32),
+        fps=np.float64(30.0),
+        joint_names=np.array(JOINTS),
+    )
+    clip = load_clip(tmp_path / "exported.npz")
+    assert clip.source == "canonical" and clip.joints.shape == rec.joints.shape
+    np.testing.assert_allclose(clip.joints, rec.joints, atol=1e-6)
+    np.testing.assert_allclose(clip.times, rec.times)
+
+
 def test_bad_clip_files_are_explained(tmp_path: Path) -> None:
     np.savez(tmp_path / "x.npz", foo=np.zeros(3))
     with pytest.raises(ValueError, match="neither 'positions'"):
         load_clip(tmp_path / "x.npz")
     np.savez(tmp_path / "y.npz", positions=np.zeros((5, 20, 3)))
-    with pytest.raises(ValueError, match=r"\(T, 38, 3\)"):
+    with pytest.raises(ValueError, match=r"\(T, 38, 3\) or the canonical joints \(T, 19, 3\)"):
         load_clip(tmp_path / "y.npz")
+    np.savez(tmp_path / "z.npz", positions=np.zeros((5, 19, 3)), joint_names=np.array(["a"] * 19))
+    with pytest.raises(ValueError, match="named in joint_names"):
+        load_clip(tmp_path / "z.npz")  # 19 joints of another skeleton
     with pytest.raises(ValueError, match="cannot read"):
         load_clip(tmp_path / "missing.npz")
 

@@ -18,7 +18,7 @@ from app.cli import app as cli_app
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
 from app.control.layout import check_layout
-from app.prediction.skeleton import JOINT_INDEX
+from app.prediction.skeleton import JOINT_INDEX, JOINTS
 from tests.unit.planning.test_collision import _standing_person
 from tests.unit.planning.test_ssm_timing import governor
 
@@ -101,6 +101,17 @@ def test_cli_checks_the_shipped_cell_and_names_a_missing_clip(tmp_path: Path) ->
     stations = [poses[s]["separation_m"]["p50"] for s in "ABCD"]
     assert poses["pickup"]["separation_m"]["p50"] > max(stations)
     assert poses["pickup"]["free"] >= max(poses[s]["free"] for s in "ABCD")
+    # a recording in the format of `hrc export --clips`: a person far away leaves every pose free
+    np.savez_compressed(
+        tmp_path / "far.npz",
+        positions=_still(_standing_person(3.5, 0.0), frames=60).astype(np.float32),
+        fps=np.float64(30.0),
+        joint_names=np.array(JOINTS),
+    )
+    far = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(tmp_path / "far.npz"), "--json"])
+    assert far.exit_code == 0, far.output
+    got = json.loads(far.output.strip().splitlines()[-1])
+    assert got["frames"] == 57 and all(p["free"] == 1.0 for p in got["poses"].values())
     missing = tmp_path / "nobody.npz"
     bad = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(missing)])
     assert bad.exit_code == 2 and "nobody.npz" in bad.output and "does not exist" in bad.output
