@@ -208,9 +208,7 @@ def _planner_config() -> Any:
     from app.control.engine import EngineOptions
     from app.planning.search import PlannerConfig
 
-    config = PlannerConfig()
-    t_r = Settings().reaction_time_s(EngineOptions().servo_period_s)
-    return dataclasses.replace(config, ssm=dataclasses.replace(config.ssm, t_reaction_s=t_r))
+    return PlannerConfig().with_reaction_time(Settings().reaction_time_s(EngineOptions().servo_period_s))
 
 
 def _governor_model(ssm: Any) -> Any:

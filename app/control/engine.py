@@ -184,10 +184,7 @@ class PlanningStack:
 
         if self.ssm.t_reaction_s == t_reaction_s:
             return self
-        config = self.planner.config
-        config = dataclasses.replace(
-            config, ssm=dataclasses.replace(config.ssm, t_reaction_s=float(t_reaction_s))
-        )
+        config = self.planner.config.with_reaction_time(t_reaction_s)
         planner = Planner(self.roadmap, self.collision, config=config)
         return dataclasses.replace(self, planner=planner, ssm=config.ssm)
 
@@ -221,9 +218,7 @@ def _build_stack(
     roadmap = load_or_build_roadmap(cell, config=roadmap_config, cache_dir=cache_dir, collision=collision)
     config = planner_config or PlannerConfig()
     if t_reaction_s is not None:
-        config = dataclasses.replace(
-            config, ssm=dataclasses.replace(config.ssm, t_reaction_s=float(t_reaction_s))
-        )
+        config = config.with_reaction_time(t_reaction_s)
     planner = Planner(roadmap, collision, config=config)
     log.info("planning stack for cell %s ready in %.2f s", cell.name, time.perf_counter() - t0)
     return PlanningStack(

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import inspect
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -152,6 +152,11 @@ class PlannerConfig:
             raise ValueError(f"PlannerConfig.heuristic_weight must be >= 1, got {self.heuristic_weight}")
         if self.speed_factor < 1.0:
             raise ValueError(f"PlannerConfig.speed_factor must be >= 1, got {self.speed_factor}")
+
+    def with_reaction_time(self, t_reaction_s: float) -> PlannerConfig:
+        """These settings with the clearance's ``T_r`` set to the installation's (``S_r = v_r T_r``;
+        :meth:`app.config.Settings.reaction_time_s`, the governor's and the monitor's)."""
+        return replace(self, ssm=replace(self.ssm, t_reaction_s=float(t_reaction_s)))
 
 
 @dataclass(frozen=True, slots=True)
