@@ -108,7 +108,8 @@ def check_layout(
     person's directed speed is measured over its speed window, as the supervisor measures it.
 
     Raises:
-        ValueError: no recording is longer than the speed window, or ``speed_mps``/``fps`` is not > 0.
+        ValueError: no recording is longer than the speed window, one has non-finite positions, or
+            ``speed_mps``/``fps`` is not > 0.
     """
     if not (speed_mps > 0 and fps > 0):
         raise ValueError(f"speed_mps and fps must be > 0, got {speed_mps}, {fps}")
@@ -119,6 +120,8 @@ def check_layout(
         raise ValueError(f"no recording has more than {lag} frames (the speed window at {fps:g} fps)")
     now = np.concatenate([a for a, _ in pairs])
     before = np.concatenate([b for _, b in pairs])
+    if not (np.all(np.isfinite(now)) and np.all(np.isfinite(before))):
+        raise ValueError("a recording has NaN or infinite joint positions (frames without the person)")
     dt = lag / fps
     roadmap, geometry = stack.roadmap, stack.geometry
     table = _SpeedTable(governor)

@@ -83,9 +83,13 @@ def test_a_person_reaching_into_a_drop_station_blocks_it(stack: PlanningStack, m
     assert all(p.free == 0.0 for p in report.values() if p.separation_m[1] < z - 0.02)
 
 
-def test_check_refuses_recordings_shorter_than_the_speed_window(stack: PlanningStack, model) -> None:
+def test_check_refuses_recordings_it_cannot_measure(stack: PlanningStack, model) -> None:
     with pytest.raises(ValueError, match="no recording has more than 3 frames"):
         check_layout(stack, model, [_still(_standing_person(3.5), frames=3)], fps=30.0)
+    lost = _still(_standing_person(3.5))
+    lost[10] = np.nan
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        check_layout(stack, model, [lost], fps=30.0)
 
 
 def test_cli_checks_the_shipped_cell_and_names_a_missing_clip(tmp_path: Path) -> None:
