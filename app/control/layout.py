@@ -108,14 +108,17 @@ def check_layout(
     person's directed speed is measured over its speed window, as the supervisor measures it.
 
     Raises:
-        ValueError: no recording is longer than the speed window, one has non-finite positions, or
-            ``speed_mps``/``fps`` is not > 0.
+        ValueError: a recording is not (T, J, 3) or has non-finite positions, none is longer than the
+            speed window, or ``speed_mps``/``fps`` is not > 0.
     """
     if not (speed_mps > 0 and fps > 0):
         raise ValueError(f"speed_mps and fps must be > 0, got {speed_mps}, {fps}")
     lag = max(round(governor.speed_window_s * fps), 1)
     poses = [np.asarray(r, dtype=np.float64) for r in recordings]
-    pairs = [(p[lag:], p[:-lag]) for p in poses if p.ndim == 3 and p.shape[0] > lag]
+    for p in poses:
+        if p.ndim != 3 or p.shape[-1] != 3:
+            raise ValueError(f"a recording must be frames of joint positions (T, J, 3), got {p.shape}")
+    pairs = [(p[lag:], p[:-lag]) for p in poses if p.shape[0] > lag]
     if not pairs:
         raise ValueError(f"no recording has more than {lag} frames (the speed window at {fps:g} fps)")
     now = np.concatenate([a for a, _ in pairs])

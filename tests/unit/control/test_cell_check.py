@@ -86,6 +86,8 @@ def test_a_person_reaching_into_a_drop_station_blocks_it(stack: PlanningStack, m
 def test_check_refuses_recordings_it_cannot_measure(stack: PlanningStack, model) -> None:
     with pytest.raises(ValueError, match="no recording has more than 3 frames"):
         check_layout(stack, model, [_still(_standing_person(3.5), frames=3)], fps=30.0)
+    with pytest.raises(ValueError, match=r"\(T, J, 3\), got \(30, 57\)"):
+        check_layout(stack, model, [_still(_standing_person(3.5)).reshape(30, -1)], fps=30.0)
     lost = _still(_standing_person(3.5))
     lost[10] = np.nan
     with pytest.raises(ValueError, match="NaN or infinite"):
