@@ -12,7 +12,7 @@ import numpy as np
 
 from app.safety._kernels import RobotMotion
 from app.safety._kernels import max_scale as _kernel_max_scale
-from app.safety.ssm import required_separation
+from app.safety.ssm import max_safe_speed, required_separation
 
 # ----------------------------------------------------------------------------------------------------
 # Speed governor: ISO/TS 15066 separation at every servo tick
@@ -439,21 +439,26 @@ class GovernorModel:
         envelope with the person's worst case since the middle of the window and the frame's age, and the
         speed-scaling law where this model has one. Arrays broadcast."""
         vh0 = np.maximum(np.asarray(v_human_mps, dtype=np.float64), 0.0)
-        half = 0.5 * self.speed_window_s
-        x0, _ = self.separation.human_approach(vh0, half)
-        x1, v1 = self.separation.human_approach(vh0, half + self.sensing_age_s)
-        sep_lb = np.asarray(sep_m, dtype=np.float64) - self.tracking_margin_m - (x1 - x0)
+        sep_lb, v1 = self._worst_case(sep_m, vh0)
         v = np.asarray(
             self.separation.max_speed(
                 sep_lb, v_human_mps=v1, decel_mps2=self.brake_decel_mps2, v_cap_mps=v_cap_mps
             ),
             dtype=np.float64,
         )
-        if self.law is not None:  # the law's speed (app.safety.ssm.max_safe_speed), at the measured speed
-            p = self.law.params
-            slack = sep_lb - vh0 * (p.t_reaction_s + p.t_stop_s) - p.constant_m
-            v = np.minimum(v, np.maximum(slack, 0.0) / p.robot_time_s)
+        if self.law is not None:
+            v = np.minimum(v, max_safe_speed(sep_lb, self.law.params, v_human_mps=vh0))
         return v
+
+    def _worst_case(self, sep_m: Any, vh0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The separation's lower bound and the person's speed toward the part when the governor decides,
+        from a separation ``sep_m`` and a directed speed ``vh0`` measured over the speed window: from the
+        middle of the window the approach until the frame was taken is already in the measured separation,
+        the rest of the frame's age is the person's worst case."""
+        half = 0.5 * self.speed_window_s
+        x0, _ = self.separation.human_approach(vh0, half)
+        x1, v1 = self.separation.human_approach(vh0, half + self.sensing_age_s)
+        return np.asarray(sep_m, dtype=np.float64) - self.tracking_margin_m - (x1 - x0), v1
 
     def brake_rate(self, v_top_mps: float, w_top_radps: float) -> float:
         """:func:`brake_rate` with this governor's brake."""
@@ -477,12 +482,7 @@ class GovernorModel:
             return 1.0
         toward = v_parts if v_toward_mps is None else np.asarray(v_toward_mps, dtype=np.float64)
         vh0 = np.asarray(v_human_mps, dtype=np.float64) + self.speed_noise_mps
-        half = 0.5 * self.speed_window_s
-        # from the middle of the speed window: the approach until the frame was taken is already in the
-        # measured separation, the rest of the frame's age is the worst case
-        x0, _ = self.separation.human_approach(vh0, half)
-        x1, v1 = self.separation.human_approach(vh0, half + self.sensing_age_s)
-        sep_lb = np.asarray(sep_m, dtype=np.float64) - self.tracking_margin_m - (x1 - x0)
+        sep_lb, v1 = self._worst_case(sep_m, vh0)
         rate = self.brake_rate(vtop, float(w_top_radps))
         s = self.separation.max_scale(sep_lb, v_human_mps=v1, v_parts_mps=toward, rate=rate)
         if self.law is not None:

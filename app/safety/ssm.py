@@ -187,7 +187,7 @@ def protective_separation(
 
 
 def max_safe_speed(
-    separation_m: float | np.ndarray, params: SSMParams, *, v_human_mps: float | None = None
+    separation_m: float | np.ndarray, params: SSMParams, *, v_human_mps: float | np.ndarray | None = None
 ) -> float | np.ndarray:
     """The largest robot speed (m/s) whose ``S_p`` fits into ``separation_m``: the speed-scaling law.
 
@@ -195,7 +195,8 @@ def max_safe_speed(
     clipped at 0 (the robot must stand still when the person is within ``S_p(0)``).
     """
     d = np.asarray(separation_m, dtype=np.float64)
-    slack = d - params.human_distance_m(v_human_mps) - params.constant_m
+    v_h = params.v_human_mps if v_human_mps is None else np.asarray(v_human_mps, dtype=np.float64)
+    slack = d - v_h * (params.t_reaction_s + params.t_stop_s) - params.constant_m
     out = np.maximum(slack, 0.0) / params.robot_time_s
     return float(out) if out.ndim == 0 else out
 
