@@ -118,6 +118,18 @@ def test_cli_checks_the_shipped_cell_and_names_a_missing_clip(tmp_path: Path) ->
     assert far.exit_code == 0, far.output
     got = json.loads(far.output.strip().splitlines()[-1])
     assert got["frames"] == 57 and all(p["free"] == 1.0 for p in got["poses"].values())
+    # a clip recorded elsewhere (10 m away) is placed in the operator's area with --place
+    np.savez_compressed(
+        tmp_path / "elsewhere.npz",
+        positions=_still(_standing_person(10.0, 4.0), frames=60).astype(np.float32),
+        fps=np.float64(30.0),
+        joint_names=np.array(JOINTS),
+    )
+    args = ["cell", "check", "--clip", str(tmp_path / "elsewhere.npz"), "--json"]
+    away = json.loads(CliRunner().invoke(cli_app, args).output.strip().splitlines()[-1])
+    placed = json.loads(CliRunner().invoke(cli_app, [*args, "--place"]).output.strip().splitlines()[-1])
+    assert away["poses"]["B"]["separation_m"]["p50"] > 8.0
+    assert placed["poses"]["B"]["separation_m"]["p50"] < 1.0
     missing = tmp_path / "nobody.npz"
     bad = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(missing)])
     assert bad.exit_code == 2 and "nobody.npz" in bad.output and "does not exist" in bad.output
