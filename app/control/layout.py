@@ -118,12 +118,10 @@ def check_layout(
     for p in poses:
         if p.ndim != 3 or p.shape[-1] != 3:
             raise ValueError(f"a recording must be frames of joint positions (T, J, 3), got {p.shape}")
-    pairs = [(p[lag:], p[:-lag]) for p in poses if p.shape[0] > lag]
-    if not pairs:
+    used = [p for p in poses if p.shape[0] > lag]
+    if not used:
         raise ValueError(f"no recording has more than {lag} frames (the speed window at {fps:g} fps)")
-    now = np.concatenate([a for a, _ in pairs])
-    before = np.concatenate([b for _, b in pairs])
-    if not (np.all(np.isfinite(now)) and np.all(np.isfinite(before))):
+    if not all(np.all(np.isfinite(p)) for p in used):
         raise ValueError("a recording has NaN or infinite joint positions (frames without the person)")
     dt = lag / fps
     roadmap, geometry = stack.roadmap, stack.geometry
@@ -133,7 +131,7 @@ def check_layout(
         best: tuple[float, int, np.ndarray, np.ndarray] | None = None
         for branch in np.flatnonzero(np.asarray(roadmap.valid[node], dtype=bool)).tolist():
             q = np.asarray(roadmap.ik[node, branch], dtype=np.float64)
-            sep, v_h = _measure(geometry, q, now, before, dt, governor.near_band_m, chunk)
+            sep, v_h = _measure(geometry, q, used, lag, dt, governor.near_band_m, chunk)
             score = float(np.median(sep.min(axis=1)))
             if best is None or score > best[0]:
                 best = (score, int(branch), sep, v_h)
@@ -153,7 +151,8 @@ def check_layout(
         )
     ok = table.values[:, 0] >= speed_mps - 1e-9
     zone = float(table.seps[np.argmax(ok)]) if np.any(ok) else float("inf")
-    return LayoutReport(speed_mps=float(speed_mps), frames=int(now.shape[0]), zone_m=zone, poses=tuple(out))
+    frames = sum(p.shape[0] - lag for p in used)
+    return LayoutReport(speed_mps=float(speed_mps), frames=int(frames), zone_m=zone, poses=tuple(out))
 
 
 class _SpeedTable:
@@ -186,15 +185,23 @@ class _SpeedTable:
 
 
 def _measure(
-    geometry: Any, q: np.ndarray, now: np.ndarray, before: np.ndarray, dt: float, band_m: float, chunk: int
+    geometry: Any,
+    q: np.ndarray,
+    recordings: Sequence[np.ndarray],
+    lag: int,
+    dt: float,
+    band_m: float,
+    chunk: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each part's separation (T, L) from the robot at ``q`` to the person in ``now`` and the person's
-    directed speed (T, L) toward it since ``before``, ``dt`` earlier (:func:`directed_approach`)."""
+    """Each part's separation (N, L) from the robot at ``q`` to the person in every frame of ``recordings``
+    after its first ``lag`` and the person's directed speed (N, L) toward it since the frame ``lag`` (``dt``
+    seconds) earlier (:func:`directed_approach`); each frame's distances are computed once."""
     seps, speeds = [], []
-    for s in range(0, now.shape[0], chunk):
-        d_now = geometry.pair_distances(q, now[s : s + chunk])
-        d_before = geometry.pair_distances(q, before[s : s + chunk])
-        sep, v_h = directed_approach(d_now, d_before, dt, band_m=band_m)
+    for rec in recordings:
+        d = np.concatenate(
+            [geometry.pair_distances(q, rec[s : s + chunk]) for s in range(0, rec.shape[0], chunk)]
+        )
+        sep, v_h = directed_approach(d[lag:], d[:-lag], dt, band_m=band_m)
         seps.append(sep)
         speeds.append(v_h)
     return np.concatenate(seps), np.concatenate(speeds)
