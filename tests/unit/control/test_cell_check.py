@@ -75,12 +75,12 @@ def test_a_person_reaching_into_a_drop_station_blocks_it(stack: PlanningStack, m
     b = np.asarray(next(s.xyz for s in cell.drop_stations if s.name == "B"))
     person = _standing_person(1.3, 0.0)
     person = person + (b - person[JOINT_INDEX["r_hand"]])  # the right hand on station B
-    report = {p.name: p for p in check_layout(stack, model, [_still(person)], fps=30.0).poses}
+    checked = check_layout(stack, model, [_still(person)], fps=30.0)
+    report = {p.name: p for p in checked.poses}
     assert report["B"].free == 0.0 and report["B"].separation_m[1] < 0.1
     assert report["B"].allowed_speed_mps == (0.0, 0.0)
     # the zone: no speed asked of a pose closer than it to a still person is allowed
-    z = check_layout(stack, model, [_still(person)], fps=30.0).zone_m
-    assert all(p.free == 0.0 for p in report.values() if p.separation_m[1] < z - 0.02)
+    assert all(p.free == 0.0 for p in report.values() if p.separation_m[1] < checked.zone_m - 0.02)
 
 
 def test_check_refuses_recordings_it_cannot_measure(stack: PlanningStack, model) -> None:
