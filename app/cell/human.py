@@ -83,65 +83,22 @@ class Clip:
 
 
 def load_clip(path: str | Path, *, fps: float | None = None) -> Clip:
-    """Read a clip: the shared CMU format (``positions`` (T, 38, 3), ``fps``), the clips of ``hrc export
-    --clips`` (``positions`` (T, J, 3) of the canonical ``joint_names``, ``fps``) or a canonical recording
-    (``joints`` (T, J, 3) with ``t`` (T,) or ``fps``, optional ``confidence`` (T, J)).
+    """Read a clip for replay (:func:`app.prediction.data.read_clip_file`, the one reader of clip files:
+    the shared CMU format, ``hrc export --clips`` and the app's own recordings), at its own frame times.
 
     Raises:
-        ValueError: the file is not one of the two formats (the message says what was found).
+        ValueError: the file is not a clip (:class:`app.prediction.data.ClipError`; the message says what
+            was found).
     """
-    p = Path(path)
-    try:
-        data = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"cannot read clip {p}: {exc}") from exc
-    with data:
-        keys = set(data.files)
-        if "positions" in keys:
-            from app.prediction.adapters import from_cmu38
+    from app.prediction.data import read_clip_file
 
-            pos = np.asarray(data["positions"], dtype=np.float64)
-            names = tuple(str(n) for n in data["joint_names"]) if "joint_names" in keys else None
-            if names == JOINTS and pos.ndim == 3 and pos.shape[1:] == (NUM_JOINTS, 3):
-                joints, source = pos, "canonical"  # an exported clip (hrc export --clips)
-            elif pos.ndim != 3 or pos.shape[1:] != (38, 3):
-                raise ValueError(
-                    f"clip {p}: positions must be the CMU format (T, 38, 3) or the canonical joints (T, "
-                    f"{NUM_JOINTS}, 3) named in joint_names, got {pos.shape}"
-                )
-            else:
-                joints, source = from_cmu38(pos), "cmu38"
-            conf = np.ones(joints.shape[:2])
-            rate = float(fps or (data["fps"] if "fps" in keys else 30.0))
-            times = np.arange(len(joints)) / rate
-        elif "joints" in keys:
-            joints = np.asarray(data["joints"], dtype=np.float64)
-            if joints.ndim != 3 or joints.shape[1:] != (NUM_JOINTS, 3):
-                raise ValueError(f"clip {p}: joints must be (T, {NUM_JOINTS}, 3), got {joints.shape}")
-            if "joint_names" in keys and tuple(str(n) for n in data["joint_names"]) != JOINTS:
-                raise ValueError(f"clip {p}: joint_names differ from the canonical skeleton {JOINTS}")
-            conf = np.asarray(data["confidence"], dtype=np.float64) if "confidence" in keys else None
-            if conf is None:
-                conf = np.ones(joints.shape[:2])
-            source = "canonical"
-            if "t" in keys and fps is None:
-                t = np.asarray(data["t"], dtype=np.float64)
-                if t.shape != (len(joints),) or np.any(np.diff(t) <= 0):
-                    raise ValueError(f"clip {p}: t must be (T,) strictly increasing")
-                times = t - t[0]
-                rate = 1.0 / float(np.median(np.diff(t))) if len(t) > 1 else 30.0
-            else:
-                rate = float(fps or (data["fps"] if "fps" in keys else 30.0))
-                times = np.arange(len(joints)) / rate
-        else:
-            raise ValueError(
-                f"clip {p} has neither 'positions' (CMU, (T, 38, 3)) nor 'joints' (canonical); "
-                f"found {sorted(keys)}"
-            )
-    if not np.all(np.isfinite(joints)):
-        raise ValueError(f"clip {p} contains NaN or infinite positions")
+    f = read_clip_file(path, fps=fps)
     return Clip(
-        times=times, joints=joints, confidence=conf, period_s=float(times[-1] + 1.0 / rate), source=source
+        times=f.times,
+        joints=f.joints,
+        confidence=f.confidence,
+        period_s=float(f.times[-1] + 1.0 / f.rate_hz),
+        source=f.source,
     )
 
 

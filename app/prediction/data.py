@@ -1,10 +1,12 @@
 """Clips of joint positions for training and evaluating motion predictors, and their augmentation.
 
-A clip file is an ``.npz`` with ``positions`` (T, K, 3) in metres, z up, ``fps`` and ``joint_names`` (K,).
-Two joint sets are understood: the 38-joint CMU skeleton of the shared ``cmu_mocap`` clips (converted with
+A clip file is an ``.npz`` with ``positions`` (T, K, 3) in metres, z up, ``fps`` and ``joint_names`` (K,), or
+one of the app's own recordings (``joints`` with their times ``t``). Two joint sets are understood: the
+38-joint CMU skeleton of the shared ``cmu_mocap`` clips (converted with
 :func:`~app.prediction.adapters.from_cmu38`, orientation fix included) and the canonical joint set itself
-(``joint_names == JOINTS``), which is the format users add their own recordings in. Clips at another frame
-rate are resampled to 30 Hz by linear interpolation.
+(``joint_names == JOINTS``), which is the format users add their own recordings in. :func:`read_clip_file`
+is the one reader of these files (training here, replay in :mod:`app.cell.human`). For training, clips at
+another frame rate are resampled to 30 Hz by linear interpolation.
 """
 
 from __future__ import annotations
@@ -98,31 +100,114 @@ def resample(positions: np.ndarray, factor: float) -> np.ndarray:
     return positions[i0] * (1.0 - w) + positions[i1] * w
 
 
-def load_clip(path: str | Path, *, name: str | None = None, action: str = "", split: str = "") -> Clip:
-    """Load one ``.npz`` clip and convert it to the canonical joint set at 30 Hz."""
-    path = Path(path)
+@dataclass(frozen=True)
+class ClipFile:
+    """A clip file as recorded (:func:`read_clip_file`): canonical joints and when each frame was taken.
+
+    Attributes:
+        joints: Joint positions (T, J, 3) in the canonical joint set, metres, z up.
+        times: Frame times (T,), seconds from the first frame (strictly increasing, ``times[0] == 0``).
+        confidence: Per-joint confidence (T, J) (1 where the file has none).
+        rate_hz: The nominal frame rate (the file's ``fps``, the median of its ``t`` steps, or 30).
+        uniform: The frames are evenly spaced at :attr:`rate_hz` (not a recording with its own ``t``).
+        source: ``"cmu38"`` (converted from the CMU skeleton) or ``"canonical"``.
+    """
+
+    joints: np.ndarray
+    times: np.ndarray
+    confidence: np.ndarray
+    rate_hz: float
+    uniform: bool
+    source: str
+
+
+def read_clip_file(path: str | Path, *, fps: float | None = None) -> ClipFile:
+    """Read a clip file, the one reader of the formats this project understands:
+
+    - ``positions`` (T, 38, 3) of the shared CMU clips (``joint_names`` the CMU 38-joint skeleton's, or
+      none), with ``fps``; converted with :func:`~app.prediction.adapters.from_cmu38`;
+    - ``positions`` (T, J, 3) of the canonical joint set (``joint_names == JOINTS``, or none), with ``fps``:
+      users' own recordings and ``hrc export --clips``;
+    - ``joints`` (T, J, 3) of the canonical joint set with ``t`` (T,) or ``fps``, optional ``confidence``
+      (T, J) and ``joint_names``: the app's recordings (:func:`app.cell.human.save_clip`).
+
+    ``fps`` overrides the file's rate (and its ``t``). A file without ``fps`` or ``t`` is taken at 30 Hz.
+
+    Raises:
+        ClipError: the file cannot be read, is none of these formats, names another joint set, or holds
+            NaN or infinite positions (the message names the file and says what was found).
+    """
+    p = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
-            positions = np.asarray(data["positions"], dtype=np.float64)
-            fps = float(data["fps"]) if "fps" in data else FPS
-            names = tuple(str(n) for n in data["joint_names"]) if "joint_names" in data else None
-    except (OSError, KeyError, ValueError) as exc:
-        raise ClipError(f"cannot read clip {path}: {exc} (need 'positions', 'fps', 'joint_names')") from exc
-    if positions.ndim != 3 or positions.shape[-1] != 3:
-        raise ClipError(f"clip {path}: positions must be (T, K, 3), got {positions.shape}")
-    if names == CMU38_NAMES:
-        joints = from_cmu38(positions)
-    elif names == JOINTS or (names is None and positions.shape[1] == NUM_JOINTS):
-        joints = positions
+        data = np.load(p, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ClipError(f"cannot read clip {p}: {exc}") from exc
+    try:
+        with data:
+            keys = set(data.files)
+            names = tuple(str(n) for n in data["joint_names"]) if "joint_names" in keys else None
+            file_fps = float(data["fps"]) if "fps" in keys else None
+            if "positions" in keys:
+                pos = np.asarray(data["positions"], dtype=np.float64)
+                t = conf = None
+                recording = False
+            elif "joints" in keys:
+                pos = np.asarray(data["joints"], dtype=np.float64)
+                t = np.asarray(data["t"], dtype=np.float64) if "t" in keys else None
+                conf = np.asarray(data["confidence"], dtype=np.float64) if "confidence" in keys else None
+                recording = True
+            else:
+                raise ClipError(
+                    f"clip {p} has neither 'positions' (the CMU skeleton (T, 38, 3) or the canonical joints "
+                    f"(T, {NUM_JOINTS}, 3)) nor 'joints' (a canonical recording); found {sorted(keys)}"
+                )
+    except (OSError, ValueError, KeyError) as exc:
+        if isinstance(exc, ClipError):
+            raise
+        raise ClipError(f"cannot read clip {p}: {exc}") from exc
+    k = pos.shape[1] if pos.ndim == 3 and pos.shape[2] == 3 else None
+    if k == 38 and names in (None, CMU38_NAMES) and not recording:
+        joints, source = from_cmu38(pos), "cmu38"
+    elif k == NUM_JOINTS and names in (None, JOINTS):
+        joints, source = pos, "canonical"
     else:
+        named = f"{len(names)} joint_names" if names is not None else "no joint_names"
         raise ClipError(
-            f"clip {path}: unknown joint set with {positions.shape[1]} joints; use the CMU 38-joint names "
-            f"or the canonical JOINTS ({NUM_JOINTS})"
+            f"clip {p}: unknown joint set: {pos.shape} with {named}; expected the CMU skeleton (T, 38, 3) or "
+            f"the canonical joints (T, {NUM_JOINTS}, 3) named in joint_names"
         )
+    if len(joints) < 1:
+        raise ClipError(f"clip {p} has no frames")
     if not np.all(np.isfinite(joints)):
-        raise ClipError(f"clip {path}: positions contain NaN or infinite values")
-    if abs(fps - FPS) > 1e-6:
-        joints = resample(joints, fps / FPS)
+        raise ClipError(f"clip {p}: positions contain NaN or infinite values")
+    if conf is None:
+        conf = np.ones(joints.shape[:2])
+    elif conf.shape != joints.shape[:2]:
+        raise ClipError(f"clip {p}: confidence must be (T, {NUM_JOINTS}), got {conf.shape}")
+    if t is not None and fps is None:
+        if t.shape != (len(joints),) or np.any(np.diff(t) <= 0) or not np.all(np.isfinite(t)):
+            raise ClipError(f"clip {p}: t must be (T,) finite and strictly increasing")
+        rate = 1.0 / float(np.median(np.diff(t))) if len(t) > 1 else FPS
+        return ClipFile(joints, t - t[0], conf, rate, False, source)
+    rate = float(fps or file_fps or FPS)
+    if not (np.isfinite(rate) and rate > 0):
+        raise ClipError(f"clip {p}: fps must be a positive number, got {rate}")
+    return ClipFile(joints, np.arange(len(joints)) / rate, conf, rate, True, source)
+
+
+def load_clip(path: str | Path, *, name: str | None = None, action: str = "", split: str = "") -> Clip:
+    """Load one ``.npz`` clip (:func:`read_clip_file`) in the canonical joint set at 30 Hz: evenly spaced
+    frames at another rate are resampled (:func:`resample`), a recording's own frame times interpolated."""
+    path = Path(path)
+    f = read_clip_file(path)
+    joints = f.joints
+    if not f.uniform:
+        grid = np.arange(0.0, f.times[-1] + 1e-9, 1.0 / FPS)
+        flat = joints.reshape(len(joints), -1)
+        joints = np.stack([np.interp(grid, f.times, flat[:, i]) for i in range(flat.shape[1])], axis=1)
+        joints = joints.reshape(len(grid), NUM_JOINTS, 3)
+    elif abs(f.rate_hz - FPS) > 1e-6:
+        joints = resample(joints, f.rate_hz / FPS)
     return Clip(name=name or path.stem, positions=joints, action=action, split=split)
 
 

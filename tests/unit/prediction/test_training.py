@@ -109,6 +109,43 @@ def test_load_clip_formats(tmp_path: Path) -> None:
         load_clip_dir(tmp_path / "nowhere")
 
 
+def test_one_reader_for_every_clip_file(tmp_path: Path) -> None:
+    """Training and replay read clip files with one reader: a canonical recording with its own frame times
+    (the app's recordings) trains at 30 Hz, interpolated; the replay loader sees the same joints at the
+    recorded times; a recording of another skeleton is refused by both, naming the file."""
+    from app.cell.human import load_clip as load_replay
+    from app.prediction.data import read_clip_file
+
+    pos = _synthetic(1, frames=31)  # 30 Hz, 1 s
+    t = np.sort(np.random.default_rng(0).uniform(0.0, 1.0, 29))
+    t = np.concatenate([[0.0], t, [1.0]]) + 5.0  # irregular frame times, as a tracker delivers them
+    rec = np.stack(
+        [np.interp(t - 5.0, np.arange(31) / 30, pos[:, j, a]) for j in range(NUM_JOINTS) for a in range(3)]
+    )
+    rec = rec.T.reshape(31, NUM_JOINTS, 3)
+    np.savez(tmp_path / "rec.npz", t=t, joints=rec, joint_names=np.array(JOINTS))
+    f = read_clip_file(tmp_path / "rec.npz")
+    assert f.source == "canonical" and not f.uniform
+    np.testing.assert_allclose(f.times, t - 5.0)
+    replay = load_replay(tmp_path / "rec.npz")
+    np.testing.assert_allclose(replay.times, f.times)
+    np.testing.assert_allclose(replay.joints, rec)
+    train_clip = load_clip(tmp_path / "rec.npz")
+    assert train_clip.frames == 31  # 0 .. 1 s at 30 Hz
+    np.testing.assert_allclose(
+        train_clip.positions, pos, atol=0.05
+    )  # linear interpolation of a smooth motion
+    np.testing.assert_allclose(train_clip.positions[0], rec[0])
+    np.testing.assert_allclose(train_clip.positions[-1], rec[-1])
+    np.savez(tmp_path / "other.npz", t=np.arange(3) / 30, joints=np.zeros((3, 38, 3)))
+    for loader in (load_clip, load_replay, read_clip_file):
+        with pytest.raises(ClipError, match=r"other\.npz: unknown joint set"):
+            loader(tmp_path / "other.npz")
+    np.savez(tmp_path / "back.npz", t=np.array([0.0, 0.1, 0.05]), joints=np.zeros((3, NUM_JOINTS, 3)))
+    with pytest.raises(ClipError, match="strictly increasing"):
+        load_clip(tmp_path / "back.npz")
+
+
 def test_clip_dir_splits(clip_dir: Path) -> None:
     assert [c.name for c in load_clip_dir(clip_dir, split="test")] == ["walk_10", "walk_11"]
     assert len(load_clip_dir(clip_dir)) == 8
