@@ -183,8 +183,10 @@ def summarise(runs: dict[str, list[Run]], generous: Sequence[bool | None]) -> di
     return out
 
 
-def count_violations(traj: Any, forecast: Any, model: Any, ssm: Any, *, hold_s: float) -> int:
-    """1 if the trajectory breaks the limits or the separation anywhere on a 100 Hz grid, else 0."""
+def count_violations(traj: Any, forecast: Any, model: Any, ssm: Any, *, hold_s: float, stopping: Any) -> int:
+    """1 if the trajectory breaks the limits or the separation anywhere on a 100 Hz grid, else 0: the
+    clearance of :func:`app.safety.ssm.forecast_clearance` with the robot's speeds there (central
+    differences) and the planner's stopping model ``stopping``."""
     from app.planning.kinematics import Q_MAX, Q_MIN
     from app.safety.ssm import forecast_clearance
 
@@ -193,12 +195,15 @@ def count_violations(traj: Any, forecast: Any, model: Any, ssm: Any, *, hold_s: 
     if np.any(q < Q_MIN - 1e-9) or np.any(q > Q_MAX + 1e-9):
         return 1
     eps = 1e-5
-    a0, b0, _ = model.robot_capsules(traj.q(t - eps))
-    a1, b1, _ = model.robot_capsules(traj.q(t + eps))
+    q0, q1 = traj.q(t - eps), traj.q(t + eps)
+    a0, b0, _ = model.robot_capsules(q0)
+    a1, b1, _ = model.robot_capsules(q1)
     v = np.maximum(np.linalg.norm(a1 - a0, axis=-1), np.linalg.norm(b1 - b0, axis=-1)).max(axis=1) / (2 * eps)
+    w = np.abs(q1 - q0).max(axis=1) / (2 * eps)
     joints, margins = forecast.poses_at(t)
     d = model.distance_to_human_paired(q, joints)
-    return int(np.any(d < forecast_clearance(v, margins, ssm) - 1e-9))
+    need = forecast_clearance(v, margins, ssm, w_top_radps=w, stopping=stopping)
+    return int(np.any(d < need - 1e-9))
 
 
 def _planner_config() -> Any:
@@ -396,7 +401,12 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
             if results[name].ok:
                 executed = _as_executed(results[name], qr.forecast, model, timing)
                 violations += count_violations(
-                    executed, qr.forecast, model, ssm, hold_s=planner.config.goal_hold_s
+                    executed,
+                    qr.forecast,
+                    model,
+                    ssm,
+                    hold_s=planner.config.goal_hold_s,
+                    stopping=planner.config.stopping,
                 )
                 checked += 1
         if results["plan"].ok or results["parallel_plan"].ok:
@@ -420,6 +430,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     model,
                     ssm,
                     hold_s=planner.config.goal_hold_s,
+                    stopping=planner.config.stopping,
                 )
                 checked += 1
         em = results["emergency"]
@@ -429,13 +440,14 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
             from app.safety.ssm import forecast_clearance
 
             # an escape (the start already too close) follows its own rule: never closer than at the start
-            if d_start >= float(forecast_clearance(0.0, margin, ssm)):
+            if d_start >= float(forecast_clearance(0.0, margin, ssm, w_top_radps=0.0)):
                 violations += count_violations(
                     em.trajectory,
                     _held(qr.forecast, qr.t_start),
                     model,
                     ssm,
                     hold_s=planner.config.emergency_hold_s,
+                    stopping=planner.config.stopping,
                 )
                 checked += 1
         if progress and (i + 1) % 10 == 0:

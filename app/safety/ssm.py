@@ -24,6 +24,7 @@ How the parts of the app use this module:
 - The planner replaces the worst-case ``S_h`` term by the *forecast* of the person over the horizon and
   requires :func:`forecast_clearance` = ``S_r + S_s + C + Z_r + max(Z_d, margin)`` from the forecast pose
   at every sampled instant of a motion, ``margin`` being the forecast's own error margin at that instant
+  and ``S_s`` the stopping model's (:mod:`app.safety.stopping`), as the governor's and the monitor's
   (see :mod:`app.planning.search`).
 
 All lengths in metres, speeds in m/s, times in seconds.
@@ -34,6 +35,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from app.safety.stopping import UR5E_STOP, StoppingModel
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,6 +55,9 @@ class SSMParams:
       stopping distance", category 1 and 2 graphs) gives stopping times that grow with speed, extension and
       payload; the UR5 CB3 manual's worst case (category 0, full extension, 5 kg, 183 deg/s) is 0.53 s for
       the shoulder, 0.24 s for the base and 0.16 s for the elbow. Use 0.53 for a worst-case configuration.
+      Only the standard's constant-speed law uses it (:func:`protective_separation`, :func:`speed_scale`,
+      :func:`max_safe_speed`); the planner's clearance, the governor's envelope and the ground-truth monitor
+      take ``T_s`` from the robot's current speed with the stopping model (:mod:`app.safety.stopping`).
     - ``intrusion_m = 0.05``: ``C``. ISO 13855 derives C from the sensor's detection capability; with a
       skeleton tracker and body capsules only fingers and clothing reach beyond the model.
     - ``z_human_m = 0.05``: ``Z_d``, the skeleton tracker's position error (a few cm for a ZED2 at 1-2 m).
@@ -98,35 +104,31 @@ class SSMParams:
         return v_h * (self.t_reaction_s + self.t_stop_s)
 
 
-def robot_stopping_distance(v_robot_mps: float | np.ndarray, params: SSMParams) -> float | np.ndarray:
-    """``S_s = v_r T_s / 2`` (m): the distance the robot covers while braking from ``v_robot_mps``."""
-    return np.maximum(v_robot_mps, 0.0) * params.t_stop_s / 2
-
-
-def robot_clearance(v_robot_mps: float | np.ndarray, params: SSMParams) -> float | np.ndarray:
-    """``S_r + S_s + C + Z_d + Z_r`` (m): ``S_p`` without the person's own motion ``S_h``.
-
-    This is what the planner requires between the robot and the *forecast* person (the forecast stands in
-    for ``S_h``). Works element-wise on arrays of speeds.
-    """
-    v = np.maximum(v_robot_mps, 0.0)
-    out = v * params.robot_time_s + params.constant_m
-    return float(out) if np.ndim(out) == 0 else out
-
-
 def forecast_clearance(
-    v_robot_mps: float | np.ndarray, margin_m: float | np.ndarray, params: SSMParams
+    v_robot_mps: float | np.ndarray,
+    margin_m: float | np.ndarray,
+    params: SSMParams,
+    *,
+    w_top_radps: float | np.ndarray,
+    stopping: StoppingModel = UR5E_STOP,
 ) -> float | np.ndarray:
-    """The separation (m) the planner requires from a *forecast* pose whose error margin is ``margin_m``.
+    """The separation (m) the planner requires from a *forecast* pose whose error margin is ``margin_m``,
+    of a robot whose fastest point moves at ``v_robot_mps`` and fastest joint at ``w_top_radps``.
 
     ``S_r + S_s + C + Z_r + max(Z_d, margin)``: the forecast replaces ``S_h``, and its margin (the error
     of tracking plus prediction at that horizon, see :class:`app.prediction.forecast.HumanForecast`) takes
     the place of the sensing uncertainty ``Z_d`` where it is larger (both describe where the person may be
-    instead of where they are reported; adding them would count the tracking error twice). Element-wise.
+    instead of where they are reported; adding them would count the tracking error twice). ``S_r = v T_r``
+    and ``S_s`` is the one stopping model's (:mod:`app.safety.stopping`, the governor's and the ground-truth
+    monitor's): the robot stops in ``T_s = max(v / decel, w / joint decel)`` (a robot moving its joints at
+    half their limit needs about 0.5 s, one creeping a few hundredths), and ``v`` covers ``v T_s / 2`` of
+    it. ``params.t_stop_s`` (the constant-speed law's ``T_s``) does not enter. Element-wise.
     """
     v = np.maximum(v_robot_mps, 0.0)
+    t_s = stopping.stop_time_s(v, w_top_radps)
     out = (
-        v * params.robot_time_s
+        v * params.t_reaction_s
+        + stopping.stop_distance_m(v, t_s)
         + params.intrusion_m
         + params.z_robot_m
         + np.maximum(params.z_human_m, np.asarray(margin_m, dtype=np.float64))

@@ -53,16 +53,24 @@ class StoppingModel:
         if not (math.isfinite(self.delay_s) and 0.0 <= self.delay_s <= 1.0):
             raise ValueError(f"StoppingModel.delay_s must be in [0, 1] s, got {self.delay_s!r}")
 
-    def stop_time_s(self, v_top_mps: float, w_top_radps: float = 0.0) -> float:
+    def stop_time_s(
+        self, v_top_mps: float | np.ndarray, w_top_radps: float | np.ndarray = 0.0
+    ) -> float | np.ndarray:
         """``T_s`` (s) of a robot whose fastest point moves at ``v_top_mps`` and fastest joint at
-        ``w_top_radps``."""
-        brake = max(max(v_top_mps, 0.0) / self.decel_mps2, max(w_top_radps, 0.0) / self.joint_decel_radps2)
-        return self.delay_s + brake
+        ``w_top_radps``. Element-wise."""
+        brake = np.maximum(
+            np.maximum(v_top_mps, 0.0) / self.decel_mps2,
+            np.maximum(w_top_radps, 0.0) / self.joint_decel_radps2,
+        )
+        out = self.delay_s + brake
+        return float(out) if np.ndim(out) == 0 else out
 
-    def stop_distance_m(self, v_part_mps: float | np.ndarray, t_stop_s: float) -> float | np.ndarray:
+    def stop_distance_m(
+        self, v_part_mps: float | np.ndarray, t_stop_s: float | np.ndarray
+    ) -> float | np.ndarray:
         """``S_s`` (m): how far a part moving at ``v_part_mps`` goes during a stop of ``t_stop_s`` (its speed
         falls linearly to 0 over the braking part of the stop). Element-wise."""
-        brake = max(t_stop_s - self.delay_s, 0.0)
+        brake = np.maximum(np.asarray(t_stop_s, dtype=np.float64) - self.delay_s, 0.0)
         out = np.maximum(v_part_mps, 0.0) * (self.delay_s + 0.5 * brake)
         return float(out) if np.ndim(out) == 0 else out
 

@@ -100,8 +100,9 @@ class Requirement(NamedTuple):
     """How much separation a sample needs, and when it is checked (relative to its own time)."""
 
     offsets: np.ndarray  #: (n_off,) time offsets at which every sample is checked (s)
-    #: ``growth_mps, max_margin_m, robot_time_s, intrusion_m, z_robot_m, z_human_m, extra_m, floor_m``
-    #: (+inf: none), then optionally the SSM-aware table: its step in m/s and its values
+    #: ``growth_mps, max_margin_m, t_reaction_s, intrusion_m, z_robot_m, z_human_m, extra_m, floor_m``
+    #: (+inf: none), the stopping model's ``decel_mps2, joint_decel_radps2, delay_s``, then optionally the
+    #: SSM-aware table: its step in m/s and its values
     params: np.ndarray
 
 
@@ -118,13 +119,17 @@ class ForecastPoses(NamedTuple):
 
 
 class Clearance(NamedTuple):
-    """The terms of :func:`app.safety.ssm.forecast_clearance` and its cap."""
+    """The terms of :func:`app.safety.ssm.forecast_clearance` (its stopping model's figures with them) and
+    its cap."""
 
-    robot_time_s: float
+    t_reaction_s: float
     intrusion_m: float
     z_robot_m: float
     z_human_m: float
     floor_m: float  #: +inf: none
+    decel_mps2: float
+    joint_decel_radps2: float
+    delay_s: float
 
 
 # ------------------------------------------------------------------------------------ the planner's tables

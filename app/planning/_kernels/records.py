@@ -535,7 +535,7 @@ def wait_samples(
             for o in range(n_off):
                 to = ts[k, i] + offsets[o]
                 t_all[o, x] = to
-                req[o, x] = _required(0.0, _margin_at(to, times, margins, growth, cap), prm)
+                req[o, x] = _required(0.0, 0.0, _margin_at(to, times, margins, growth, cap), prm)
     return qs, t_all, req, cen, rad, ts
 
 

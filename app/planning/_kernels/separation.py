@@ -235,19 +235,31 @@ def _margin_at(t: float, times: np.ndarray, margins: np.ndarray, growth: float, 
 
 
 @_jit
-def _required(v: float, margin: float, prm: np.ndarray) -> float:
-    """:func:`app.safety.ssm.forecast_clearance` + the extra distance (+ the SSM-aware table where
-    ``prm`` carries one: :meth:`app.planning.search._Separation.ssm_extra`), capped at the floor (m);
-    ``prm``: :attr:`Requirement.params`."""
-    req = max(v, 0.0) * prm[2] + prm[3] + prm[4] + max(prm[5], margin)
+def _robot_distance(v: float, w: float, t_r: float, decel: float, joint_decel: float, delay: float) -> float:
+    """``S_r + S_s`` (m) of :func:`app.safety.ssm.forecast_clearance`: a robot whose fastest point moves at
+    ``v`` (m/s) and fastest joint at ``w`` (rad/s) goes ``v T_r`` before it brakes and ``S_s`` of the
+    stopping model (:class:`app.safety.stopping.StoppingModel`: ``decel``, ``joint_decel``, ``delay``)
+    while it stops."""
+    v = max(v, 0.0)
+    brake = max(v / decel, max(w, 0.0) / joint_decel)
+    return v * t_r + v * (delay + 0.5 * brake)
+
+
+@_jit
+def _required(v: float, w: float, margin: float, prm: np.ndarray) -> float:
+    """:func:`app.safety.ssm.forecast_clearance` for a robot whose fastest point moves at ``v`` (m/s) and
+    fastest joint at ``w`` (rad/s) + the extra distance (+ the SSM-aware table where ``prm`` carries one:
+    :meth:`app.planning.search._Separation.ssm_extra`), capped at the floor (m); ``prm``:
+    :attr:`Requirement.params`."""
+    req = _robot_distance(v, w, prm[2], prm[8], prm[9], prm[10]) + prm[3] + prm[4] + max(prm[5], margin)
     n = prm.shape[0]
-    if n > 10:  # SSM-aware: the governor's extra clearance at speed v, tabulated from prm[9] every prm[8]
-        x = max(v, 0.0) / prm[8]
+    if n > 13:  # SSM-aware: the governor's extra clearance at speed v, tabulated from prm[12] every prm[11]
+        x = max(v, 0.0) / prm[11]
         i = int(x)
-        if i >= n - 10:
+        if i >= n - 13:
             req += prm[n - 1]
         else:
-            req += prm[9 + i] + (x - i) * (prm[10 + i] - prm[9 + i])
+            req += prm[12 + i] + (x - i) * (prm[13 + i] - prm[12 + i])
     return min(req + prm[6], prm[7])
 
 
@@ -361,6 +373,11 @@ def moves_separation_ok(
         hk = h[k]
         clock = dur / max(hk, 1e-12) if hk > 0 else 1.0  # profile seconds per real second
         kv = speed_factor * chord * clock / max(Lk, 1e-12) if Lk > 1e-12 else 0.0
+        # the fastest joint's speed per unit of path speed (a straight joint move: exact)
+        dq_max = 0.0
+        for j in range(6):
+            dq_max = max(dq_max, abs(dq[j]))
+        kw = dq_max * clock / max(Lk, 1e-12) if Lk > 1e-12 else 0.0
         # stage 0: the whole move (and its hold) against the person's box over its time window
         t0 = t_dep[k] + lo_off
         t1 = t_dep[k] + hk + (hold_s if hold[k] else 0.0) + hi_off
@@ -369,7 +386,7 @@ def moves_separation_ok(
             hi[3],
             max(_margin_at(t0, times, margins, growth, cap), _margin_at(t1, times, margins, growth, cap)),
         )
-        rq = _required(kv * peak, m_hi, prm)
+        rq = _required(kv * peak, kw * peak, m_hi, prm)
         for l in range(L):  # noqa: E741
             for j in range(3):
                 cen[l, j] = 0.5 * (cen_a[k, l, j] + cen_tab[rb, l, j])
@@ -391,6 +408,7 @@ def moves_separation_ok(
                 qbuf[0, j] = q_a[k, j] + frac * dq[j]
             ts = t_dep[k] + tau + (0.0 if in_move else (i - n) * hold_step)
             v = kv * speed if in_move else 0.0
+            w = kw * speed if in_move else 0.0
             # each capsule lies within its start sphere grown by frac * travel and its end sphere grown by
             # (1 - frac) * travel: the smaller of the two
             for l in range(L):  # noqa: E741
@@ -407,7 +425,7 @@ def moves_separation_ok(
             have_segments = False
             for o in range(n_off):
                 to = ts + offsets[o]
-                rq = _required(v, _margin_at(to, times, margins, growth, cap), prm)
+                rq = _required(v, w, _margin_at(to, times, margins, growth, cap), prm)
                 n_samples += 1
                 ip = min(max(_pose_index(times, to) - 1, 0), n_pair - 1)
                 if not _sphere_gaps_near(cen, rad, lo_pair[ip], hi_pair[ip], rq, near):

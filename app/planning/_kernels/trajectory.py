@@ -18,7 +18,7 @@ from app.planning._kernels.arrays import (
 )
 from app.planning._kernels.base import _jit, _pose_index
 from app.planning._kernels.geometry import _person_capsules, _segments_one
-from app.planning._kernels.separation import _too_close
+from app.planning._kernels.separation import _robot_distance, _too_close
 
 __all__ = ["trajectory_first_violation"]
 
@@ -82,8 +82,9 @@ def trajectory_first_violation(
     q_lo, q_hi = limits.lo, limits.hi
     fc_times, fc_joints, fc_margins = forecast.times, forecast.joints, forecast.margins
     growth, cap, r_human_max = forecast.growth, forecast.cap, forecast.r_max
-    robot_time_s, intrusion_m = clearance.robot_time_s, clearance.intrusion_m
+    t_r, intrusion_m = clearance.t_reaction_s, clearance.intrusion_m
     z_robot_m, z_human_m, floor_m = clearance.z_robot_m, clearance.z_human_m, clearance.floor_m
+    decel, joint_decel, delay = clearance.decel_mps2, clearance.joint_decel_radps2, clearance.delay_s
     ra = robot.ra
     ia, ib, rh = person.ia, person.ib, person.rh
     N = ts.shape[0]
@@ -154,7 +155,12 @@ def trajectory_first_violation(
         if not (finite and margin == margin):
             return k
         v = max(step / eps, 0.0)
-        req = v * robot_time_s + intrusion_m + z_robot_m + max(z_human_m, margin)
+        w_top = 0.0  # the fastest joint (rad/s)
+        for j in range(6):
+            w_top = max(w_top, abs(q1[0, j] - q0[0, j]))
+        w_top /= eps
+        req = _robot_distance(v, w_top, t_r, decel, joint_decel, delay)
+        req += intrusion_m + z_robot_m + max(z_human_m, margin)
         req = min(req, floor_m)
         any_near = False
         for l in range(L):  # noqa: E741

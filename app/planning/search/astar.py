@@ -340,6 +340,7 @@ class _Search:
             self._ik[goal, branches],
             np.full(nb, ts[-1]),
             np.zeros(nb),
+            np.zeros(nb),
             self._cen_all[goal, branches],
             self._rad_all[goal, branches],
         )
@@ -349,6 +350,7 @@ class _Search:
         ok = sep.check(
             self._ik[goal, rep],
             np.tile(ts, nb),
+            np.zeros(rep.size),
             np.zeros(rep.size),
             self._cen_all[goal, rep],
             self._rad_all[goal, rep],

@@ -12,6 +12,7 @@ import numpy as np
 
 from app.planning.trajectory import Plan, Trajectory
 from app.safety.ssm import SSMParams
+from app.safety.stopping import UR5E_STOP, StoppingModel
 
 _TWO_PI = 2.0 * math.pi
 _EPS_T = 1e-9
@@ -44,6 +45,9 @@ class PlannerConfig:
     Attributes:
         ssm: ISO/TS 15066 parameters (``S_r``, ``S_s``, ``C``, ``Z_d``, ``Z_r`` are required around the
             forecast person; ``S_h`` is replaced by the forecast).
+        stopping: The robot's stopping model (:mod:`app.safety.stopping`, the governor's and the
+            ground-truth monitor's): ``S_s`` of the clearance, from the fastest point's and fastest joint's
+            speeds (:func:`app.safety.ssm.forecast_clearance`).
         speed_fraction: Cruise path speed as a fraction of the joint velocity limits (the largest joint moves
             at ``speed_fraction * QD_MAX``).
         accel_fraction: Fraction of the joint acceleration limits the edge timing plans with (the rest is
@@ -104,6 +108,7 @@ class PlannerConfig:
     """
 
     ssm: SSMParams = field(default_factory=SSMParams)
+    stopping: StoppingModel = UR5E_STOP
     speed_fraction: float = 0.5
     accel_fraction: float = 0.8
     min_edge_s: float = 0.02

@@ -67,7 +67,7 @@ class _MoveChecks:
                 hold_s,
                 target_geometry=target_geometry,
             )
-        sel, owner, q, t, v, cen, rad = self._move_samples(
+        sel, owner, q, t, v, w, cen, rad = self._move_samples(
             sep,
             q_a,
             pts_a,
@@ -87,7 +87,7 @@ class _MoveChecks:
             target_geometry=target_geometry,
         )
         if sel.size:
-            ok_s = sep.check(q, t, v, cen, rad, owner)
+            ok_s = sep.check(q, t, v, w, cen, rad, owner)
             result[sel] = np.bincount(owner, weights=~ok_s, minlength=sel.size) == 0
         return result
 
@@ -107,8 +107,8 @@ class _MoveChecks:
     ) -> tuple[np.ndarray, ...]:
         """Per move (arguments as in :meth:`_move_samples`): the joint step ``dq`` (M, 6), how far the
         joints can carry each capsule ``travel`` (M, L), the target's spheres ``cen_b`` (M, L, 3) / ``rad_b``
-        (M, L), the profile's duration and peak speed, its clock (profile seconds per real second) and
-        ``kv`` (m/s per unit of path speed)."""
+        (M, L), the profile's duration and peak speed, its clock (profile seconds per real second),
+        ``kv`` (m/s per unit of path speed) and ``kw`` (the fastest joint's rad/s per unit of path speed)."""
         M = q_a.shape[0]
         dq = target - q_a
         cum = np.concatenate([np.zeros((M, 1)), np.cumsum(np.abs(dq) * self._lever, axis=1)], axis=1)
@@ -123,7 +123,9 @@ class _MoveChecks:
         clock = np.where(h > 0, dur / np.maximum(h, 1e-12), 1.0)  # profile seconds per real second
         # m/s per unit of path speed
         kv = np.where(moving, self.config.speed_factor * chord * clock / np.maximum(L, 1e-12), 0.0)
-        return dq, travel, cen_b, rad_b, dur, peak, clock, kv
+        # the joints move along dq in proportion to the path: the fastest one at max|dq| per unit of it
+        kw = np.where(moving, np.abs(dq).max(axis=1) * clock / np.maximum(L, 1e-12), 0.0)
+        return dq, travel, cen_b, rad_b, dur, peak, clock, kv, kw
 
     def _moves_ok_compiled(
         self,
@@ -212,9 +214,10 @@ class _MoveChecks:
     ) -> tuple[np.ndarray, ...]:
         """The samples of the moves (and the holds at their end where ``hold``) that stage 0 cannot pass.
 
-        Returns ``(sel (M',), owner (S,), q (S, 6), t (S,), v (S,), cen (S, L, 3), rad (S, L))``: the moves
-        that need samples and, per sample, its move (index into ``sel``), configuration, time, robot speed
-        (m/s) and the spheres that contain the robot's capsules. A move passes when all its samples pass.
+        Returns ``(sel (M',), owner (S,), q (S, 6), t (S,), v (S,), w (S,), cen (S, L, 3), rad (S, L))``: the
+        moves that need samples and, per sample, its move (index into ``sel``), configuration, time, robot
+        speed (m/s), fastest joint speed (rad/s) and the spheres that contain the robot's capsules. A move
+        passes when all its samples pass.
 
         Per move: the start configuration ``q_a`` with its capsule points/spheres, the target roadmap node
         ``cv`` at branch ``b`` (configuration ``target``), departure, duration, entry speed (``<= f``),
@@ -225,12 +228,14 @@ class _MoveChecks:
         The robot speed of a sample (for ``S_r + S_s``) is the largest speed the path-speed profile reaches
         between the previous sample and this one, turned into m/s with the move's largest chord (the
         furthest any capsule point travels between the two configurations) per unit of path, times
-        ``speed_factor`` (arcs are longer than chords); the hold after a move is at rest.
+        ``speed_factor`` (arcs are longer than chords); its fastest joint's speed (for ``T_s``) is the
+        same profile speed times the largest joint step per unit of path (a straight joint move: exact);
+        the hold after a move is at rest.
         """
         M = q_a.shape[0]
         cfg = self.config
         A = self._A
-        dq, travel, cen_b, rad_b, dur, peak, clock, kv = self._move_prep(
+        dq, travel, cen_b, rad_b, dur, peak, clock, kv, kw = self._move_prep(
             q_a, pts_a, cv, b, target, h, u0, L, end_rest, f, target_geometry
         )
         # stage 0: moves far from the person over their whole time window pass without samples; a capsule
@@ -242,6 +247,7 @@ class _MoveChecks:
             t_dep,
             t_dep + h + np.where(hold, hold_s, 0.0),
             kv * peak,
+            kw * peak,
         )
         sel = np.flatnonzero(near)
         if sel.size < M:
@@ -249,7 +255,7 @@ class _MoveChecks:
                 x[sel]
                 for x in (q_a, cen_a, rad_a, cen_b, rad_b, t_dep, h, u0, L, end_rest, f, hold, dq, travel)
             )
-            dur, clock, kv = dur[sel], clock[sel], kv[sel]
+            dur, clock, kv, kw = dur[sel], clock[sel], kv[sel], kw[sel]
         M = sel.size
         # samples: the move every sample_dt_s (its end included), then the hold
         n = np.maximum(np.ceil(h / cfg.sample_dt_s - 1e-9), 1).astype(np.int64)
@@ -275,6 +281,7 @@ class _MoveChecks:
         q = q_a[owner] + frac[:, None] * dq[owner]
         t = t_dep[owner] + tau + np.where(in_move, 0.0, (i - n_o) * (hold_s / max(n_hold_1, 1)))
         v = np.where(in_move, kv[owner] * speed, 0.0)
+        w = np.where(in_move, kw[owner] * speed, 0.0)
         # capsule l lies within its start sphere grown by frac * T_l and its end sphere grown by
         # (1 - frac) * T_l; take the smaller sphere
         fo = frac[:, None]
@@ -284,4 +291,4 @@ class _MoveChecks:
         use_a = ra <= rb
         cen = np.where(use_a[..., None], cen_a[owner], cen_b[owner])
         rad = np.where(use_a, ra, rb)
-        return sel, owner, q, t, v, cen, rad
+        return sel, owner, q, t, v, w, cen, rad

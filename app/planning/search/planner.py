@@ -279,6 +279,7 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
             robot_r=self._robot_r,
             kernel=self._kernel_geometry,
             ssm_extra=ssm_extra,
+            stopping=self.config.stopping,
         )
 
     # ------------------------------------------------------------------------------------------ public
@@ -330,7 +331,7 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
                 False, None, "start configuration outside the joint limits", 0, self._timer() - t0
             )
         start_sep = self._separation(forecast, extra_m=0.0)
-        if not start_sep.check(q_start[None], np.array([float(t_start)]), np.zeros(1))[0]:
+        if not start_sep.check(q_start[None], np.array([float(t_start)]), np.zeros(1), np.zeros(1))[0]:
             reason = "start configuration violates the separation at t_start"
             return PlanResult(False, None, reason, 0, self._timer() - t0)
         attempts: list[tuple[float, ...]] = [(0.0,)]
@@ -423,7 +424,10 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         if at_rest:
             # the distance to a held person is constant; the requirement only grows with the margin
             _, m_end = held.pose_at(t_stop + hold_s)
-            if d0 >= float(forecast_clearance(0.0, m_end, cfg.ssm)) and self._within_limits(q_start[None])[0]:
+            if (
+                d0 >= float(forecast_clearance(0.0, m_end, cfg.ssm, w_top_radps=0.0))
+                and self._within_limits(q_start[None])[0]
+            ):
                 traj = Trajectory(np.array([t_start]), q_start[None], np.zeros((1, 6)))
                 return PlanResult(True, traj.to_plan(), "stay", 0, self._timer() - t0, traj)
         else:
@@ -435,7 +439,7 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
             ):
                 return PlanResult(True, traj.to_plan(), "stay", 0, self._timer() - t0, traj)
         # 2. Moving: search until t_stop; escape mode if the start already violates.
-        req0 = float(forecast_clearance(0.0, margin, cfg.ssm))
+        req0 = float(forecast_clearance(0.0, margin, cfg.ssm, w_top_radps=0.0))
         floor = d0 - 1e-3 if d0 < req0 else None
         sep = self._separation(held, extra_m=cfg.corridor_margin_m, floor_m=floor)
         waypoints, expanded, reason = self._search(
@@ -461,15 +465,17 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
 
         The requirement at time t: surface distance robot-person >=
         :func:`app.safety.ssm.forecast_clearance` (``S_r + S_s + C + Z_r + max(Z_d, margin)``) for the
-        robot's speed at t (the largest speed of any capsule end point) and the forecast's margin at t; a
+        robot's speeds at t (:meth:`robot_speeds`) and the forecast's margin at t; a
         configuration outside the joint limits counts as a violation too. Sampled every ``dt_s`` (default
         ``verify_dt_s``), both ends included. Returns None when there is no violation.
         """
         return self._verify(traj, forecast, t_from, t_to, dt_s=dt_s, static=False)
 
-    def robot_speed(self, traj: Trajectory, t: np.ndarray) -> np.ndarray:
-        """Robot speed (K,) in m/s at times ``t`` (K,): the largest speed of any capsule end point."""
+    def robot_speeds(self, traj: Trajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The robot's speeds at times ``t`` (K,): of its fastest point (K,) (m/s; the largest speed of any
+        capsule end point) and of its fastest joint (K,) (rad/s)."""
         eps = 1e-4
-        p0 = self._points_and_spheres(traj.q(t))[0]
-        p1 = self._points_and_spheres(traj.q(t + eps))[0]
-        return np.max(np.linalg.norm(p1 - p0, axis=-1), axis=-1) / eps
+        q0, q1 = traj.q(t), traj.q(t + eps)
+        p0 = self._points_and_spheres(q0)[0]
+        p1 = self._points_and_spheres(q1)[0]
+        return np.max(np.linalg.norm(p1 - p0, axis=-1), axis=-1) / eps, np.abs(q1 - q0).max(axis=-1) / eps

@@ -594,7 +594,9 @@ class _Run:
         ts = self.t[todo][:, None] + (cfg.wait_step_s / sub) * np.arange(1, n_w + 1)
         rep = np.repeat(np.arange(todo.size), n_w)
         _, cen_w, rad_w = self._parent_geometry(todo)
-        res_w = self.sep.check(self.q[todo][rep], ts.reshape(-1), np.zeros(rep.size), cen_w[rep], rad_w[rep])
+        res_w = self.sep.check(
+            self.q[todo][rep], ts.reshape(-1), np.zeros(rep.size), np.zeros(rep.size), cen_w[rep], rad_w[rep]
+        )
         res_w = res_w.reshape(todo.size, -1)
         first_bad = ts[np.arange(todo.size), np.argmin(res_w, axis=1)]
         self.wait_ok[todo] = np.where(res_w.all(axis=1), np.inf, first_bad)
@@ -641,7 +643,16 @@ class _Run:
                 ts = self.t[todo][:, None] + (cfg.wait_step_s / sub) * np.arange(1, n_w + 1)
                 rep = np.repeat(np.arange(todo.size), n_w)
                 _, cen_w, rad_w = self._parent_geometry(todo)
-                parts.append((self.q[todo][rep], ts.reshape(-1), np.zeros(rep.size), cen_w[rep], rad_w[rep]))
+                parts.append(
+                    (
+                        self.q[todo][rep],
+                        ts.reshape(-1),
+                        np.zeros(rep.size),
+                        np.zeros(rep.size),
+                        cen_w[rep],
+                        rad_w[rep],
+                    )
+                )
         n_wait = parts[0][0].shape[0] if parts else 0
         pts, cen, rad = self._parent_geometry(par)
         hold = cv == self.goal if self.goal is not None else np.full(idx.size, self.hold_s > 0)

@@ -16,6 +16,7 @@ from app.planning.search.profiles import (
     _NO_IDS,
 )
 from app.safety.ssm import SSMParams, forecast_clearance
+from app.safety.stopping import UR5E_STOP, StoppingModel
 
 if TYPE_CHECKING:
     from app.prediction.forecast import HumanForecast
@@ -48,10 +49,13 @@ class _Separation:
         robot_r: np.ndarray | None = None,
         kernel: _kernels.KernelGeometry | None = None,
         ssm_extra: tuple[float, np.ndarray] | None = None,
+        stopping: StoppingModel = UR5E_STOP,
     ) -> None:
         self.model = model
         self.forecast = forecast
         self.ssm = ssm
+        #: The robot's stopping model: ``S_s`` of the clearance (:func:`app.safety.ssm.forecast_clearance`).
+        self.stopping = stopping
         self.extra_m = extra_m
         #: SSM-aware search: ``(dv, extra)``, the governor's extra clearance (m) at speeds ``i * dv``
         #: (:meth:`app.safety.governor.GovernorModel.extra_clearance`), or None.
@@ -120,12 +124,15 @@ class _Separation:
                 [
                     forecast.growth_mps,
                     self._cap,
-                    ssm.robot_time_s,
+                    ssm.t_reaction_s,
                     ssm.intrusion_m,
                     ssm.z_robot_m,
                     ssm.z_human_m,
                     extra_m,
                     math.inf if floor_m is None else floor_m,
+                    stopping.decel_mps2,
+                    stopping.joint_decel_radps2,
+                    stopping.delay_s,
                     *(() if ssm_extra is None else (ssm_extra[0], *np.asarray(ssm_extra[1]).tolist())),
                 ],
                 dtype=np.float64,
@@ -205,17 +212,18 @@ class _Separation:
             m = np.minimum(m + fc.growth_mps * np.maximum(t - self._times[-1], 0.0), self._cap)
         return m
 
-    def _clearance(self, v: np.ndarray, margin: np.ndarray) -> np.ndarray:
-        """The separation (m) asked of the robot moving at ``v`` from a forecast pose of ``margin``."""
-        req = forecast_clearance(v, margin, self.ssm) + self.extra_m
+    def _clearance(self, v: np.ndarray, w: np.ndarray, margin: np.ndarray) -> np.ndarray:
+        """The separation (m) asked of the robot moving at ``v`` (its fastest point, m/s) and ``w`` (its
+        fastest joint, rad/s) from a forecast pose of ``margin``."""
+        req = forecast_clearance(v, margin, self.ssm, w_top_radps=w, stopping=self.stopping) + self.extra_m
         if self.ssm_extra is not None:
             dv, table = self.ssm_extra
             grid = np.arange(table.shape[0]) * dv
             req = req + np.interp(np.maximum(v, 0.0), grid, table)
         return req if self.floor_m is None else np.minimum(req, self.floor_m)
 
-    def _required(self, v: np.ndarray, t: np.ndarray) -> np.ndarray:
-        return self._clearance(v, self._margins(t))
+    def _required(self, v: np.ndarray, w: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return self._clearance(v, w, self._margins(t))
 
     def _poses(self, t: np.ndarray) -> np.ndarray:
         """Poses (n, J, 3) at times ``t`` (n,): :meth:`HumanForecast.poses_at`'s interpolation."""
@@ -228,12 +236,13 @@ class _Separation:
         return self._joints[i0] + w[:, None, None] * self._djoints[i0]
 
     def near_moves(
-        self, cen: np.ndarray, rad: np.ndarray, t0: np.ndarray, t1: np.ndarray, v: np.ndarray
+        self, cen: np.ndarray, rad: np.ndarray, t0: np.ndarray, t1: np.ndarray, v: np.ndarray, w: np.ndarray
     ) -> np.ndarray:
         """Stage 0: (M,) bool, False where a move certainly keeps the separation.
 
         ``cen`` (M, L, 3) / ``rad`` (M, L): spheres that contain each robot capsule during the whole move,
-        which lasts from ``t0`` to ``t1`` at robot speed ``v`` (m/s)."""
+        which lasts from ``t0`` to ``t1`` with its fastest point at most at ``v`` (m/s) and its fastest
+        joint at most at ``w`` (rad/s)."""
         M = cen.shape[0]
         if self.forecast is None or M == 0:
             return np.zeros(M, dtype=bool)
@@ -243,7 +252,7 @@ class _Separation:
         # either end, or grown beyond the horizon at its end)
         m_hi = np.maximum(hi[:, 3], np.maximum(self._margins(t0 + lo_off), self._margins(t1 + hi_off)))
         hi = hi[:, :3]
-        req = self._clearance(v, m_hi)
+        req = self._clearance(v, w, m_hi)
         g = np.maximum(np.maximum(lo[:, None] - cen, cen - hi[:, None]), 0.0)  # (M, L, 3)
         gap = np.sqrt(np.einsum("mlk,mlk->ml", g, g)) - rad
         return (gap < req[:, None]).any(axis=1)
@@ -253,11 +262,13 @@ class _Separation:
         q: np.ndarray,
         t: np.ndarray,
         v: np.ndarray,
+        w: np.ndarray,
         cen: np.ndarray | None = None,
         rad: np.ndarray | None = None,
         groups: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Boolean (S,): robot ``q[k]`` (6,) at time ``t[k]`` moving at ``v[k]`` m/s keeps the separation.
+        """Boolean (S,): robot ``q[k]`` (6,) at time ``t[k]``, its fastest point moving at ``v[k]`` m/s and
+        its fastest joint at ``w[k]`` rad/s, keeps the separation.
 
         ``cen`` (S, L, 3) / ``rad`` (S, L): spheres that contain the robot capsules at each sample, if known.
         ``groups`` (S,) int: samples of one group (a move) are only of interest together: once one of them
@@ -267,7 +278,7 @@ class _Separation:
         if self.forecast is None or S == 0:
             return np.ones(S, dtype=bool)
         if self._kernel is not None:
-            return self._check_compiled(q, t, v, cen, rad, groups)
+            return self._check_compiled(q, t, v, w, cen, rad, groups)
         n_off = len(self.offsets)
         if n_off > 1:
             t = (t[None, :] + np.asarray(self.offsets)[:, None]).reshape(-1)
@@ -275,12 +286,13 @@ class _Separation:
             if groups is not None:
                 groups = np.tile(groups, n_off)
             v = np.broadcast_to(v, (n_off, S)).reshape(-1)
+            w = np.broadcast_to(w, (n_off, S)).reshape(-1)
             if cen is not None and rad is not None:
                 cen = np.broadcast_to(cen, (n_off, *cen.shape)).reshape(-1, *cen.shape[1:])
                 rad = np.broadcast_to(rad, (n_off, *rad.shape)).reshape(-1, rad.shape[1])
         elif self.offsets[0] != 0.0:
             t = t + self.offsets[0]
-        req = self._required(v, t)
+        req = self._required(v, w, t)
         n = q.shape[0]
         self.samples += n
         ok = np.ones(n, dtype=bool)
@@ -334,6 +346,7 @@ class _Separation:
         q: np.ndarray,
         t: np.ndarray,
         v: np.ndarray,
+        w: np.ndarray,
         cen: np.ndarray | None,
         rad: np.ndarray | None,
         groups: np.ndarray | None,
@@ -345,7 +358,8 @@ class _Separation:
         n_off = len(self.offsets)
         t_all = np.asarray(t, dtype=np.float64)[None, :] + self._k_offsets[:, None]
         v_all = np.broadcast_to(np.asarray(v, dtype=np.float64), (n_off, S)).reshape(-1)
-        req = self._required(v_all, t_all.reshape(-1)).reshape(n_off, S)
+        w_all = np.broadcast_to(np.asarray(w, dtype=np.float64), (n_off, S)).reshape(-1)
+        req = self._required(v_all, w_all, t_all.reshape(-1)).reshape(n_off, S)
         use_spheres = cen is not None and rad is not None
         if use_spheres:
             cen_k, rad_k = _kernels.as_f64(cen), _kernels.as_f64(rad)

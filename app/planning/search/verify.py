@@ -71,9 +71,11 @@ class _TrajectoryChecks:
             if self._segments_ok:
                 bad |= self._separation_bad(traj, ts, q, joints, margins, floor_m, segs)
             else:
-                v = self.robot_speed(traj, ts)
+                v, w = self.robot_speeds(traj, ts)
                 d = self.collision.distance_to_human_paired(q, joints)
-                req = forecast_clearance(v, margins, self.config.ssm)
+                req = forecast_clearance(
+                    v, margins, self.config.ssm, w_top_radps=w, stopping=self.config.stopping
+                )
                 if floor_m is not None:
                     req = np.minimum(req, floor_m)
                 bad |= d < req
@@ -110,7 +112,7 @@ class _TrajectoryChecks:
                     first = int(moving[np.argmax(bad)])
             elif moving.size:
                 first = self._first_static_bad_of_view(base, path_times, ts, moving, first)
-        ssm = self.config.ssm
+        ssm, stopping = self.config.ssm, self.config.stopping
         f64 = _kernels.as_f64
         eps = 1e-4
         t_wall = f64(ts[:first])
@@ -129,11 +131,14 @@ class _TrajectoryChecks:
         )
         clearance = pack(
             _kernels.Clearance(
-                robot_time_s=ssm.robot_time_s,
+                t_reaction_s=ssm.t_reaction_s,
                 intrusion_m=ssm.intrusion_m,
                 z_robot_m=ssm.z_robot_m,
                 z_human_m=ssm.z_human_m,
                 floor_m=math.inf if floor_m is None else float(floor_m),
+                decel_mps2=stopping.decel_mps2,
+                joint_decel_radps2=stopping.joint_decel_radps2,
+                delay_s=stopping.delay_s,
             )
         )
         k = _kernels.trajectory_first_violation(
@@ -194,19 +199,21 @@ class _TrajectoryChecks:
         """(K,) bool: samples of ``traj`` at ``ts`` (configurations ``q``) closer to the person (poses
         ``joints`` (K, J, 3), margins (K,)) than :func:`forecast_clearance` for the robot's speed there.
 
-        The same requirement as :meth:`robot_speed` + ``distance_to_human_paired`` (exact), with the forward
+        The same requirement as :meth:`robot_speeds` + ``distance_to_human_paired`` (exact), with the forward
         kinematics done once per sample time and the exact distance only where a capsule's bounding sphere
         comes within the requirement of the box around the person's pose."""
         eps = 1e-4
         model = self.collision
         a0, d0 = model.robot_segments(q) if segs is None else segs  # (L, 3, K)
-        a1, d1 = model.robot_segments(traj.q(ts + eps))
+        q1 = traj.q(ts + eps)
+        a1, d1 = model.robot_segments(q1)
         step = np.maximum(
             np.sqrt(np.einsum("lik,lik->lk", a1 - a0, a1 - a0)),
             np.sqrt(np.einsum("lik,lik->lk", (a1 + d1) - (a0 + d0), (a1 + d1) - (a0 + d0))),
         )
         v = step.max(axis=0) / eps
-        req = forecast_clearance(v, margins, self.config.ssm)
+        w = np.abs(q1 - q).max(axis=1) / eps
+        req = forecast_clearance(v, margins, self.config.ssm, w_top_radps=w, stopping=self.config.stopping)
         if floor_m is not None:
             req = np.minimum(req, floor_m)
         cen = a0 + 0.5 * d0

@@ -275,15 +275,16 @@ def test_sample_checks_match_the_numpy_check(cell, planners) -> None:  # type: i
             q = rm.ik[nodes, br]
             t = qr.t_start + rng.uniform(-0.2, 2.0, 300)
             v = rng.uniform(0.0, 1.0, 300)
+            w = rng.uniform(0.0, 2.0, 300)
             cen, rad = fast._cen_all[nodes, br], fast._rad_all[nodes, br]
-            np.testing.assert_array_equal(s_fast.check(q, t, v), s_ref.check(q, t, v))
-            got = s_fast.check(q, t, v, cen, rad)
-            np.testing.assert_array_equal(got, s_ref.check(q, t, v, cen, rad))
+            np.testing.assert_array_equal(s_fast.check(q, t, v, w), s_ref.check(q, t, v, w))
+            got = s_fast.check(q, t, v, w, cen, rad)
+            np.testing.assert_array_equal(got, s_ref.check(q, t, v, w, cen, rad))
             verdicts.append(got)
             # with groups only the verdict of a whole group counts
             groups = np.repeat(np.arange(60), 5)
-            a = s_fast.check(q, t, v, cen, rad, groups)
-            b = s_ref.check(q, t, v, cen, rad, groups)
+            a = s_fast.check(q, t, v, w, cen, rad, groups)
+            b = s_ref.check(q, t, v, w, cen, rad, groups)
             np.testing.assert_array_equal(
                 np.bincount(groups, weights=~a) == 0, np.bincount(groups, weights=~b) == 0
             )
@@ -544,4 +545,5 @@ def test_compiled_wait_checks_equal_the_numpy_wait_checks(cell, planners, offset
     _, t_all, req, *_ = _kernels.wait_samples(
         todo, run._k_state, fast.view.k_tables, run._start_k, 6, 0.05, sep.k_requirement, sep.k_forecast
     )
-    np.testing.assert_array_equal(req.reshape(-1), sep._required(np.zeros(t_all.size), t_all.reshape(-1)))
+    at_rest = np.zeros(t_all.size)
+    np.testing.assert_array_equal(req.reshape(-1), sep._required(at_rest, at_rest, t_all.reshape(-1)))

@@ -20,10 +20,13 @@ from app.planning.trajectory import Plan, Trajectory
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import BONES, NUM_JOINTS
 from app.safety.ssm import SSMParams, forecast_clearance
+from app.safety.stopping import StoppingModel
 
 R_ROBOT = 0.05
 R_HUMAN = 0.05
 SSM = SSMParams(t_reaction_s=0.01, t_stop_s=0.0, intrusion_m=0.0, z_human_m=0.1, z_robot_m=0.0)
+#: The toy robot stops at once (no ``S_s``): the scenes below are laid out for ``S_r`` alone.
+INSTANT_STOP = StoppingModel(decel_mps2=1e9, joint_decel_radps2=1e9)
 Q_LIM = 3.0
 
 
@@ -62,6 +65,7 @@ class PointRobot:
 def config(**kw: object) -> PlannerConfig:
     base = dict(
         ssm=SSM,
+        stopping=INSTANT_STOP,
         q_min=(-Q_LIM,) * 6,
         q_max=(Q_LIM,) * 6,
         qd_max=(1.0,) * 6,
@@ -101,7 +105,12 @@ def q_of(x: float, y: float) -> np.ndarray:
 
 
 def assert_valid(
-    traj: Trajectory, forecast: HumanForecast | None, *, hold_s: float, ssm: SSMParams = SSM
+    traj: Trajectory,
+    forecast: HumanForecast | None,
+    *,
+    hold_s: float,
+    ssm: SSMParams = SSM,
+    stopping: StoppingModel = INSTANT_STOP,
 ) -> None:
     """Independent check: 100 Hz samples within the joint limits and at least the required separation."""
     t = np.arange(traj.t_start, traj.t_end + hold_s + 1e-9, 0.01)
@@ -110,10 +119,12 @@ def assert_valid(
     if forecast is None:
         return
     eps = 1e-5
-    v = np.linalg.norm(traj.q(t + eps)[:, :3] - traj.q(t - eps)[:, :3], axis=1) / (2 * eps)
+    dq = traj.q(t + eps) - traj.q(t - eps)
+    v = np.linalg.norm(dq[:, :3], axis=1) / (2 * eps)
+    w = np.abs(dq).max(axis=1) / (2 * eps)
     joints, margins = forecast.poses_at(t)
     d = np.linalg.norm(joints - q[:, None, :3], axis=-1).min(axis=1) - R_ROBOT - R_HUMAN
-    need = forecast_clearance(v, margins, ssm)
+    need = forecast_clearance(v, margins, ssm, w_top_radps=w, stopping=stopping)
     worst = int(np.argmin(d - need))
     assert d[worst] >= need[worst] - 1e-9, (
         f"violation at t={t[worst]:.3f}: {d[worst]:.4f} < {need[worst]:.4f}"
@@ -468,6 +479,41 @@ def test_a_zig_zag_path_becomes_one_straight_move_that_is_faster_and_valid() -> 
         assert res.trajectory.duration < raw.trajectory.duration - 0.6
         assert res.trajectory.duration == pytest.approx(0.8 / 0.5, abs=0.05)
         assert_valid(res.trajectory, forecast, hold_s=0.2)
+
+
+def test_the_clearance_holds_the_stopping_models_stop() -> None:
+    """A sample's clearance holds the robot's stop by the planner's stopping model at its speeds (the
+    governor's and the monitor's model): a sample that keeps the clearance of a robot that stops at once
+    breaks that of one braking at 1 m/s^2 and 1 rad/s^2, the more so the faster its joints turn; the plan past
+    the person then creeps, and keeps that clearance all the way."""
+    rm = roadmap([(0.0, 0.0), (1.0, 0.0)], [(0, 1)], s=0, g=1)
+    fc = person([0.0], [(0.5, 0.3)])  # the straight move passes the person 0.2 m apart (surfaces)
+    slow = StoppingModel(decel_mps2=1.0, joint_decel_radps2=1.0)
+    q, t = q_of(0.5, 0.0)[None], np.zeros(1)
+
+    def keeps(stopping: StoppingModel, v: float, w: float) -> bool:
+        sep = Planner(rm, PointRobot(), config=config(stopping=stopping))._separation(fc, extra_m=0.0)
+        return bool(sep.check(q, t, np.array([v]), np.array([w]))[0])
+
+    # needed: Z_d 0.1 + v T_r (0.01 v) + S_s = v T_s / 2, T_s = max(v / 1, w / 1) with the slow brake
+    assert keeps(INSTANT_STOP, 0.6, 0.6)  # 0.106
+    assert not keeps(slow, 0.6, 0.6)  # 0.106 + 0.18
+    assert keeps(slow, 0.3, 0.3)  # 0.103 + 0.045
+    assert not keeps(slow, 0.3, 0.9)  # 0.103 + 0.135: the joints' stop rules
+    assert keeps(slow, 0.0, 0.0)
+    fast = Planner(rm, PointRobot(), config=config()).plan(
+        q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc
+    )
+    creep = Planner(rm, PointRobot(), config=config(stopping=slow, slow_speed_fractions=(0.2, 0.08))).plan(
+        q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc
+    )
+    assert fast.ok and creep.ok, (fast.reason, creep.reason)
+    assert creep.trajectory.duration > 2.0 * fast.trajectory.duration
+    assert_valid(creep.trajectory, fc, hold_s=0.2, stopping=slow)
+    with pytest.raises(AssertionError, match="violation"):
+        assert_valid(
+            fast.trajectory, fc, hold_s=0.2, stopping=slow
+        )  # at cruise speed it would not stop in time
 
 
 @pytest.mark.parametrize("rounds", [2, 3])  # 2: the last move is the search's own, checked after the rounds

@@ -10,10 +10,9 @@ from app.safety.ssm import (
     forecast_clearance,
     max_safe_speed,
     protective_separation,
-    robot_clearance,
-    robot_stopping_distance,
     speed_scale,
 )
+from app.safety.stopping import UR5E_STOP, StoppingModel
 
 
 def test_protective_separation_matches_iso_ts_15066_terms() -> None:
@@ -25,8 +24,6 @@ def test_protective_separation_matches_iso_ts_15066_terms() -> None:
     s_r = 0.8 * 0.1
     s_s = 0.8 * 0.3 / 2
     assert protective_separation(v_r, p) == pytest.approx(s_h + s_r + s_s + 0.05 + 0.04 + 0.01)
-    assert robot_stopping_distance(v_r, p) == pytest.approx(s_s)
-    assert robot_clearance(v_r, p) == pytest.approx(s_r + s_s + 0.1)
     # a measured human speed replaces the default one
     assert protective_separation(v_r, p, v_human_mps=0.5) == pytest.approx(0.5 * 0.4 + s_r + s_s + 0.1)
 
@@ -66,12 +63,33 @@ def test_speed_scale_is_a_fraction_and_monotone() -> None:
 def test_forecast_clearance_uses_the_larger_of_sensing_and_forecast_error() -> None:
     p = SSMParams(z_human_m=0.05)
     base = p.intrusion_m + p.z_robot_m
-    assert forecast_clearance(0.0, 0.01, p) == pytest.approx(base + 0.05)
-    assert forecast_clearance(0.0, 0.2, p) == pytest.approx(base + 0.2)
-    v = np.array([0.0, 1.0])
+    assert forecast_clearance(0.0, 0.01, p, w_top_radps=0.0) == pytest.approx(base + 0.05)
+    assert forecast_clearance(0.0, 0.2, p, w_top_radps=0.0) == pytest.approx(base + 0.2)
+
+
+def test_the_planners_clearance_stops_the_robot_as_the_stopping_model_does() -> None:
+    """``S_r + S_s`` of the planner's clearance: ``v T_r`` and the stopping model's ``S_s`` (the governor's
+    and the monitor's), with ``T_s`` from the fastest point's and the fastest joint's speeds, not the
+    constant-speed law's fixed ``T_s``."""
+    p = SSMParams(t_reaction_s=0.111, t_stop_s=0.2, z_human_m=0.05)
+    base = p.intrusion_m + p.z_robot_m + 0.05
+    v = np.array([0.0, 0.3, 1.0, 1.0, 0.3])
+    w = np.array([0.0, 0.3, 0.6, 3.0, 1.5])
+    t_s = np.maximum(v / UR5E_STOP.decel_mps2, w / UR5E_STOP.joint_decel_radps2)  # 0, 0.1, 1/3, 1, 0.5
     np.testing.assert_allclose(
-        forecast_clearance(v, np.array([0.0, 0.3]), p), [base + 0.05, base + 0.3 + p.robot_time_s]
+        forecast_clearance(v, 0.0, p, w_top_radps=w), base + v * 0.111 + v * t_s / 2, rtol=1e-12
     )
+    np.testing.assert_allclose(t_s, [0.0, 0.1, 1 / 3, 1.0, 0.5])
+    # a robot creeping stops in a moment; one turning a joint at 3 rad/s needs a second
+    assert forecast_clearance(0.05, 0.0, p, w_top_radps=0.05) < 0.05 * p.robot_time_s + base
+    assert forecast_clearance(1.0, 0.0, p, w_top_radps=3.0) == pytest.approx(base + 0.111 + 0.5)
+    # and the model's own delay counts whole
+    slow = StoppingModel(decel_mps2=1.0, joint_decel_radps2=1.0, delay_s=0.1)
+    assert forecast_clearance(1.0, 0.0, p, w_top_radps=0.0, stopping=slow) == pytest.approx(
+        base + 0.111 + 1.0 * (0.1 + 0.5)
+    )
+    with pytest.raises(TypeError):
+        forecast_clearance(1.0, 0.0, p)  # type: ignore[call-arg]  # the joints' speed is never assumed
 
 
 def test_invalid_parameters_are_rejected_with_the_field_name() -> None:
