@@ -56,9 +56,12 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from app.safety.stopping import StoppingModel
 
 DEADLINE_S = 1.0
 WORKERS = 32
@@ -183,7 +186,9 @@ def summarise(runs: dict[str, list[Run]], generous: Sequence[bool | None]) -> di
     return out
 
 
-def count_violations(traj: Any, forecast: Any, model: Any, ssm: Any, *, hold_s: float, stopping: Any) -> int:
+def count_violations(
+    traj: Any, forecast: Any, model: Any, ssm: Any, *, hold_s: float, stopping: StoppingModel
+) -> int:
     """1 if the trajectory breaks the limits or the separation anywhere on a 100 Hz grid, else 0: the
     clearance of :func:`app.safety.ssm.forecast_clearance` with the robot's speeds there (central
     differences) and the planner's stopping model ``stopping``."""
@@ -484,6 +489,14 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
         "timing": "each query timed once per configuration, configurations interleaved per query",
         "ssm_timing": "on: the time-variant searches verify each plan at the timing the speed governor is "
         "predicted to give it (the runtime's default), and the 100 Hz check checks it at that timing",
+        "clearance": {
+            "t_reaction_s": planner.config.ssm.t_reaction_s,
+            "stopping": {
+                "decel_mps2": planner.config.stopping.decel_mps2,
+                "joint_decel_radps2": planner.config.stopping.joint_decel_radps2,
+                "delay_s": planner.config.stopping.delay_s,
+            },
+        },
         "workers": WORKERS,
         "deadline_s": DEADLINE_S,
         "generous": {"workers": 1, "max_expansions": GENEROUS_EXPANSIONS, "deadline_s": generous_deadline_s},

@@ -7,6 +7,9 @@ import pytest
 
 from app.bench import planning as bp
 from app.bench.planning import Run
+from app.config import Settings
+from app.control.engine import EngineOptions
+from app.safety.stopping import UR5E_STOP
 
 
 def _runs(walls: list[float], oks: list[bool], reasons: list[str] | None = None) -> list[Run]:
@@ -108,5 +111,14 @@ def test_quick_run_prints_every_key() -> None:
     assert set(out["failures"]) == set(bp.CONFIGS)
     assert out["violations"] == 0
     assert "one thread" in out["parallel_kind"]
+    # the clearance it planned and checked with: the runtime's T_r and the cell's stopping model
+    assert out["clearance"]["t_reaction_s"] == pytest.approx(
+        Settings().reaction_time_s(EngineOptions().servo_period_s)
+    )
+    assert out["clearance"]["stopping"] == {
+        "decel_mps2": UR5E_STOP.decel_mps2,
+        "joint_decel_radps2": UR5E_STOP.joint_decel_radps2,
+        "delay_s": UR5E_STOP.delay_s,
+    }
     assert out["threads"]["queries"] == 12 and out["threads"]["threads"] >= 2
     assert 0.0 <= out["success_rate"] <= 1.0
