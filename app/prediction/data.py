@@ -90,10 +90,14 @@ def resample(positions: np.ndarray, factor: float) -> np.ndarray:
 
     ``factor > 1`` speeds the motion up (fewer frames), ``factor < 1`` slows it down.
     """
-    T = positions.shape[0]
     if factor <= 0:
         raise ValueError(f"resample factor must be positive, got {factor}")
-    src = np.arange(0.0, T - 1 + 1e-9, factor)
+    return _at_frames(positions, np.arange(0.0, positions.shape[0] - 1 + 1e-9, factor))
+
+
+def _at_frames(positions: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """Poses (T, J, 3) at fractional frame indices ``src`` (K,): linear between neighbouring frames."""
+    T = positions.shape[0]
     i0 = np.clip(np.floor(src).astype(np.int64), 0, T - 1)
     i1 = np.clip(i0 + 1, 0, T - 1)
     w = (src - i0)[:, None, None]
@@ -138,33 +142,26 @@ def read_clip_file(path: str | Path, *, fps: float | None = None) -> ClipFile:
             NaN or infinite positions (the message names the file and says what was found).
     """
     p = Path(path)
+    pos = t = conf = None
     try:
-        data = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise ClipError(f"cannot read clip {p}: {exc}") from exc
-    try:
-        with data:
+        with np.load(p, allow_pickle=False) as data:
             keys = set(data.files)
             names = tuple(str(n) for n in data["joint_names"]) if "joint_names" in keys else None
             file_fps = float(data["fps"]) if "fps" in keys else None
-            if "positions" in keys:
-                pos = np.asarray(data["positions"], dtype=np.float64)
-                t = conf = None
-                recording = False
-            elif "joints" in keys:
+            recording = "positions" not in keys and "joints" in keys
+            if recording:
                 pos = np.asarray(data["joints"], dtype=np.float64)
                 t = np.asarray(data["t"], dtype=np.float64) if "t" in keys else None
                 conf = np.asarray(data["confidence"], dtype=np.float64) if "confidence" in keys else None
-                recording = True
-            else:
-                raise ClipError(
-                    f"clip {p} has neither 'positions' (the CMU skeleton (T, 38, 3) or the canonical joints "
-                    f"(T, {NUM_JOINTS}, 3)) nor 'joints' (a canonical recording); found {sorted(keys)}"
-                )
+            elif "positions" in keys:
+                pos = np.asarray(data["positions"], dtype=np.float64)
     except (OSError, ValueError, KeyError) as exc:
-        if isinstance(exc, ClipError):
-            raise
         raise ClipError(f"cannot read clip {p}: {exc}") from exc
+    if pos is None:
+        raise ClipError(
+            f"clip {p} has neither 'positions' (the CMU skeleton (T, 38, 3) or the canonical joints "
+            f"(T, {NUM_JOINTS}, 3)) nor 'joints' (a canonical recording); found {sorted(keys)}"
+        )
     k = pos.shape[1] if pos.ndim == 3 and pos.shape[2] == 3 else None
     if k == 38 and names in (None, CMU38_NAMES) and not recording:
         joints, source = from_cmu38(pos), "cmu38"
@@ -201,11 +198,9 @@ def load_clip(path: str | Path, *, name: str | None = None, action: str = "", sp
     path = Path(path)
     f = read_clip_file(path)
     joints = f.joints
-    if not f.uniform:
+    if not f.uniform:  # the 30 Hz instants as fractional indices into the recording's own frame times
         grid = np.arange(0.0, f.times[-1] + 1e-9, 1.0 / FPS)
-        flat = joints.reshape(len(joints), -1)
-        joints = np.stack([np.interp(grid, f.times, flat[:, i]) for i in range(flat.shape[1])], axis=1)
-        joints = joints.reshape(len(grid), NUM_JOINTS, 3)
+        joints = _at_frames(joints, np.interp(grid, f.times, np.arange(len(f.times), dtype=np.float64)))
     elif abs(f.rate_hz - FPS) > 1e-6:
         joints = resample(joints, f.rate_hz / FPS)
     return Clip(name=name or path.stem, positions=joints, action=action, split=split)
