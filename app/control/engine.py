@@ -182,8 +182,8 @@ class PlanningStack:
         that ``T_r`` already."""
         from app.planning.search import Planner
 
-        if self.ssm.t_reaction_s == t_reaction_s:
-            return self
+        if math.isclose(self.ssm.t_reaction_s, t_reaction_s, rel_tol=0.0, abs_tol=1e-9):
+            return self  # the tolerance of TrialEngine's check of the stack's T_r
         config = self.planner.config.with_reaction_time(t_reaction_s)
         planner = Planner(self.roadmap, self.collision, config=config)
         return dataclasses.replace(self, planner=planner, ssm=config.ssm)
