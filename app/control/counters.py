@@ -59,6 +59,9 @@ class SupervisorCounters:
     scale_time_s: float = 0.0
     #: where the time went (:data:`TIME_BUDGET` parts; they sum to the supervised time)
     budget_s: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TIME_BUDGET, 0.0))
+    #: the same parts per goal: the task pose the robot is heading for (or waiting to leave for), the gripper
+    #: dwell under the pose where it grips or releases, ``"none"`` with no goal
+    budget_by_goal_s: dict[str, dict[str, float]] = field(default_factory=dict)
     #: the integral of the scale over ``moving_scaled`` time
     scaled_scale_s: float = 0.0
     #: per plan that reached its goal: (planned duration (s), executed minus predicted arrival (s))

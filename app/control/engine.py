@@ -270,6 +270,7 @@ class TrialResult:
         safety: The ground-truth monitor's verdict (None when the monitor was off).
         tracker_latency_s: The tracker latency the trial ran with (s; None: unknown, a live tracker).
         time_budget_s: Where the trial's time went (:meth:`TrialEngine.time_budget`).
+        time_budget_by_goal_s: The same per task pose (:meth:`TrialEngine.time_budget_by_goal`).
         arrival_error_s: Predicted against executed arrivals (:meth:`TrialEngine.arrival_error`).
     """
 
@@ -284,6 +285,7 @@ class TrialResult:
     tracker_latency_s: float | None = None
     time_budget_s: dict[str, float] | None = None
     arrival_error_s: dict[str, float | int | None] | None = None
+    time_budget_by_goal_s: dict[str, dict[str, float]] | None = None
 
     def _worst_json(self) -> dict[str, Any] | None:
         worst = None if self.safety is None else self.safety.worst
@@ -320,6 +322,7 @@ class TrialResult:
                 [] if self.safety is None else [e.to_json() for e in self.safety.episodes]
             ),
             "time_budget_s": self.time_budget_s,
+            "time_budget_by_goal_s": self.time_budget_by_goal_s,
             "arrival_error_s": self.arrival_error_s,
             "time_stopped_s": m.time_stopped_s,
             "time_moving_s": m.time_moving_s,
@@ -356,6 +359,8 @@ class Snapshot:
         time_budget: Where the running trial's time went so far (:meth:`TrialEngine.time_budget`: seconds
             per part of :data:`app.control.counters.TIME_BUDGET`, and ``mean_scale_when_scaled``); empty
             without a trial.
+        time_budget_by_goal: The same per task pose so far (:meth:`TrialEngine.time_budget_by_goal`); empty
+            without a trial.
     """
 
     t: float
@@ -378,6 +383,7 @@ class Snapshot:
     trial_elapsed_s: float | None = None
     trial_duration_s: float | None = None
     time_budget: dict[str, float] = field(default_factory=dict)
+    time_budget_by_goal: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name in ("q", "p_world_tcp", "skeleton", "forecast", "plan_tcp", "backup_tcp"):
@@ -420,6 +426,10 @@ class Snapshot:
             "trial_elapsed_s": num(self.trial_elapsed_s),
             "trial_duration_s": num(self.trial_duration_s),
             "time_budget": {k: round(float(v), 3) for k, v in self.time_budget.items()},
+            "time_budget_by_goal": {
+                g: {k: round(float(v), 3) for k, v in parts.items()}
+                for g, parts in self.time_budget_by_goal.items()
+            },
         }
 
 
@@ -910,6 +920,21 @@ class TrialEngine:
         scaled = c.budget_s["moving_scaled"]
         out["mean_scale_when_scaled"] = round(c.scaled_scale_s / scaled, 4) if scaled > 0 else 0.0
         return out
+
+    def time_budget_by_goal(self) -> dict[str, dict[str, float]]:
+        """:meth:`time_budget` per task pose: for each goal the robot headed for (or waited to leave for;
+        the gripper's dwell counts under the pose where it grips or releases, ``"none"`` is time without a
+        goal), the seconds per :data:`app.control.counters.TIME_BUDGET` part spent on it (parts with none
+        left out) and their ``total``; the goals in order of total, largest first. Summed over the goals,
+        each part is the trial's :meth:`time_budget` part. It shows where the cell loses its time: a task
+        pose the person's hands keep inside the speed governor's zone (``hrc cell check``) holds the robot
+        still there."""
+        rows = []
+        for goal, parts in self.supervisor.counters.budget_by_goal_s.items():
+            kept = {k: round(v, 4) for k, v in parts.items() if v > 0}
+            rows.append((goal, kept | {"total": round(sum(parts.values()), 4)}))
+        rows.sort(key=lambda r: -r[1]["total"])
+        return dict(rows)
 
     def arrival_error(self) -> dict[str, float | int | None]:
         """Each plan's predicted arrival against the executed one, over the plans that reached their goal:

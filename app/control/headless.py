@@ -277,4 +277,5 @@ def run_headless_trial(
         tracker_latency_s=None if tracker_model is None else tracker_model.latency_s,
         time_budget_s=engine.time_budget(),
         arrival_error_s=engine.arrival_error(),
+        time_budget_by_goal_s=engine.time_budget_by_goal(),
     )

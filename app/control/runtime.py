@@ -525,6 +525,7 @@ class Runtime:
             tracker_latency_s=latency,
             time_budget_s=engine.time_budget(),
             arrival_error_s=engine.arrival_error(),
+            time_budget_by_goal_s=engine.time_budget_by_goal(),
         )
         if reason == "robot_fault":
             self._fault = "robot connection lost"
@@ -774,6 +775,7 @@ class Runtime:
             trial_elapsed_s=engine.elapsed(t),
             trial_duration_s=engine.duration_s,
             time_budget=engine.time_budget(),
+            time_budget_by_goal=engine.time_budget_by_goal(),
             **base,
         )
 

@@ -58,7 +58,7 @@ from typing import Any, Literal
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
-from app.control.counters import SupervisorCounters, SupervisorState
+from app.control.counters import TIME_BUDGET, SupervisorCounters, SupervisorState
 from app.control.metrics import Method
 from app.control.trajectory_views import (
     Goal,
@@ -360,6 +360,7 @@ class Supervisor:
         self._goal: Goal | None = None
         self._not_before = -math.inf
         self._arrived: Goal | None = None
+        self._reached: Goal | None = None  # the goal last reached (kept when the next is set)
         self._forecast: HumanForecast | None = None
         self._frame: HumanFrame | None = None
         self._seq = -1
@@ -1010,6 +1011,7 @@ class Supervisor:
         self.counters.arrivals.append((float(predicted - active.traj.t_start), float(t - predicted)))
         q_goal = np.asarray(active.traj.q(active.traj.t_end)).reshape(6)
         self._arrived = active.goal
+        self._reached = active.goal
         self._goal = None
         self._pending = None
         self._activate_hold(q_goal, t)
@@ -1060,6 +1062,12 @@ class Supervisor:
             c.scale_time_s += self._s * dt
         part = self._budget_part()
         c.budget_s[part] += dt
+        goal = self._reached if part == "gripper" else self._goal
+        key = "none" if goal is None else str(goal)
+        per_goal = c.budget_by_goal_s.get(key)
+        if per_goal is None:
+            per_goal = c.budget_by_goal_s[key] = dict.fromkeys(TIME_BUDGET, 0.0)
+        per_goal[part] += dt
         if part == "moving_scaled":
             c.scaled_scale_s += self._s * dt
 

@@ -156,6 +156,10 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
         lambda: float(page.get_by_test_id("budget-total").inner_text().split(" s")[0]) > 0.5,
         "the time budget to count the trial's time",
     )
+    # and per task pose, each with its own bar: the first leg goes to the pickup's approach pose
+    first_goal = page.get_by_test_id("budget-goal-pickup_approach")
+    expect(first_goal).to_contain_text(" s", timeout=UI_TIMEOUT_MS)
+    expect(first_goal.locator(".budget-bar-mini span").first).to_be_attached()
     wait_until(lambda: live_state.inner_text() != state_before, "the supervisor state to change in the page")
     wait_until(
         lambda: server.api("GET", f"/api/trials/{first['id']}").json()["status"] != "running",

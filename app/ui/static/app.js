@@ -320,6 +320,7 @@
     // counters and where the trial's time went
     renderCounters(s.counters || {});
     renderBudget(s.time_budget || {});
+    renderBudgetByGoal(s.time_budget_by_goal || {});
     // planning times
     const plans = Array.isArray(s.planning_ms) ? s.planning_ms.filter((v) => Number.isFinite(v)) : [];
     const key = plans.join(",");
@@ -406,6 +407,49 @@
     const scaled = Number(budget.mean_scale_when_scaled);
     const slowed = Number.isFinite(scaled) && scaled > 0 ? ` · slowed to ${Math.round(scaled * 100)}% on average` : "";
     $("budget-total").textContent = `${total.toFixed(1)} s${slowed}`;
+  }
+
+  // the task poses that took the most time, each with its own budget bar: where the cell loses its time
+  const BUDGET_GOALS_SHOWN = 5;
+
+  function renderBudgetByGoal(byGoal) {
+    const list = $("budget-goals");
+    const rows = Object.entries(byGoal)
+      .filter(([goal, parts]) => goal !== "none" && Number(parts.total) > 0)
+      .sort((a, b) => Number(b[1].total) - Number(a[1].total))
+      .slice(0, BUDGET_GOALS_SHOWN);
+    const key = rows.map(([goal, parts]) => `${goal}:${Number(parts.total).toFixed(1)}`).join(",");
+    if (key === list.dataset.key) return;
+    list.dataset.key = key;
+    list.textContent = "";
+    for (const [goal, parts] of rows) {
+      const total = Number(parts.total);
+      const li = document.createElement("li");
+      li.dataset.goal = goal;
+      li.setAttribute("data-testid", `budget-goal-${goal}`);
+      const name = document.createElement("span");
+      name.className = "budget-goal-name";
+      name.textContent = goal;
+      const bar = document.createElement("span");
+      bar.className = "budget-bar budget-bar-mini";
+      const held = Number(parts.stopped) || 0;
+      bar.title = `${goal}: ${total.toFixed(1)} s, ${held.toFixed(1)} s held still`;
+      for (const [k, label, color] of BUDGET_PARTS) {
+        const v = Number(parts[k]) || 0;
+        if (!(v > 0)) continue;
+        const seg = document.createElement("span");
+        seg.style.background = color;
+        seg.style.width = `${(100 * v) / total}%`;
+        seg.title = `${label}: ${v.toFixed(1)} s`;
+        bar.append(seg);
+      }
+      const secs = document.createElement("span");
+      secs.className = "budget-goal-total";
+      secs.textContent = `${total.toFixed(1)} s`;
+      li.append(name, bar, secs);
+      list.append(li);
+    }
+    $("budget-goals-head").hidden = rows.length === 0;
   }
 
   function quantile(sorted, q) {

@@ -476,3 +476,18 @@ def test_the_time_budget_sums_to_the_trial_and_arrivals_are_compared_with_the_pl
     assert abs(arrivals["bias"]) < 0.2 * arrivals["median_plan_s"]
     summary = res.summary()
     assert summary["time_budget_s"] == budget and summary["arrival_error_s"] == arrivals
+    # the same budget per task pose: every part summed over the goals is the trial's part, each goal's total
+    # its parts' sum; the goals are the task poses the robot went for, largest first
+    by_goal = res.time_budget_by_goal_s
+    assert by_goal is not None and summary["time_budget_by_goal_s"] == by_goal
+    for k in TIME_BUDGET:
+        assert sum(g.get(k, 0.0) for g in by_goal.values()) == pytest.approx(budget[k], abs=0.01)
+    for parts in by_goal.values():
+        assert parts["total"] == pytest.approx(sum(v for k, v in parts.items() if k != "total"), abs=1e-3)
+        assert set(parts) <= {*TIME_BUDGET, "total"}
+    totals = [g["total"] for g in by_goal.values()]
+    assert totals == sorted(totals, reverse=True)
+    assert "pickup_approach" in by_goal and set(by_goal) <= {*stack.goal_names(), "none"}
+    # the gripper's dwell counts at the pose where it grips or releases, not under the next goal
+    gripping = {goal for goal, parts in by_goal.items() if "gripper" in parts}
+    assert "pickup" in gripping and gripping <= {"pickup", *(s.name for s in load_workcell().drop_stations)}
