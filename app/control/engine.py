@@ -882,6 +882,7 @@ class TrialEngine:
         st = c.state_time_s
         counters = self.source.counters
         mon = self.monitor
+        arrivals = self.arrival_error()
         return TrialMetrics(
             method=self.method,
             duration_s=round(self.elapsed(end_t), 6),
@@ -906,6 +907,11 @@ class TrialEngine:
             time_collision_avoidance_s=st["collision_avoidance"],
             time_moving_s=c.moving_time_s,
             mean_speed_scale=c.scale_time_s / c.moving_time_s if c.moving_time_s > 0 else 0.0,
+            **{f"budget_{k}_s": round(v, 6) for k, v in c.budget_s.items()},
+            arrivals=int(arrivals["n"] or 0),
+            arrival_error_median_abs_s=_nan_if_none(arrivals["median_abs"]),
+            arrival_error_bias_s=_nan_if_none(arrivals["bias"]),
+            median_plan_s=_nan_if_none(arrivals["median_plan_s"]),
             stale_stops=c.stale_stops,
             frames_received=int(counters.get("accepted", 0)) + int(counters.get("rejected", 0)),
             frames_rejected=int(counters.get("rejected", 0)),
@@ -976,6 +982,10 @@ class TrialEngine:
             "intrusions": self.intrusions,
             "min_separation_m": self.min_separation_m,
         }
+
+
+def _nan_if_none(v: float | int | None) -> float:
+    return math.nan if v is None else float(v)
 
 
 def make_validated_source(source: Any, cell: WorkCell, *, stale_timeout_s: float = 0.35) -> ValidatedSource:

@@ -68,7 +68,14 @@ class TrialMetrics:
     ``contacts`` are episodes, ``violation_time_s`` their total time, ``violations_iso`` the episodes with ISO
     13855's constant human speeds, ``min_separation_moving_m`` the smallest true separation while the robot
     moved; ``intrusions`` counts the frames in which the person appeared or jumped (a protective stop each).
-    ``min_separation_m`` is the separation as the supervisor saw it (tracked frames)."""
+    ``min_separation_m`` is the separation as the supervisor saw it (tracked frames).
+
+    ``budget_*_s`` are the trial's time budget (:data:`app.control.counters.TIME_BUDGET`: where its time went,
+    the parts summing to ``duration_s``; ``budget_stopped_s`` counts the governor's holds at scale 0 as well,
+    unlike ``time_stopped_s``, the supervisor's stopped state). ``arrivals`` counts the plans that reached
+    their goal; ``arrival_error_median_abs_s`` and ``arrival_error_bias_s`` compare their predicted arrival
+    with the executed one (median absolute error; mean of executed minus predicted, positive: late), and
+    ``median_plan_s`` is their median planned duration (all three NaN without arrivals)."""
 
     method: Method = "proactive"
     duration_s: float = 0.0
@@ -93,6 +100,18 @@ class TrialMetrics:
     time_collision_avoidance_s: float = 0.0
     time_moving_s: float = 0.0
     mean_speed_scale: float = 0.0
+    budget_moving_full_s: float = 0.0
+    budget_moving_scaled_s: float = 0.0
+    budget_braking_s: float = 0.0
+    budget_stopped_s: float = 0.0
+    budget_planned_wait_s: float = 0.0
+    budget_gripper_s: float = 0.0
+    budget_waiting_for_plan_s: float = 0.0
+    budget_idle_s: float = 0.0
+    arrivals: int = 0
+    arrival_error_median_abs_s: float = math.nan
+    arrival_error_bias_s: float = math.nan
+    median_plan_s: float = math.nan
     stale_stops: int = 0
     frames_received: int = 0
     frames_rejected: int = 0

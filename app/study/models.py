@@ -180,6 +180,19 @@ class TrialMetricsRow(Base):
     time_collision_avoidance_s: Mapped[float] = mapped_column(Float)
     time_moving_s: Mapped[float] = mapped_column(Float, server_default="0")
     mean_speed_scale: Mapped[float] = mapped_column(Float, server_default="0")
+    # the time budget and the arrivals (revision 0005; NULL: a trial stored before it, not measured)
+    budget_moving_full_s: Mapped[float | None] = mapped_column(Float)
+    budget_moving_scaled_s: Mapped[float | None] = mapped_column(Float)
+    budget_braking_s: Mapped[float | None] = mapped_column(Float)
+    budget_stopped_s: Mapped[float | None] = mapped_column(Float)
+    budget_planned_wait_s: Mapped[float | None] = mapped_column(Float)
+    budget_gripper_s: Mapped[float | None] = mapped_column(Float)
+    budget_waiting_for_plan_s: Mapped[float | None] = mapped_column(Float)
+    budget_idle_s: Mapped[float | None] = mapped_column(Float)
+    arrivals: Mapped[int | None] = mapped_column(Integer)
+    arrival_error_median_abs_s: Mapped[float | None] = mapped_column(Float)
+    arrival_error_bias_s: Mapped[float | None] = mapped_column(Float)
+    median_plan_s: Mapped[float | None] = mapped_column(Float)
     stale_stops: Mapped[int] = mapped_column(Integer)
     frames_received: Mapped[int] = mapped_column(Integer)
     frames_rejected: Mapped[int] = mapped_column(Integer)
@@ -211,6 +224,18 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "time_collision_avoidance_s",
     "time_moving_s",
     "mean_speed_scale",
+    "budget_moving_full_s",
+    "budget_moving_scaled_s",
+    "budget_braking_s",
+    "budget_stopped_s",
+    "budget_planned_wait_s",
+    "budget_gripper_s",
+    "budget_waiting_for_plan_s",
+    "budget_idle_s",
+    "arrivals",
+    "arrival_error_median_abs_s",
+    "arrival_error_bias_s",
+    "median_plan_s",
     "stale_stops",
     "frames_received",
     "frames_rejected",

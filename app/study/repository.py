@@ -30,6 +30,7 @@ from sqlalchemy import Engine, delete, func, insert, select, update
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, joinedload, sessionmaker
 
+from app.control.counters import TIME_BUDGET
 from app.control.metrics import METHODS, TrialEvent, TrialMetrics
 from app.study.db import session_factory
 from app.study.models import (
@@ -144,8 +145,18 @@ class RecordedFrames:
         return int(self.t.size)
 
 
-#: Metrics that are infinite when unmeasured (no person seen, a robot that never moved), stored as NULL.
-NULLABLE_METRICS = frozenset({"min_separation_m", "min_separation_moving_m"})
+#: The metrics that may be missing, stored as NULL, and what a missing one reads as in :class:`TrialMetrics`:
+#: a separation never measured (no person seen, a robot that never moved) is infinite; the time budget and
+#: the arrivals of a trial stored before they were recorded, and the arrival errors of a trial without
+#: arrivals, are NaN (unknown).
+NULLABLE_METRICS: dict[str, float] = {
+    "min_separation_m": math.inf,
+    "min_separation_moving_m": math.inf,
+    **{f"budget_{k}_s": math.nan for k in TIME_BUDGET},
+    "arrival_error_median_abs_s": math.nan,
+    "arrival_error_bias_s": math.nan,
+    "median_plan_s": math.nan,
+}
 
 
 def _metrics_values(metrics: TrialMetrics | Mapping[str, Any]) -> dict[str, Any]:
@@ -176,9 +187,11 @@ def _metrics_values(metrics: TrialMetrics | Mapping[str, Any]) -> dict[str, Any]
 def metrics_from_read(row: TrialMetricsRead, method: Method) -> TrialMetrics:
     """Back to the runtime's :class:`TrialMetrics` (None min separation -> inf)."""
     values = {c: getattr(row, c) for c in METRIC_COLUMNS}
-    for c in NULLABLE_METRICS:
+    for c, missing in NULLABLE_METRICS.items():
         if values[c] is None:
-            values[c] = math.inf
+            values[c] = missing
+    if values["arrivals"] is None:
+        values["arrivals"] = 0
     return TrialMetrics(method=method, **values)
 
 

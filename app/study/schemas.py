@@ -98,7 +98,8 @@ class TrialCreate(_In):
 
 class TrialMetricsRead(_Out):
     """Stored metrics of one trial (see :class:`app.control.metrics.TrialMetrics`) plus the per-task rates.
-    ``min_separation_m`` is None when no person was seen during the trial."""
+    ``min_separation_m`` is None when no person was seen during the trial; the time budget and the arrivals
+    are None for a trial stored before they were recorded, the arrival errors also without arrivals."""
 
     trial_id: int
     duration_s: float
@@ -123,6 +124,18 @@ class TrialMetricsRead(_Out):
     time_collision_avoidance_s: float
     time_moving_s: float
     mean_speed_scale: float
+    budget_moving_full_s: float | None = None
+    budget_moving_scaled_s: float | None = None
+    budget_braking_s: float | None = None
+    budget_stopped_s: float | None = None
+    budget_planned_wait_s: float | None = None
+    budget_gripper_s: float | None = None
+    budget_waiting_for_plan_s: float | None = None
+    budget_idle_s: float | None = None
+    arrivals: int | None = None
+    arrival_error_median_abs_s: float | None = None
+    arrival_error_bias_s: float | None = None
+    median_plan_s: float | None = None
     stale_stops: int
     frames_received: int
     frames_rejected: int

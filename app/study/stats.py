@@ -59,6 +59,18 @@ METRIC_LABELS: dict[str, str] = {
     "violations": "Violations (ground truth)",
     "contacts": "Contacts (ground truth)",
 }
+#: The time budget's parts (:data:`app.control.counters.TIME_BUDGET`) as the trial rows store them, and their
+#: names for people (the dashboard's).
+BUDGET_LABELS: dict[str, str] = {
+    "moving_full": "moving, full speed",
+    "moving_scaled": "moving, slowed",
+    "braking": "braking",
+    "stopped": "held still",
+    "planned_wait": "planned wait",
+    "gripper": "gripper",
+    "waiting_for_plan": "waiting for a plan",
+    "idle": "idle",
+}
 NORMALITY_ALPHA = 0.05
 MIN_PAIRS = 3
 NOT_TESTABLE = "not testable"
@@ -265,7 +277,39 @@ def summarize_rows(
     out["n_trials"] = {m: sum(1 for r in rows if r["method"] == m) for m in METHODS}
     out["metrics"] = list(metrics)
     out["labels"] = {m: METRIC_LABELS.get(m, m) for m in metrics}
+    out["time_budget_s"] = {m: _time_budget([r for r in rows if r["method"] == m]) for m in METHODS}
+    out["arrival_error_s"] = {m: _arrival_error([r for r in rows if r["method"] == m]) for m in METHODS}
     return out
+
+
+def _time_budget(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Where the trials' time went: per :data:`BUDGET_LABELS` part the mean seconds per trial, over the trials
+    that kept a budget (``trials``; those stored before it was recorded have none)."""
+    cols = [f"budget_{k}_s" for k in BUDGET_LABELS]
+    kept = [r for r in rows if all(r.get(c) is not None for c in cols)]
+    out: dict[str, Any] = {"trials": len(kept)}
+    for k, c in zip(BUDGET_LABELS, cols, strict=True):
+        out[k] = _finite_or_none(float(np.mean([float(r[c]) for r in kept]))) if kept else None
+    return out
+
+
+def _arrival_error(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The plans' predicted against executed arrivals, over the trials with arrivals (``trials``): the median
+    over the trials of each trial's median absolute error, the mean of their biases (executed minus
+    predicted; positive: late), the median of their median plan durations, and ``relative``, the first over
+    the third (the issue's measure: at most 0.15 means the plans say when the robot arrives)."""
+    have = [r for r in rows if (r.get("arrivals") or 0) > 0 and r.get("median_plan_s") is not None]
+    if not have:
+        return {"trials": 0, "median_abs": None, "bias": None, "median_plan_s": None, "relative": None}
+    med = float(np.median([float(r["arrival_error_median_abs_s"]) for r in have]))
+    plan = float(np.median([float(r["median_plan_s"]) for r in have]))
+    return {
+        "trials": len(have),
+        "median_abs": _finite_or_none(med),
+        "bias": _finite_or_none(float(np.mean([float(r["arrival_error_bias_s"]) for r in have]))),
+        "median_plan_s": _finite_or_none(plan),
+        "relative": _finite_or_none(med / plan) if plan > 0 else None,
+    }
 
 
 def summarize(
@@ -312,6 +356,26 @@ def markdown_table(summary: Mapping[str, Any]) -> str:
         p = "–" if t["p_value"] is None else f"{t['p_value']:.3g}"
         label = METRIC_LABELS.get(m, m)
         lines.append(f"| {label} | {t['test']} | {_fmt(t['statistic'])} | {p} | {effect} | {t['why']} |")
+    budget = summary.get("time_budget_s")
+    if budget is not None:
+        lines += ["", "Where the time went (mean s per trial):", ""]
+        lines += ["| Method | " + " | ".join(BUDGET_LABELS.values()) + " | trials |"]
+        lines += ["|" + "---|" * (len(BUDGET_LABELS) + 2)]
+        for method in METHODS:
+            b = budget[method]
+            cells = [_fmt(b[k], 1) if b[k] is not None else "–" for k in BUDGET_LABELS]
+            lines.append(f"| {method} | " + " | ".join(cells) + f" | {b['trials']} |")
+    arrivals = summary.get("arrival_error_s")
+    if arrivals is not None:
+        lines += ["", "Predicted against executed arrival (median over trials):", ""]
+        lines += ["| Method | median abs. error (s) | bias (s) | median plan (s) | relative | trials |"]
+        lines += ["|---|---|---|---|---|---|"]
+        for method in METHODS:
+            a = arrivals[method]
+            lines.append(
+                f"| {method} | {_fmt(a['median_abs'])} | {_fmt(a['bias'])} | {_fmt(a['median_plan_s'])} | "
+                f"{_fmt(a['relative'])} | {a['trials']} |"
+            )
     return "\n".join(lines) + "\n"
 
 

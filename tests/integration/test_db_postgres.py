@@ -29,7 +29,7 @@ from app.study.repository import (
 from app.study.schemas import ParticipantCreate, ParticipantUpdate, StudySessionCreate, StudySessionUpdate
 from app.study.stats import summarize
 
-HEAD = "0004"
+HEAD = "0005"
 
 
 @pytest.fixture
@@ -102,13 +102,23 @@ def test_sessions_and_trial_lifecycle(repo: StudyRepository) -> None:
     done = repo.finish_trial(
         t0.id,
         status="completed",
-        metrics=_metrics("proactive", completed_tasks=4, stop_replans=2, online_replans=6),
+        metrics=_metrics(
+            "proactive",
+            completed_tasks=4,
+            stop_replans=2,
+            online_replans=6,
+            budget_moving_scaled_s=41.5,
+            budget_stopped_s=18.5,
+        ),
         events=[TrialEvent(t=1.0, kind="task_completed", payload={"station": "d1", "index": 0})],
     )
     assert done.status == "completed" and done.ended_at is not None and done.ended_at >= done.started_at
     assert done.metrics is not None and done.metrics.completed_tasks == 4
     assert done.metrics.min_separation_m is None  # inf: no person seen
     assert done.metrics.stop_replans_per_task == 0.5 and done.metrics.online_replans_per_task == 1.5
+    # the time budget is stored; a trial without arrivals has no arrival error (NULL, not 0)
+    assert (done.metrics.budget_moving_scaled_s, done.metrics.budget_stopped_s) == (41.5, 18.5)
+    assert done.metrics.arrivals == 0 and done.metrics.arrival_error_median_abs_s is None
     with pytest.raises(TrialStateError):
         repo.finish_trial(t0.id, status="aborted")
     assert [t.id for t in repo.list_trials(status="running")] == [t1.id]

@@ -476,6 +476,12 @@ def test_the_time_budget_sums_to_the_trial_and_arrivals_are_compared_with_the_pl
     assert abs(arrivals["bias"]) < 0.2 * arrivals["median_plan_s"]
     summary = res.summary()
     assert summary["time_budget_s"] == budget and summary["arrival_error_s"] == arrivals
+    # the trial's metrics (what the study database stores) carry both
+    m = res.metrics
+    for k in TIME_BUDGET:
+        assert getattr(m, f"budget_{k}_s") == pytest.approx(budget[k], abs=1e-3)
+    assert m.arrivals == arrivals["n"] and m.arrival_error_median_abs_s == arrivals["median_abs"]
+    assert (m.arrival_error_bias_s, m.median_plan_s) == (arrivals["bias"], arrivals["median_plan_s"])
     # the same budget per task pose: every part summed over the goals is the trial's part, each goal's total
     # its parts' sum; the goals are the task poses the robot went for, largest first
     by_goal = res.time_budget_by_goal_s

@@ -12,6 +12,7 @@ import pytest
 from scipy import stats
 
 from app.study.stats import (
+    BUDGET_LABELS,
     REPORT_METRICS,
     TABLE_I_METRICS,
     csv_table,
@@ -150,3 +151,37 @@ def test_report_files(tmp_path: Path) -> None:
         s["proactive"]["completed_tasks"]["mean"]
     )
     assert paths["csv"].read_text() == csv_table(s)
+
+
+def test_the_report_says_where_the_time_went_and_whether_the_plans_said_when_the_robot_arrives() -> None:
+    from app.control.counters import TIME_BUDGET
+
+    rows = _rows()
+    parts = list(BUDGET_LABELS)
+    assert tuple(parts) == TIME_BUDGET
+    for i, r in enumerate(rows):
+        r.update({f"budget_{k}_s": float(i + j) for j, k in enumerate(parts)})
+        r.update(arrivals=3, arrival_error_median_abs_s=0.1 * i, arrival_error_bias_s=0.05, median_plan_s=2.0)
+    # a trial stored before the budget was kept (NULL columns), one without arrivals: left out, not zeros
+    rows[0].update({f"budget_{k}_s": None for k in parts})
+    rows[2].update(arrivals=0, arrival_error_median_abs_s=None, arrival_error_bias_s=None)
+    s = summarize(rows)
+    json.dumps(s, allow_nan=False)
+    pro = [i for i, r in enumerate(rows) if r["method"] == "proactive"]
+    kept = [i for i in pro if i != 0]
+    budget = s["time_budget_s"]["proactive"]
+    assert budget["trials"] == len(kept) == 7
+    for j, k in enumerate(parts):
+        assert budget[k] == pytest.approx(np.mean([i + j for i in kept]))
+    arrivals = s["arrival_error_s"]["proactive"]
+    with_arrivals = [i for i in pro if i != 2]
+    assert arrivals["trials"] == 7
+    assert arrivals["median_abs"] == pytest.approx(np.median([0.1 * i for i in with_arrivals]))
+    assert arrivals["bias"] == pytest.approx(0.05) and arrivals["median_plan_s"] == 2.0
+    assert arrivals["relative"] == pytest.approx(arrivals["median_abs"] / 2.0)
+    md = markdown_table(s)
+    assert "Where the time went" in md and "waiting for a plan" in md and "Predicted against executed" in md
+    # rows without any of it (an old database): the report says so instead of inventing zeros
+    bare = summarize(_rows())
+    assert bare["time_budget_s"]["reactive"] == {"trials": 0, **dict.fromkeys(parts)}
+    assert bare["arrival_error_s"]["reactive"]["trials"] == 0
