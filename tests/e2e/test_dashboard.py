@@ -227,6 +227,15 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
     expect(page.get_by_test_id("results-note")).to_contain_text("completed trials")
     if summary["n_trials"]["proactive"] or summary["n_trials"]["reactive"]:
         expect(page.get_by_test_id("boxplots")).to_be_visible(timeout=60_000)
+    # where the completed trials' time went, per method, from the same summary
+    for method in ("proactive", "reactive"):
+        row = page.get_by_test_id(f"results-budget-{method}")
+        if summary["time_budget_s"][method]["trials"]:
+            expect(row).to_contain_text("held still", timeout=UI_TIMEOUT_MS)
+            expect(row.locator(".budget-bar span").first).to_be_attached()
+        else:
+            expect(row).to_have_count(0)
+    assert summary["time_budget_s"][first["method"]]["trials"] >= 1  # the first trial ran to its end
 
     with page.expect_download() as download_info:
         page.get_by_test_id("download-trials").click()

@@ -822,7 +822,64 @@
       `${summary.n_participants ?? 0} participants with both methods · completed trials: ` +
       `proactive ${nt.proactive ?? 0}, reactive ${nt.reactive ?? 0}. Hover a test for why it was chosen; ` +
       "p < 0.05 in green.";
+    renderResultsBudget(summary);
     await refreshBoxplots(summary);
+  }
+
+  // per method: the mean time budget of its completed trials as one bar, and how well its plans said when
+  // the robot would arrive
+  function renderResultsBudget(summary) {
+    const box = $("results-budget");
+    box.textContent = "";
+    const budgets = summary.time_budget_s || {};
+    const arrivals = summary.arrival_error_s || {};
+    for (const method of ["proactive", "reactive"]) {
+      const b = budgets[method] || {};
+      if (!(b.trials > 0)) continue;
+      const total = BUDGET_PARTS.reduce((acc, [k]) => acc + (Number(b[k]) || 0), 0);
+      const row = document.createElement("div");
+      row.className = "results-budget-row";
+      row.setAttribute("data-testid", `results-budget-${method}`);
+      const head = document.createElement("div");
+      head.className = "results-budget-head";
+      const name = document.createElement("strong");
+      name.textContent = method;
+      const facts = document.createElement("span");
+      facts.className = "muted small";
+      const a = arrivals[method] || {};
+      const parts = [`${total.toFixed(1)} s over ${b.trials} trial${b.trials === 1 ? "" : "s"}`];
+      for (const k of ["moving_scaled", "stopped", "waiting_for_plan"]) {
+        const label = (BUDGET_PARTS.find(([key]) => key === k) || [k, k])[1];
+        parts.push(`${label} ${(Number(b[k]) || 0).toFixed(1)} s`);
+      }
+      if (a.trials > 0 && a.median_abs !== null && a.median_plan_s !== null) {
+        const rel = a.relative === null ? "" : ` (${Math.round(a.relative * 100)}%)`;
+        parts.push(`arrival error ${fmtNum(a.median_abs)} s of ${fmtNum(a.median_plan_s)} s plans${rel}`);
+      }
+      facts.textContent = parts.join(" · ");
+      head.append(name, facts);
+      const bar = document.createElement("div");
+      bar.className = "budget-bar";
+      bar.setAttribute("role", "img");
+      bar.setAttribute("aria-label", `Where the ${method} trials' time went`);
+      for (const [k, label, color] of BUDGET_PARTS) {
+        const v = Number(b[k]) || 0;
+        if (!(v > 0) || !(total > 0)) continue;
+        const seg = document.createElement("span");
+        seg.style.background = color;
+        seg.style.width = `${(100 * v) / total}%`;
+        seg.title = `${label}: ${v.toFixed(1)} s`;
+        bar.append(seg);
+      }
+      row.append(head, bar);
+      box.append(row);
+    }
+    if (!box.childElementCount) {
+      const p = document.createElement("p");
+      p.className = "muted";
+      p.textContent = "No completed trials with a time budget yet.";
+      box.append(p);
+    }
   }
 
   async function refreshBoxplots(summary) {
