@@ -11,7 +11,10 @@ Bad input never yields a NaN forecast:
   nearest valid ancestor in the skeleton); a frame with no valid joint is dropped;
 * a gap longer than ``max_gap_s`` or a timestamp that goes backwards resets the history;
 * until the history spans ``history`` frames the forecast falls back to constant velocity (two frames or more)
-  or zero velocity (one frame); predicted displacements are capped at ``max_speed_mps``.
+  or zero velocity (one frame), with their stored margins, also when the forecast is arbitrated: the arbiter
+  scores and learns only from forecasts made from a full history (as ``hrc hmp eval`` replays them), not
+  from these stand-ins, which are far off at the far steps (two noisy frames extrapolated over a second);
+  predicted displacements are capped at ``max_speed_mps``.
 
 Margins: each forecast carries per-step margins ``tracking_margin_m + q(t)``, where ``q`` is a per-horizon
 quantile (default p95) of the per-joint error of the predictor that made the forecast, measured on validation
@@ -452,7 +455,7 @@ class MotionPredictor:
         if not self._frames:
             raise PredictorInputError("no frame observed yet; call update(frame) first")
         t_last, last = self._frames[-1]
-        if self.arbiter is not None and len(self._frames) >= 2:
+        if self.arbiter is not None and self.window() is not None:
             return self._arbitrated()
         kind = self.effective_kind
         win = self.window() if kind == "graphmixer" else None

@@ -319,3 +319,28 @@ def test_the_compiled_quantile_is_numpys_at_every_level() -> None:
         for factor in (0.3, 1.0, 1.1, 5.0):
             hinted = step_quantiles(err, count, levels, np.where(np.isfinite(exact), factor * exact, np.inf))
             np.testing.assert_array_equal(hinted, exact)
+
+
+def test_the_runtime_arbiter_starts_with_the_first_full_history_as_the_evaluation_does() -> None:
+    """Until the history spans the network's input the predictor hands on its fallback (constant velocity
+    from the last two frames) without the arbiter, which scores and learns only from the forecasts made from
+    a full history, as :func:`app.prediction.evaluate.evaluate_arbitrated` replays them. Two noisy frames
+    extrapolated over a second are far off even for a person standing still; scored, they held the 1-s
+    margin at half a metre and more for the window's 3 s, and the planner found no plan near the person
+    meanwhile (every proactive trial began with seconds of waiting for a plan)."""
+    from app.cell.operator_sim import SimulatedOperator
+    from app.config import load_workcell
+    from app.prediction.predictor import MotionPredictor
+
+    operator = SimulatedOperator(load_workcell(), seed=3)  # at work, still from 2 s to 3.3 s
+    p = MotionPredictor(kind="graphmixer", tracking_margin_m=0.02, arbitrate=True)
+    assert p.arbiter is not None
+    for i in range(p.history - 1):
+        p.update(operator.frame_at(i / 30))
+        assert p.last_source == ("zero_velocity" if i == 0 else "constant_velocity")
+        assert not np.isfinite(p.arbiter._t0).any()  # nothing stored to be scored
+    p.update(operator.frame_at((p.history - 1) / 30))
+    assert p.last_source == "arbitrated" and np.isfinite(p.arbiter._t0).sum() == 1
+    far = {i: p.update(operator.frame_at(i / 30)).margins[-1] for i in range(p.history, 100)}
+    # once the far step's warm-up is over, the 1-s margin is the still person's (0.55 m with the stand-ins)
+    assert max(far[i] for i in range(75, 100)) < 0.1
