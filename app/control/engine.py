@@ -921,10 +921,10 @@ class TrialEngine:
         """Where the trial's time went: seconds per :data:`app.control.supervisor.TIME_BUDGET` part (they sum
         to the trial's duration), and ``mean_scale_when_scaled``, the mean speed scale over
         ``moving_scaled``."""
-        c = self.supervisor.counters
-        out = {k: round(v, 4) for k, v in c.budget_s.items()}
-        scaled = c.budget_s["moving_scaled"]
-        out["mean_scale_when_scaled"] = round(c.scaled_scale_s / scaled, 4) if scaled > 0 else 0.0
+        budget, _, scale_s = self.supervisor.time_budget()
+        out = {k: round(v, 4) for k, v in budget.items()}
+        scaled = budget["moving_scaled"]
+        out["mean_scale_when_scaled"] = round(scale_s / scaled, 4) if scaled > 0 else 0.0
         return out
 
     def time_budget_by_goal(self) -> dict[str, dict[str, float]]:
@@ -936,7 +936,7 @@ class TrialEngine:
         pose the person's hands keep inside the speed governor's zone (``hrc cell check``) holds the robot
         still there."""
         rows = []
-        for goal, parts in self.supervisor.counters.budget_by_goal_s.items():
+        for goal, parts in self.supervisor.time_budget()[1].items():
             kept = {k: round(v, 4) for k, v in parts.items() if v > 0}
             rows.append((goal, kept | {"total": round(sum(parts.values()), 4)}))
         rows.sort(key=lambda r: -r[1]["total"])

@@ -1112,6 +1112,15 @@ class Supervisor:
             self._activate_hold(self._q_cmd, t)
             self._set_state("idle", t)
 
+    def time_budget(self) -> tuple[dict[str, float], dict[str, dict[str, float]], float]:
+        """A consistent copy of the trial's time budget so far, for readers on other threads: the seconds
+        per :data:`TIME_BUDGET` part, the same per goal (:attr:`SupervisorCounters.budget_by_goal_s`, which
+        gains a key at each new goal) and the integral of the scale over ``moving_scaled``."""
+        with self._lock:
+            c = self.counters
+            by_goal = {goal: dict(parts) for goal, parts in c.budget_by_goal_s.items()}
+            return dict(c.budget_s), by_goal, c.scaled_scale_s
+
     def status(self) -> SupervisorStatus:
         """An immutable read-out (for snapshots)."""
         with self._lock:
