@@ -455,8 +455,10 @@ class MotionPredictor:
         if not self._frames:
             raise PredictorInputError("no frame observed yet; call update(frame) first")
         t_last, last = self._frames[-1]
-        if self.arbiter is not None and self.window() is not None:
-            return self._arbitrated()
+        if self.arbiter is not None:
+            full = self.window()
+            if full is not None:
+                return self._arbitrated(full)
         kind = self.effective_kind
         win = self.window() if kind == "graphmixer" else None
         future = None
@@ -489,8 +491,9 @@ class MotionPredictor:
             max_margin_m=self.max_margin_m,
         )
 
-    def _arbitrated(self) -> HumanForecast:
-        """The forecast of the arbiter over the network (when loaded) and both baselines."""
+    def _arbitrated(self, win: np.ndarray) -> HumanForecast:
+        """The forecast of the arbiter over the network (when loaded) and both baselines, from the full
+        history ``win`` (:meth:`window`)."""
         assert self.arbiter is not None
         t_last, last = self._frames[-1]
         t_prev, prev = self._frames[-2]
@@ -498,9 +501,8 @@ class MotionPredictor:
         cv = constant_velocity(np.stack([last - step, last])[None], self.horizon)[0]
         futures = {"constant_velocity": cv, "zero_velocity": zero_velocity(last[None, None], self.horizon)[0]}
         if "graphmixer" in self.arbiter.candidates:
-            win = self.window()
-            net = None if win is None else self.predict_batch(win[None], kind="graphmixer")[0]
-            futures["graphmixer"] = net if net is not None and np.all(np.isfinite(net)) else cv
+            net = self.predict_batch(win[None], kind="graphmixer")[0]
+            futures["graphmixer"] = net if np.all(np.isfinite(net)) else cv
         out = self.arbiter.combine(t_last, {k: self._cap_speed(last, v) for k, v in futures.items()})
         self.last_source = "arbitrated"
         return HumanForecast(

@@ -185,7 +185,8 @@ def _metrics_values(metrics: TrialMetrics | Mapping[str, Any]) -> dict[str, Any]
 
 
 def metrics_from_read(row: TrialMetricsRead, method: Method) -> TrialMetrics:
-    """Back to the runtime's :class:`TrialMetrics` (None min separation -> inf)."""
+    """Back to the runtime's :class:`TrialMetrics` (a NULL metric reads as :data:`NULLABLE_METRICS` says; NULL
+    arrivals as 0)."""
     values = {c: getattr(row, c) for c in METRIC_COLUMNS}
     for c, missing in NULLABLE_METRICS.items():
         if values[c] is None:
