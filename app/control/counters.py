@@ -66,3 +66,20 @@ class SupervisorCounters:
     scaled_scale_s: float = 0.0
     #: per plan that reached its goal: (planned duration (s), executed minus predicted arrival (s))
     arrivals: list[tuple[float, float]] = field(default_factory=list)
+
+    def add_budget(self, part: str, goal: str, dt: float, scale: float) -> None:
+        """Count ``dt`` seconds of the time budget's ``part`` (:data:`TIME_BUDGET`) toward ``goal`` (the
+        task pose, ``"none"`` without one); ``scale``: the speed scale meanwhile."""
+        self.budget_s[part] += dt
+        per_goal = self.budget_by_goal_s.get(goal)
+        if per_goal is None:
+            per_goal = self.budget_by_goal_s[goal] = dict.fromkeys(TIME_BUDGET, 0.0)
+        per_goal[part] += dt
+        if part == "moving_scaled":
+            self.scaled_scale_s += scale * dt
+
+    def budget_copy(self) -> tuple[dict[str, float], dict[str, dict[str, float]], float]:
+        """A copy of the time budget: seconds per part, the same per goal, and the integral of the scale
+        over ``moving_scaled``."""
+        by_goal = {goal: dict(parts) for goal, parts in self.budget_by_goal_s.items()}
+        return dict(self.budget_s), by_goal, self.scaled_scale_s

@@ -58,7 +58,7 @@ from typing import Any, Literal
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
-from app.control.counters import TIME_BUDGET, SupervisorCounters, SupervisorState
+from app.control.counters import SupervisorCounters, SupervisorState
 from app.control.metrics import Method
 from app.control.trajectory_views import (
     Goal,
@@ -1061,15 +1061,8 @@ class Supervisor:
             c.moving_time_s += dt
             c.scale_time_s += self._s * dt
         part = self._budget_part()
-        c.budget_s[part] += dt
         goal = self._reached if part == "gripper" else self._goal
-        key = "none" if goal is None else str(goal)
-        per_goal = c.budget_by_goal_s.get(key)
-        if per_goal is None:
-            per_goal = c.budget_by_goal_s[key] = dict.fromkeys(TIME_BUDGET, 0.0)
-        per_goal[part] += dt
-        if part == "moving_scaled":
-            c.scaled_scale_s += self._s * dt
+        c.add_budget(part, "none" if goal is None else str(goal), dt, self._s)
 
     def _budget_part(self) -> str:
         """The :data:`TIME_BUDGET` part of the present tick. Caller holds the lock."""
@@ -1113,13 +1106,10 @@ class Supervisor:
             self._set_state("idle", t)
 
     def time_budget(self) -> tuple[dict[str, float], dict[str, dict[str, float]], float]:
-        """A consistent copy of the trial's time budget so far, for readers on other threads: the seconds
-        per :data:`TIME_BUDGET` part, the same per goal (:attr:`SupervisorCounters.budget_by_goal_s`, which
-        gains a key at each new goal) and the integral of the scale over ``moving_scaled``."""
+        """:meth:`SupervisorCounters.budget_copy` under the lock, for readers on other threads (the per-goal
+        budget gains a key at each new goal)."""
         with self._lock:
-            c = self.counters
-            by_goal = {goal: dict(parts) for goal, parts in c.budget_by_goal_s.items()}
-            return dict(c.budget_s), by_goal, c.scaled_scale_s
+            return self.counters.budget_copy()
 
     def status(self) -> SupervisorStatus:
         """An immutable read-out (for snapshots)."""
