@@ -184,7 +184,7 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
 
     frame = page.frame_locator("[data-testid=viser-frame]")
     wait_for_3d_view(frame, page)
-    page.screenshot(path=str(artifacts_dir / "dashboard-live.png"))
+    page.screenshot(path=str(artifacts_dir / "dashboard-live.png"), full_page=True)
 
     page.get_by_test_id("estop-button").click()
     expect(live_state).to_have_text("E-STOP", timeout=UI_TIMEOUT_MS)
