@@ -409,6 +409,19 @@
     $("budget-total").textContent = `${total.toFixed(1)} s${slowed}`;
   }
 
+  // one segment per part of a time budget (seconds by part) in ``bar``, as wide as its share of ``total``
+  function fillBudgetBar(bar, parts, total) {
+    for (const [k, label, color] of BUDGET_PARTS) {
+      const v = Number(parts[k]) || 0;
+      if (!(v > 0) || !(total > 0)) continue;
+      const seg = document.createElement("span");
+      seg.style.background = color;
+      seg.style.width = `${(100 * v) / total}%`;
+      seg.title = `${label}: ${v.toFixed(1)} s`;
+      bar.append(seg);
+    }
+  }
+
   // the task poses that took the most time, each with its own budget bar: where the cell loses its time
   const BUDGET_GOALS_SHOWN = 5;
 
@@ -434,15 +447,7 @@
       bar.className = "budget-bar budget-bar-mini";
       const held = Number(parts.stopped) || 0;
       bar.title = `${goal}: ${total.toFixed(1)} s, ${held.toFixed(1)} s held still`;
-      for (const [k, label, color] of BUDGET_PARTS) {
-        const v = Number(parts[k]) || 0;
-        if (!(v > 0)) continue;
-        const seg = document.createElement("span");
-        seg.style.background = color;
-        seg.style.width = `${(100 * v) / total}%`;
-        seg.title = `${label}: ${v.toFixed(1)} s`;
-        bar.append(seg);
-      }
+      fillBudgetBar(bar, parts, total);
       const secs = document.createElement("span");
       secs.className = "budget-goal-total";
       secs.textContent = `${total.toFixed(1)} s`;
@@ -862,15 +867,7 @@
       bar.className = "budget-bar";
       bar.setAttribute("role", "img");
       bar.setAttribute("aria-label", `Where the ${method} trials' time went`);
-      for (const [k, label, color] of BUDGET_PARTS) {
-        const v = Number(b[k]) || 0;
-        if (!(v > 0) || !(total > 0)) continue;
-        const seg = document.createElement("span");
-        seg.style.background = color;
-        seg.style.width = `${(100 * v) / total}%`;
-        seg.title = `${label}: ${v.toFixed(1)} s`;
-        bar.append(seg);
-      }
+      fillBudgetBar(bar, b, total);
       row.append(head, bar);
       box.append(row);
     }
