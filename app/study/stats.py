@@ -363,7 +363,7 @@ def markdown_table(summary: Mapping[str, Any]) -> str:
         lines += ["|" + "---|" * (len(BUDGET_LABELS) + 2)]
         for method in METHODS:
             b = budget[method]
-            cells = [_fmt(b[k], 1) if b[k] is not None else "–" for k in BUDGET_LABELS]
+            cells = [_fmt(b[k], 1) for k in BUDGET_LABELS]
             lines.append(f"| {method} | " + " | ".join(cells) + f" | {b['trials']} |")
     arrivals = summary.get("arrival_error_s")
     if arrivals is not None:
