@@ -455,12 +455,10 @@ class MotionPredictor:
         if not self._frames:
             raise PredictorInputError("no frame observed yet; call update(frame) first")
         t_last, last = self._frames[-1]
-        if self.arbiter is not None:
-            full = self.window()
-            if full is not None:
-                return self._arbitrated(full)
         kind = self.effective_kind
-        win = self.window() if kind == "graphmixer" else None
+        win = self.window() if self.arbiter is not None or kind == "graphmixer" else None
+        if self.arbiter is not None and win is not None:
+            return self._arbitrated(win)
         future = None
         if kind == "graphmixer" and win is not None:
             future = self.predict_batch(win[None], kind="graphmixer")[0]
