@@ -270,7 +270,7 @@ class TrialResult:
         safety: The ground-truth monitor's verdict (None when the monitor was off).
         tracker_latency_s: The tracker latency the trial ran with (s; None: unknown, a live tracker).
         time_budget_s: Where the trial's time went (:meth:`TrialEngine.time_budget`).
-        time_budget_by_goal_s: The same per task pose (:meth:`TrialEngine.time_budget_by_goal`).
+        time_budget_by_goal_s: The same per task pose (:meth:`TrialEngine.time_budget`).
         arrival_error_s: Predicted against executed arrivals (:meth:`TrialEngine.arrival_error`).
     """
 
@@ -359,8 +359,8 @@ class Snapshot:
         time_budget: Where the running trial's time went so far (:meth:`TrialEngine.time_budget`: seconds
             per part of :data:`app.control.counters.TIME_BUDGET`, and ``mean_scale_when_scaled``); empty
             without a trial.
-        time_budget_by_goal: The same per task pose so far (:meth:`TrialEngine.time_budget_by_goal`); empty
-            without a trial.
+        time_budget_by_goal: The same per task pose so far (:meth:`TrialEngine.time_budget`); empty without a
+            trial.
     """
 
     t: float
@@ -917,30 +917,28 @@ class TrialEngine:
             frames_rejected=int(counters.get("rejected", 0)),
         )
 
-    def time_budget(self) -> dict[str, float]:
-        """Where the trial's time went: seconds per :data:`app.control.supervisor.TIME_BUDGET` part (they sum
-        to the trial's duration), and ``mean_scale_when_scaled``, the mean speed scale over
-        ``moving_scaled``."""
-        budget, _, scale_s = self.supervisor.time_budget()
+    def time_budget(self) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
+        """Where the trial's time went, from one copy of the supervisor's counters (the two agree):
+
+        - seconds per :data:`app.control.counters.TIME_BUDGET` part (they sum to the trial's duration), and
+          ``mean_scale_when_scaled``, the mean speed scale over ``moving_scaled``;
+        - the same per task pose: for each goal the robot headed for (or waited to leave for; the gripper's
+          dwell counts under the pose where it grips or releases, ``"none"`` is time without a goal), the
+          seconds per part spent on it (parts with none left out) and their ``total``, the goals in order of
+          total, largest first. Summed over the goals, each part is the trial's. It shows where the cell
+          loses its time: a task pose the person's hands keep inside the speed governor's zone (``hrc cell
+          check``) holds the robot still there.
+        """
+        budget, by_goal, scale_s = self.supervisor.time_budget()
         out = {k: round(v, 4) for k, v in budget.items()}
         scaled = budget["moving_scaled"]
         out["mean_scale_when_scaled"] = round(scale_s / scaled, 4) if scaled > 0 else 0.0
-        return out
-
-    def time_budget_by_goal(self) -> dict[str, dict[str, float]]:
-        """:meth:`time_budget` per task pose: for each goal the robot headed for (or waited to leave for;
-        the gripper's dwell counts under the pose where it grips or releases, ``"none"`` is time without a
-        goal), the seconds per :data:`app.control.counters.TIME_BUDGET` part spent on it (parts with none
-        left out) and their ``total``; the goals in order of total, largest first. Summed over the goals,
-        each part is the trial's :meth:`time_budget` part. It shows where the cell loses its time: a task
-        pose the person's hands keep inside the speed governor's zone (``hrc cell check``) holds the robot
-        still there."""
         rows = []
-        for goal, parts in self.supervisor.time_budget()[1].items():
+        for goal, parts in by_goal.items():
             kept = {k: round(v, 4) for k, v in parts.items() if v > 0}
             rows.append((goal, kept | {"total": round(sum(parts.values()), 4)}))
         rows.sort(key=lambda r: -r[1]["total"])
-        return dict(rows)
+        return out, dict(rows)
 
     def arrival_error(self) -> dict[str, float | int | None]:
         """Each plan's predicted arrival against the executed one, over the plans that reached their goal:

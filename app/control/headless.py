@@ -265,6 +265,7 @@ def run_headless_trial(
     wall = time.perf_counter() - wall0
     status, reason = engine.finished or ("aborted", "unknown")
     metrics = engine.metrics()
+    budget, by_goal = engine.time_budget()
     return TrialResult(
         metrics=metrics,
         events=list(engine.events),
@@ -275,7 +276,7 @@ def run_headless_trial(
         sim_speedup=metrics.duration_s / wall if wall > 0 else float("inf"),
         safety=None if engine.monitor is None else engine.monitor.totals(),
         tracker_latency_s=None if tracker_model is None else tracker_model.latency_s,
-        time_budget_s=engine.time_budget(),
+        time_budget_s=budget,
         arrival_error_s=engine.arrival_error(),
-        time_budget_by_goal_s=engine.time_budget_by_goal(),
+        time_budget_by_goal_s=by_goal,
     )

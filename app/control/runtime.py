@@ -515,6 +515,7 @@ class Runtime:
         events = list(engine.events)
         safety = None if engine.monitor is None else engine.monitor.totals()
         latency = self.settings.tracker_latency_s if self._truth is not None else None
+        budget, by_goal = engine.time_budget()
         self.last_result = TrialResult(
             metrics,
             events,
@@ -523,9 +524,9 @@ class Runtime:
             reason,
             safety=safety,
             tracker_latency_s=latency,
-            time_budget_s=engine.time_budget(),
+            time_budget_s=budget,
             arrival_error_s=engine.arrival_error(),
-            time_budget_by_goal_s=engine.time_budget_by_goal(),
+            time_budget_by_goal_s=by_goal,
         )
         if reason == "robot_fault":
             self._fault = "robot connection lost"
@@ -760,6 +761,7 @@ class Runtime:
         st = engine.supervisor.status()
         fc = engine.last_forecast
         times = engine.supervisor.counters.planning_times_s[-20:]
+        budget, by_goal = engine.time_budget()
         return Snapshot(
             trial_id=trial_id,
             state="estop" if self._estopped else st.state,
@@ -774,8 +776,8 @@ class Runtime:
             backup_tcp=self._tcp_path(st.backup),
             trial_elapsed_s=engine.elapsed(t),
             trial_duration_s=engine.duration_s,
-            time_budget=engine.time_budget(),
-            time_budget_by_goal=engine.time_budget_by_goal(),
+            time_budget=budget,
+            time_budget_by_goal=by_goal,
             **base,
         )
 
