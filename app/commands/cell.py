@@ -89,17 +89,32 @@ def check(
     speed: Annotated[
         float, typer.Option("--speed", min=0.001, help="Speed (m/s) to ask of the robot at each task pose.")
     ] = 0.1,
+    suggest: Annotated[
+        bool,
+        typer.Option(
+            "--suggest",
+            help="Also find, for each drop station, the nearest place away from the person's work spot where "
+            "the robot may move at --speed in at least --target-free of the frames.",
+        ),
+    ] = False,
+    target_free: Annotated[
+        float,
+        typer.Option(
+            "--target-free", min=0.01, max=1.0, help="Share of the frames a suggested station must be free."
+        ),
+    ] = 0.75,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
 ) -> None:
     """Check the cell's layout under the safety model: at each task pose, how close the person at work comes
-    and how often the speed governor lets the robot move there at --speed (see app/control/layout.py)."""
+    and how often the speed governor lets the robot move there at --speed (see app/control/layout.py);
+    with --suggest, where to move the drop stations that the person's work blocks."""
     import numpy as np
 
     from app.cell.human import load_clip, place_clip
     from app.cell.recording import simulated_operator_sequences
     from app.config import Settings
     from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
-    from app.control.layout import check_layout
+    from app.control.layout import check_layout, suggest_stations
 
     settings, options = Settings(), EngineOptions()
     cell = settings.load_workcell()
@@ -121,12 +136,21 @@ def check(
         label = f"{participants} simulated participants from seed {seed}, {duration:g} s each"
     stack = PlanningStack.for_cell(cell, t_reaction_s=settings.reaction_time_s(options.servo_period_s))
     governor = governor_model(settings, stack.ssm, supervisor_config(settings, "proactive", options), options)
+    moves = ()
     try:
         report = check_layout(stack, governor, recordings, fps=fps, speed_mps=speed)
+        if suggest:
+            moves = suggest_stations(
+                stack, governor, recordings, fps=fps, speed_mps=speed, target_free=target_free
+            )
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--clip") from None
     if as_json:
-        typer.echo(json.dumps({"cell": cell.name, "person": label, **report.to_json()}))
+        doc = {"cell": cell.name, "person": label, **report.to_json()}
+        if suggest:
+            doc["target_free"] = target_free
+            doc["suggestions"] = {m.name: m.to_json() for m in moves}
+        typer.echo(json.dumps(doc))
         return
     typer.echo(f"cell {cell.name!r} against {label} ({report.frames} frames)")
     typer.echo(
@@ -142,3 +166,17 @@ def check(
             f"warning: at {p.name} the robot may move at {speed:g} m/s in only {p.free:.0%} of the frames: "
             "the person works within the governor's zone of it"
         )
+    for m in moves:
+        if m.suggested_xyz is None:
+            typer.echo(
+                f"{m.name}: no place within 0.5 m away from the work spot is free {target_free:.0%} "
+                "of the time"
+            )
+        elif m.shift_m == 0.0:
+            typer.echo(f"{m.name}: free {m.free:.0%} of the time where it is")
+        else:
+            xyz = ", ".join(f"{v:.3f}" for v in m.suggested_xyz)
+            typer.echo(
+                f"{m.name}: move it {m.shift_m:.3f} m to xyz = [{xyz}] (free {m.suggested_free:.0%} of the "
+                f"time there, {m.free:.0%} now; {m.reach_change_m:+.3f} m from the pickup)"
+            )

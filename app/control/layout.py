@@ -8,6 +8,9 @@ wait at, while they are there, however good the plan. :func:`check_layout` measu
 of the work cell (pickup, drop stations, their approach poses, home) against recorded frames of a person at
 work: per pose, the separation to the person, the speed the governor would allow a part there, and the
 share of the frames in which it allows at least a given speed (a slow approach, by default 0.1 m/s).
+:func:`suggest_stations` then looks, for every drop station, for the nearest place away from the person's work
+spot where the robot could work: what a cell designer would move, since no plan gets the robot faster into a
+zone the person works in.
 
 The robot stands at the pose in the configuration (IK branch) that keeps it farthest from the person; every
 part counts, each moving straight at the person (the governor's case for a part without a path to measure
@@ -17,6 +20,7 @@ participants at work (``hrc cell check``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -25,10 +29,16 @@ import numpy as np
 
 from app.safety.governor import GovernorModel, directed_approach
 
-__all__ = ["LayoutReport", "PoseReport", "check_layout"]
+__all__ = ["LayoutReport", "PoseReport", "StationMove", "check_layout", "suggest_stations"]
 
 #: Speed (m/s) the default check asks of a task pose: a slow, careful approach of the tool.
 DEFAULT_SPEED_MPS = 0.1
+#: Share of the frames in which a suggested station must let the robot move at the check's speed (three
+#: quarters of the time: a design default, not tuned on any figure).
+DEFAULT_TARGET_FREE = 0.75
+#: The ways :func:`suggest_stations` tries to move a station: straight away from the person's work spot
+#: first, then turned by 30 degrees either side (round a conveyor or an obstacle in the way).
+DIRECTIONS_RAD = (0.0, math.radians(-30.0), math.radians(30.0))
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,33 +121,18 @@ def check_layout(
         ValueError: a recording is not (T, J, 3) or has non-finite positions, none is longer than the
             speed window, or ``speed_mps``/``fps`` is not > 0.
     """
-    if not (speed_mps > 0 and fps > 0):
-        raise ValueError(f"speed_mps and fps must be > 0, got {speed_mps}, {fps}")
-    lag = max(round(governor.speed_window_s * fps), 1)
-    poses = [np.asarray(r, dtype=np.float64) for r in recordings]
-    for p in poses:
-        if p.ndim != 3 or p.shape[-1] != 3:
-            raise ValueError(f"a recording must be frames of joint positions (T, J, 3), got {p.shape}")
-    used = [p for p in poses if p.shape[0] > lag]
-    if not used:
-        raise ValueError(f"no recording has more than {lag} frames (the speed window at {fps:g} fps)")
-    if not all(np.all(np.isfinite(p)) for p in used):
-        raise ValueError("a recording has NaN or infinite joint positions (frames without the person)")
+    used, lag = _recordings(governor, recordings, fps=fps, speed_mps=speed_mps)
     dt = lag / fps
     roadmap, geometry = stack.roadmap, stack.geometry
     table = _SpeedTable(governor)
     out = []
     for name, node in roadmap.station_nodes.items():
-        best: tuple[float, int, np.ndarray, np.ndarray] | None = None
-        for branch in np.flatnonzero(np.asarray(roadmap.valid[node], dtype=bool)).tolist():
-            q = np.asarray(roadmap.ik[node, branch], dtype=np.float64)
-            sep, v_h = _measure(geometry, q, used, lag, dt, governor.near_band_m, chunk)
-            score = float(np.median(sep.min(axis=1)))
-            if best is None or score > best[0]:
-                best = (score, int(branch), sep, v_h)
-        if best is None:
+        branches = np.flatnonzero(np.asarray(roadmap.valid[node], dtype=bool))
+        if branches.size == 0:
             continue
-        _, branch, sep, v_h = best
+        qs = np.asarray(roadmap.ik[node], dtype=np.float64)[branches]
+        i, sep, v_h = _farthest_branch(geometry, qs, used, lag, dt, governor.near_band_m, chunk)
+        branch = int(branches[i])
         allowed = table(sep, v_h).min(axis=1)
         nearest = sep.min(axis=1)
         out.append(
@@ -153,6 +148,200 @@ def check_layout(
     zone = float(table.seps[np.argmax(ok)]) if np.any(ok) else float("inf")
     frames = sum(p.shape[0] - lag for p in used)
     return LayoutReport(speed_mps=float(speed_mps), frames=int(frames), zone_m=zone, poses=tuple(out))
+
+
+@dataclass(frozen=True, slots=True)
+class StationMove:
+    """Where a drop station could go so that the robot can work at it beside the person.
+
+    Attributes:
+        name: The drop station.
+        xyz: Where it is (m).
+        free: The smaller share, of the station's and its approach pose's, of the frames in which the
+            governor allows the check's speed there.
+        suggested_xyz: The nearest place found along the way from the person's work spot through the
+            station (same height) where that share reaches the target; None if none within the search.
+        shift_m: How far ``suggested_xyz`` is from ``xyz`` (m); 0 when the station is free enough already.
+        suggested_free: The share at ``suggested_xyz``.
+        reach_change_m: How much farther (m; negative: nearer) ``suggested_xyz`` is from the pickup than
+            ``xyz``, straight: what the move costs the robot's way from the conveyor.
+    """
+
+    name: str
+    xyz: tuple[float, float, float]
+    free: float
+    suggested_xyz: tuple[float, float, float] | None
+    shift_m: float | None
+    suggested_free: float | None
+    reach_change_m: float | None
+
+    def to_json(self) -> dict[str, Any]:
+        def r(v: Any) -> Any:
+            return None if v is None else [round(float(x), 3) for x in v]
+
+        return {
+            "xyz": r(self.xyz),
+            "free": round(self.free, 3),
+            "suggested_xyz": r(self.suggested_xyz),
+            "shift_m": None if self.shift_m is None else round(self.shift_m, 3),
+            "suggested_free": None if self.suggested_free is None else round(self.suggested_free, 3),
+            "reach_change_m": None if self.reach_change_m is None else round(self.reach_change_m, 3),
+        }
+
+
+def suggest_stations(
+    stack: Any,
+    governor: GovernorModel,
+    recordings: Sequence[np.ndarray],
+    *,
+    fps: float,
+    speed_mps: float = DEFAULT_SPEED_MPS,
+    target_free: float = DEFAULT_TARGET_FREE,
+    max_shift_m: float = 0.5,
+    step_m: float = 0.025,
+    chunk: int = 4096,
+) -> tuple[StationMove, ...]:
+    """For every drop station of ``stack``'s cell, the nearest place, moving it away from the person's work
+    spot (``cell.operator.work_spot``; in the table's plane, straight away or turned by
+    :data:`DIRECTIONS_RAD`, up to ``max_shift_m`` in steps of ``step_m``), where the governor lets the
+    robot move at ``speed_mps`` in at least ``target_free`` of the frames of ``recordings`` both at the
+    station and at its approach pose (the check of :func:`check_layout`, each pose in its IK branch
+    farthest from the person).
+
+    A place counts only where a block can be put and the robot can work: on the table, clear of the
+    conveyor and the other obstacles' footprints and of the other drop stations by the block's size plus
+    5 cm, and with an IK branch (tool down) at both poses that is clear of the static scene and of itself.
+    The person is the recorded one, reaches to the station's old place included: a person who fetches
+    blocks from the new place reaches there instead, for the few seconds of each fetch.
+
+    Raises:
+        ValueError: as :func:`check_layout`; ``target_free`` not in (0, 1], ``step_m`` or ``max_shift_m``
+            not > 0.
+    """
+    if not (0.0 < target_free <= 1.0):
+        raise ValueError(f"target_free must be in (0, 1], got {target_free}")
+    if not (step_m > 0 and max_shift_m > 0):
+        raise ValueError(f"step_m and max_shift_m must be > 0, got {step_m}, {max_shift_m}")
+    from app.planning.roadmap import RoadmapConfig, StaticChecker
+
+    used, lag = _recordings(governor, recordings, fps=fps, speed_mps=speed_mps)
+    dt = lag / fps
+    cell, geometry = stack.cell, stack.geometry
+    table = _SpeedTable(governor)
+    checker = StaticChecker(stack.collision, margin_m=RoadmapConfig().static_margin_m)
+    yaw = float(getattr(stack.roadmap, "yaw", 0.0))
+    rise = np.array([0.0, 0.0, float(cell.approach_height_m)])
+    half_part = 0.5 * float(np.max(np.asarray(cell.tool.part_size_m, dtype=np.float64)))
+    spot = np.asarray(cell.operator.work_spot, dtype=np.float64)
+    pickup = np.asarray(cell.conveyor.pickup.xyz, dtype=np.float64)
+    stations = {st.name: np.asarray(st.xyz, dtype=np.float64) for st in cell.drop_stations}
+
+    def placeable(p: np.ndarray, name: str) -> bool:
+        tc, ts = np.asarray(cell.table.center), np.asarray(cell.table.size)
+        if np.any(np.abs(p[:2] - tc[:2]) > ts[:2] / 2 - half_part):
+            return False
+        for box in (cell.conveyor.body, *cell.obstacles):
+            c, hs, a = np.asarray(box.center), np.asarray(box.size) / 2.0, float(box.yaw)
+            d = p[:2] - c[:2]
+            local = np.array([np.cos(a) * d[0] + np.sin(a) * d[1], -np.sin(a) * d[0] + np.cos(a) * d[1]])
+            if np.all(np.abs(local) <= hs[:2] + half_part + 0.05):
+                return False
+        return all(
+            np.linalg.norm(p[:2] - o[:2]) >= 2 * half_part + 0.05 for n, o in stations.items() if n != name
+        )
+
+    def free_at(p: np.ndarray) -> float | None:
+        """The smaller share of free frames of the pose at ``p`` and its approach; None: not workable."""
+        q, valid = stack.kin.ik_down(np.stack([p, p + rise]), yaw=yaw)
+        q = np.nan_to_num(np.asarray(q, dtype=np.float64))
+        valid = np.asarray(valid, dtype=bool)
+        shares = []
+        for k in range(2):
+            ok = np.flatnonzero(valid[k])
+            if ok.size:
+                ok = ok[~checker.bad(q[k, ok])]
+            if ok.size == 0:
+                return None
+            _, sep, v_h = _farthest_branch(geometry, q[k, ok], used, lag, dt, governor.near_band_m, chunk)
+            shares.append(float(np.mean(table(sep, v_h).min(axis=1) >= speed_mps - 1e-9)))
+        return min(shares)
+
+    out = []
+    for name, xyz in stations.items():
+        free = free_at(xyz)
+        away = xyz[:2] - spot[:2]
+        norm = float(np.linalg.norm(away))
+        found: tuple[np.ndarray, float, float] | None = None
+        if free is not None and free >= target_free:
+            found = (xyz, 0.0, free)
+        elif norm > 1e-9:
+            base = math.atan2(away[1], away[0])
+            for shift in np.arange(step_m, max_shift_m + 1e-9, step_m):
+                for turn in DIRECTIONS_RAD:
+                    p = xyz + shift * np.array([math.cos(base + turn), math.sin(base + turn), 0.0])
+                    if not placeable(p, name):
+                        continue
+                    share = free_at(p)
+                    if share is not None and share >= target_free:
+                        found = (p, float(shift), share)
+                        break
+                if found is not None:
+                    break
+        out.append(
+            StationMove(
+                name=name,
+                xyz=tuple(float(v) for v in xyz),
+                free=0.0 if free is None else free,
+                suggested_xyz=None if found is None else tuple(float(v) for v in found[0]),
+                shift_m=None if found is None else found[1],
+                suggested_free=None if found is None else found[2],
+                reach_change_m=None
+                if found is None
+                else float(np.linalg.norm(found[0] - pickup) - np.linalg.norm(xyz - pickup)),
+            )
+        )
+    return tuple(out)
+
+
+def _recordings(
+    governor: GovernorModel, recordings: Sequence[np.ndarray], *, fps: float, speed_mps: float
+) -> tuple[list[np.ndarray], int]:
+    """The recordings a check can use (longer than the governor's speed window) and that window in frames;
+    ValueError for bad input (see :func:`check_layout`)."""
+    if not (speed_mps > 0 and fps > 0):
+        raise ValueError(f"speed_mps and fps must be > 0, got {speed_mps}, {fps}")
+    lag = max(round(governor.speed_window_s * fps), 1)
+    poses = [np.asarray(r, dtype=np.float64) for r in recordings]
+    for p in poses:
+        if p.ndim != 3 or p.shape[-1] != 3:
+            raise ValueError(f"a recording must be frames of joint positions (T, J, 3), got {p.shape}")
+    used = [p for p in poses if p.shape[0] > lag]
+    if not used:
+        raise ValueError(f"no recording has more than {lag} frames (the speed window at {fps:g} fps)")
+    if not all(np.all(np.isfinite(p)) for p in used):
+        raise ValueError("a recording has NaN or infinite joint positions (frames without the person)")
+    return used, lag
+
+
+def _farthest_branch(
+    geometry: Any,
+    qs: np.ndarray,
+    used: Sequence[np.ndarray],
+    lag: int,
+    dt: float,
+    band_m: float,
+    chunk: int,
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """Of the configurations ``qs`` (B, 6) of one pose, the one whose median separation from the person is
+    the largest: its index, and its parts' separations and the person's directed speeds (:func:`_measure`)."""
+    best: tuple[float, int, np.ndarray, np.ndarray] | None = None
+    for i, q in enumerate(np.asarray(qs, dtype=np.float64)):
+        sep, v_h = _measure(geometry, q, used, lag, dt, band_m, chunk)
+        score = float(np.median(sep.min(axis=1)))
+        if best is None or score > best[0]:
+            best = (score, i, sep, v_h)
+    assert best is not None
+    return best[1], best[2], best[3]
 
 
 class _SpeedTable:

@@ -2,7 +2,8 @@
 
 The governor's speed for a part at rest (:meth:`GovernorModel.max_speed`) is checked against the scale it
 gives a moving part (:meth:`GovernorModel.scale`); the check of the task poses on the shipped cell against
-a person standing far away, on a drop station, and the simulated participants at work.
+a person standing far away, on a drop station, and the simulated participants at work; the suggestion of
+where to move a drop station that the person's work blocks.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from typer.testing import CliRunner
 from app.cli import app as cli_app
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
-from app.control.layout import check_layout
+from app.control.layout import check_layout, suggest_stations
 from app.prediction.skeleton import JOINT_INDEX, JOINTS
 from tests.unit.planning.test_collision import _standing_person
 from tests.unit.planning.test_ssm_timing import governor
@@ -83,6 +84,68 @@ def test_a_person_reaching_into_a_drop_station_blocks_it(stack: PlanningStack, m
     assert all(p.free == 0.0 for p in report.values() if p.separation_m[1] < checked.zone_m - 0.02)
 
 
+def test_a_station_free_where_it_is_stays_there(stack: PlanningStack, model) -> None:
+    far = _still(_standing_person(3.5, 0.0))
+    moves = suggest_stations(stack, model, [far], fps=30.0)
+    assert [m.name for m in moves] == [s.name for s in stack.cell.drop_stations]
+    for m in moves:
+        assert m.free == 1.0 and m.shift_m == 0.0 and m.suggested_xyz == m.xyz and m.reach_change_m == 0.0
+
+
+def test_a_blocked_station_is_moved_away_from_the_person_to_where_the_robot_may_work(
+    stack: PlanningStack, model, tmp_path: Path
+) -> None:
+    cell = stack.cell
+    b = np.asarray(next(s.xyz for s in cell.drop_stations if s.name == "B"))
+    person = _standing_person(1.0, 0.0)  # at the table's edge, across from the robot
+    moves = {m.name: m for m in suggest_stations(stack, model, [_still(person)], fps=30.0, target_free=1.0)}
+    m = moves["B"]
+    assert m.free == 0.0 and m.suggested_xyz is not None and m.shift_m is not None and m.shift_m > 0.0
+    new = np.asarray(m.suggested_xyz)
+    assert m.suggested_free == 1.0 and new[2] == pytest.approx(b[2])
+    assert np.linalg.norm(new - b) == pytest.approx(m.shift_m)
+    # away from the person (toward the robot), on the table, clear of the other stations
+    assert new[0] < b[0] - 0.2
+    tc, ts = np.asarray(cell.table.center), np.asarray(cell.table.size)
+    assert np.all(np.abs(new[:2] - tc[:2]) <= ts[:2] / 2)
+    others = [np.asarray(s.xyz) for s in cell.drop_stations if s.name != "B"]
+    assert min(np.linalg.norm(new[:2] - o[:2]) for o in others) >= 0.09
+    pickup = np.asarray(cell.conveyor.pickup.xyz)
+    assert m.reach_change_m == pytest.approx(np.linalg.norm(new - pickup) - np.linalg.norm(b - pickup))
+    # the layout check of the cell with B moved there agrees
+    moved = cell.model_copy(
+        update={
+            "drop_stations": [
+                s.model_copy(update={"xyz": list(new) if s.name == "B" else s.xyz})
+                for s in cell.drop_stations
+            ]
+        }
+    )
+    from app.planning.roadmap import RoadmapConfig
+
+    moved_stack = PlanningStack.build(
+        moved,
+        roadmap_config=RoadmapConfig(num_nodes=250),
+        t_reaction_s=stack.ssm.t_reaction_s,
+        cache_dir=tmp_path,
+    )
+    checked = {p.name: p for p in check_layout(moved_stack, model, [_still(person)], fps=30.0).poses}
+    assert checked["B"].free == 1.0 and checked["B_approach"].free == 1.0
+    # nothing within a short search
+    short = suggest_stations(stack, model, [_still(person)], fps=30.0, target_free=1.0, max_shift_m=0.1)
+    gone = {x.name: x for x in short}["B"]
+    assert gone.suggested_xyz is None and gone.shift_m is None and gone.reach_change_m is None
+
+
+def test_suggest_refuses_impossible_targets(stack: PlanningStack, model) -> None:
+    far = [_still(_standing_person(3.5, 0.0))]
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="target_free must be in"):
+            suggest_stations(stack, model, far, fps=30.0, target_free=bad)
+    with pytest.raises(ValueError, match="step_m and max_shift_m must be > 0"):
+        suggest_stations(stack, model, far, fps=30.0, step_m=0.0)
+
+
 def test_check_refuses_recordings_it_cannot_measure(stack: PlanningStack, model) -> None:
     with pytest.raises(ValueError, match="no recording has more than 3 frames"):
         check_layout(stack, model, [_still(_standing_person(3.5), frames=3)], fps=30.0)
@@ -107,6 +170,24 @@ def test_cli_checks_the_shipped_cell_and_names_a_missing_clip(tmp_path: Path) ->
     stations = [poses[s]["separation_m"]["p50"] for s in "ABCD"]
     assert poses["pickup"]["separation_m"]["p50"] > max(stations)
     assert poses["pickup"]["free"] >= max(poses[s]["free"] for s in "ABCD")
+    assert "suggestions" not in out
+    # --suggest: where each drop station could go (the simulated participant blocks them all)
+    sug = CliRunner().invoke(
+        cli_app,
+        ["cell", "check", "--participants", "1", "--duration", "8", "--suggest", "--json"],
+        catch_exceptions=False,
+    )
+    assert sug.exit_code == 0, sug.output
+    got_sug = json.loads(sug.output.strip().splitlines()[-1])
+    assert got_sug["target_free"] == 0.75 and set(got_sug["suggestions"]) == set("ABCD")
+    shipped = {s.name: [round(v, 3) for v in s.xyz] for s in load_workcell().drop_stations}
+    for name, m in got_sug["suggestions"].items():
+        assert m["xyz"] == shipped[name]
+        assert m["suggested_xyz"] is None or m["suggested_free"] >= 0.75
+    text = CliRunner().invoke(
+        cli_app, ["cell", "check", "--participants", "1", "--duration", "8", "--suggest"]
+    )
+    assert text.exit_code == 0 and "B: " in text.output
     # a recording in the format of `hrc export --clips`: a person far away leaves every pose free
     np.savez_compressed(
         tmp_path / "far.npz",
