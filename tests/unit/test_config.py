@@ -16,6 +16,16 @@ def test_default_workcell_loads() -> None:
     assert cell.fingerprint() == load_workcell().fingerprint()
 
 
+def test_the_example_cell_with_the_stations_moved_differs_from_the_shipped_one_only_there() -> None:
+    shipped = load_workcell()
+    moved = load_workcell(Path(__file__).resolve().parents[2] / "examples/workcell_stations_moved.toml")
+    assert [s.name for s in moved.drop_stations] == [s.name for s in shipped.drop_stations]
+    for a, b in zip(moved.drop_stations, shipped.drop_stations, strict=True):
+        assert a.xyz[2] == b.xyz[2] and a.xyz[0] < b.xyz[0] - 0.2  # toward the robot, at the same height
+    same = {"drop_stations", "name"}
+    assert moved.model_dump(exclude=same) == shipped.model_dump(exclude=same)
+
+
 def test_malformed_workcell_names_field_and_reason(tmp_path: Path) -> None:
     text = (Path(__file__).resolve().parents[2] / "app/assets/workcell.toml").read_text()
     bad = text.replace("size = [1.5, 1.6, 0.05]", "size = [1.5, -1.6, 0.05]")
