@@ -159,8 +159,8 @@ class StationMove:
         xyz: Where it is (m).
         free: The smaller share, of the station's and its approach pose's, of the frames in which the
             governor allows the check's speed there.
-        suggested_xyz: The nearest place found along the way from the person's work spot through the
-            station (same height) where that share reaches the target; None if none within the search.
+        suggested_xyz: The nearest place found away from the person's work spot (same height) where that
+            share reaches the target; None if none within the search.
         shift_m: How far ``suggested_xyz`` is from ``xyz`` (m); 0 when the station is free enough already.
         suggested_free: The share at ``suggested_xyz``.
         reach_change_m: How much farther (m; negative: nearer) ``suggested_xyz`` is from the pickup than
@@ -210,7 +210,8 @@ def suggest_stations(
 
     A place counts only where a block can be put and the robot can work: on the table, clear of the
     conveyor and the other obstacles' footprints and of the other drop stations by the block's size plus
-    5 cm, and with an IK branch (tool down) at both poses that is clear of the static scene and of itself.
+    5 cm (the stations are taken in the cell's order, each clear of where the ones before it are to go),
+    and with an IK branch (tool down) at both poses that is clear of the static scene and of itself.
     The person is the recorded one, reaches to the station's old place included: a person who fetches
     blocks from the new place reaches there instead, for the few seconds of each fetch.
 
@@ -267,7 +268,7 @@ def suggest_stations(
         return min(shares)
 
     out = []
-    for name, xyz in stations.items():
+    for name, xyz in list(stations.items()):
         free = free_at(xyz)
         away = xyz[:2] - spot[:2]
         norm = float(np.linalg.norm(away))
@@ -287,6 +288,8 @@ def suggest_stations(
                         break
                 if found is not None:
                     break
+        if found is not None:
+            stations[name] = found[0]  # the stations after this one keep clear of where it is to go
         out.append(
             StationMove(
                 name=name,
