@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from app.prediction.arbitration import FAR_ALPHA_FACTOR, ForecastArbiter
+from app.prediction.arbitration import COLD_START_SCALE, FAR_ALPHA_FACTOR, ForecastArbiter
 from app.prediction.reference import ReferenceForecastArbiter
 from app.prediction.skeleton import NUM_JOINTS
 
@@ -232,15 +232,17 @@ def test_a_new_person_who_moves_fast_gets_wide_margins_before_any_score() -> Non
     candidates = {"network": _hold, "constant_velocity": _cv}
     running = _walk(np.array([3.0, 0.0, 0.0]), 3, rng)
     first = _run(ForecastArbiter(["network", "constant_velocity"], **kwargs), running, candidates)[0]
-    # constant velocity says the person may be 3 m/s x t away: the prior is twice that (plus the floor)
+    # constant velocity says the person may be 3 m/s x t away: the prior is COLD_START_SCALE times that (plus
+    # the floor)
     t = DT * np.arange(H + 1)
-    np.testing.assert_allclose(first.margins[1:], (2.0 * (0.05 + 3.0 * t))[1:], rtol=1e-6)
+    np.testing.assert_allclose(first.margins[1:], (COLD_START_SCALE * (0.05 + 3.0 * t))[1:], rtol=1e-6)
     assert first.margins[0] == pytest.approx(0.001)
-    # a still person keeps the stored prior where it is wider than twice the floor; none: the stored prior
+    # a still person gets COLD_START_SCALE times the motion scale's floor where that is wider than the stored
+    # prior; with no cold-start scale: the stored prior
     still = _run(
         ForecastArbiter(["network", "constant_velocity"], **kwargs), _walk(np.zeros(3), 3, rng), candidates
     )
-    np.testing.assert_allclose(still[0].margins[1:], 0.1, rtol=1e-6)
+    np.testing.assert_allclose(still[0].margins[1:], max(0.05, COLD_START_SCALE * 0.05), rtol=1e-6)
     off = ForecastArbiter(["network", "constant_velocity"], cold_start_scale=0.0, **kwargs)
     np.testing.assert_allclose(_run(off, running, candidates)[0].margins[1:], 0.05)
     with pytest.raises(ValueError, match="cold_start_scale"):
