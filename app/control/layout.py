@@ -158,7 +158,7 @@ class StationMove:
         name: The drop station.
         xyz: Where it is (m).
         free: The smaller share, of the station's and its approach pose's, of the frames in which the
-            governor allows the check's speed there.
+            governor allows the check's speed there (0 where the robot cannot reach both tool-down).
         suggested_xyz: The nearest place found away from the person's work spot (same height) where that
             share reaches the target; None if none within the search.
         shift_m: How far ``suggested_xyz`` is from ``xyz`` (m); 0 when the station is free enough already.
