@@ -21,7 +21,7 @@ participants at work (``hrc cell check``).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -238,15 +238,10 @@ def suggest_stations(
     stations = {st.name: np.asarray(st.xyz, dtype=np.float64) for st in cell.drop_stations}
 
     def placeable(p: np.ndarray, name: str) -> bool:
-        tc, ts = np.asarray(cell.table.center), np.asarray(cell.table.size)
-        if np.any(np.abs(p[:2] - tc[:2]) > ts[:2] / 2 - half_part):
+        if not _within_footprint(p, cell.table, -half_part):
             return False
-        for box in (cell.conveyor.body, *cell.obstacles):
-            c, hs, a = np.asarray(box.center), np.asarray(box.size) / 2.0, float(box.yaw)
-            d = p[:2] - c[:2]
-            local = np.array([np.cos(a) * d[0] + np.sin(a) * d[1], -np.sin(a) * d[0] + np.cos(a) * d[1]])
-            if np.all(np.abs(local) <= hs[:2] + half_part + 0.05):
-                return False
+        if any(_within_footprint(p, box, half_part + 0.05) for box in (cell.conveyor.body, *cell.obstacles)):
+            return False
         return all(
             np.linalg.norm(p[:2] - o[:2]) >= 2 * half_part + 0.05 for n, o in stations.items() if n != name
         )
@@ -276,17 +271,10 @@ def suggest_stations(
         if free is not None and free >= target_free:
             found = (xyz, 0.0, free)
         elif norm > 1e-9:
-            base = math.atan2(away[1], away[0])
-            for shift in np.arange(step_m, max_shift_m + 1e-9, step_m):
-                for turn in DIRECTIONS_RAD:
-                    p = xyz + shift * np.array([math.cos(base + turn), math.sin(base + turn), 0.0])
-                    if not placeable(p, name):
-                        continue
-                    share = free_at(p)
-                    if share is not None and share >= target_free:
-                        found = (p, float(shift), share)
-                        break
-                if found is not None:
+            for shift, p in _away(xyz, math.atan2(away[1], away[0]), step_m, max_shift_m):
+                share = free_at(p) if placeable(p, name) else None
+                if share is not None and share >= target_free:
+                    found = (p, shift, share)
                     break
         if found is not None:
             stations[name] = found[0]  # the stations after this one keep clear of where it is to go
@@ -304,6 +292,25 @@ def suggest_stations(
             )
         )
     return tuple(out)
+
+
+def _within_footprint(p: np.ndarray, box: Any, grow_m: float) -> bool:
+    """Whether the point ``p`` lies over ``box``'s footprint in the table's plane (its rectangle, turned by
+    its yaw), grown by ``grow_m`` on every side (shrunk where negative)."""
+    local = np.linalg.inv(box.transform()) @ np.append(np.asarray(p, dtype=np.float64)[:3], 1.0)
+    return bool(np.all(np.abs(local[:2]) <= np.asarray(box.size[:2], dtype=np.float64) / 2.0 + grow_m))
+
+
+def _away(
+    xyz: np.ndarray, heading: float, step_m: float, max_shift_m: float
+) -> Iterator[tuple[float, np.ndarray]]:
+    """The places :func:`suggest_stations` tries for a station at ``xyz``, nearest first: ``(shift, place)``
+    every ``step_m`` up to ``max_shift_m`` along ``heading`` (rad, in the table's plane), each shift turned by
+    :data:`DIRECTIONS_RAD` in turn."""
+    for shift in np.arange(step_m, max_shift_m + 1e-9, step_m):
+        for turn in DIRECTIONS_RAD:
+            way = np.array([math.cos(heading + turn), math.sin(heading + turn), 0.0])
+            yield float(shift), xyz + shift * way
 
 
 def _recordings(

@@ -137,6 +137,22 @@ def test_a_blocked_station_is_moved_away_from_the_person_to_where_the_robot_may_
     assert gone.suggested_xyz is None and gone.shift_m is None and gone.reach_change_m is None
 
 
+def test_a_footprint_turns_with_its_box() -> None:
+    import math
+
+    from app.config import Box
+    from app.control.layout import _within_footprint
+
+    long_x = Box(center=[1.0, 0.0, 0.0], size=[1.0, 0.2, 0.1])
+    long_y = Box(center=[1.0, 0.0, 0.0], size=[1.0, 0.2, 0.1], yaw=math.pi / 2)
+    along_x, along_y = np.array([1.4, 0.0, 0.5]), np.array([1.0, 0.4, 0.5])  # the height does not count
+    assert _within_footprint(along_x, long_x, 0.0) and not _within_footprint(along_y, long_x, 0.0)
+    assert _within_footprint(along_y, long_y, 0.0) and not _within_footprint(along_x, long_y, 0.0)
+    # grown by 5 cm it reaches a point 4 cm past its side; shrunk by 5 cm, a point 4 cm inside is out
+    assert _within_footprint(np.array([1.0, 0.14, 0.0]), long_x, 0.05)
+    assert not _within_footprint(np.array([1.0, 0.06, 0.0]), long_x, -0.05)
+
+
 def test_suggest_refuses_impossible_targets(stack: PlanningStack, model) -> None:
     far = [_still(_standing_person(3.5, 0.0))]
     for bad in (0.0, 1.5):
