@@ -368,7 +368,7 @@
   function renderBudget(budget) {
     const bar = $("budget-bar");
     const dl = $("time-budget");
-    const total = BUDGET_PARTS.reduce((acc, [k]) => acc + (Number(budget[k]) || 0), 0);
+    const total = budgetTotal(budget);
     if (!(total > 0)) {
       bar.textContent = "";
       dl.textContent = "";
@@ -407,6 +407,11 @@
     const scaled = Number(budget.mean_scale_when_scaled);
     const slowed = Number.isFinite(scaled) && scaled > 0 ? ` · slowed to ${Math.round(scaled * 100)}% on average` : "";
     $("budget-total").textContent = `${total.toFixed(1)} s${slowed}`;
+  }
+
+  // the seconds of a time budget's parts (by part), summed
+  function budgetTotal(parts) {
+    return BUDGET_PARTS.reduce((acc, [k]) => acc + (Number(parts[k]) || 0), 0);
   }
 
   // one segment per part of a time budget (seconds by part) in ``bar``, as wide as its share of ``total``
@@ -841,7 +846,7 @@
     for (const method of ["proactive", "reactive"]) {
       const b = budgets[method] || {};
       if (!(b.trials > 0)) continue;
-      const total = BUDGET_PARTS.reduce((acc, [k]) => acc + (Number(b[k]) || 0), 0);
+      const total = budgetTotal(b);
       const row = document.createElement("div");
       row.className = "results-budget-row";
       row.setAttribute("data-testid", `results-budget-${method}`);
