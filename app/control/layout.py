@@ -20,6 +20,7 @@ participants at work (``hrc cell check``).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -124,7 +125,7 @@ def check_layout(
     used, lag = _recordings(governor, recordings, fps=fps, speed_mps=speed_mps)
     dt = lag / fps
     roadmap, geometry = stack.roadmap, stack.geometry
-    table = _SpeedTable(governor)
+    table = _speed_table(governor)
     out = []
     for name, node in roadmap.station_nodes.items():
         branches = np.flatnonzero(np.asarray(roadmap.valid[node], dtype=bool))
@@ -228,7 +229,7 @@ def suggest_stations(
     used, lag = _recordings(governor, recordings, fps=fps, speed_mps=speed_mps)
     dt = lag / fps
     cell, geometry = stack.cell, stack.geometry
-    table = _SpeedTable(governor)
+    table = _speed_table(governor)
     checker = StaticChecker(stack.collision, margin_m=RoadmapConfig().static_margin_m)
     yaw = float(getattr(stack.roadmap, "yaw", 0.0))
     rise = np.array([0.0, 0.0, float(cell.approach_height_m)])
@@ -354,6 +355,13 @@ def _farthest_branch(
     return best[1], best[2], best[3]
 
 
+@functools.lru_cache(maxsize=4)
+def _speed_table(governor: GovernorModel) -> _SpeedTable:
+    """The governor's :class:`_SpeedTable`, built once per governor model (a second or more to tabulate):
+    ``hrc cell check --suggest`` asks for it twice."""
+    return _SpeedTable(governor)
+
+
 class _SpeedTable:
     """:meth:`GovernorModel.max_speed` tabulated over separation and measured speed, and looked up on the
     safe side: the separation rounded down, the speed up, to the grid (the allowed speed falls as the
@@ -374,6 +382,8 @@ class _SpeedTable:
                 for i in range(0, self.seps.size, rows)
             ]
         )
+        for a in (self.seps, self.speeds, self.values):
+            a.setflags(write=False)  # shared by every check of the same governor (:func:`_speed_table`)
 
     def __call__(self, sep_m: np.ndarray, v_human_mps: np.ndarray) -> np.ndarray:
         i = np.floor(np.asarray(sep_m) / self.SEP_STEP_M + 1e-9).astype(np.int64)
