@@ -146,13 +146,15 @@ class RecordedFrames:
 
 
 #: The metrics that may be missing, stored as NULL, and what a missing one reads as in :class:`TrialMetrics`:
-#: a separation never measured (no person seen, a robot that never moved) is infinite; the time budget and
-#: the arrivals of a trial stored before they were recorded, and the arrival errors of a trial without
-#: arrivals, are NaN (unknown).
-NULLABLE_METRICS: dict[str, float] = {
+#: a separation never measured (no person seen, a robot that never moved) is infinite; the time budget of a
+#: trial stored before it was recorded and the arrival errors of a trial without arrivals (or stored before
+#: they were recorded) are NaN (unknown); the count of arrivals of a trial stored before it was recorded is
+#: 0. A non-finite float is stored as NULL only for these.
+NULLABLE_METRICS: dict[str, float | int] = {
     "min_separation_m": math.inf,
     "min_separation_moving_m": math.inf,
     **{f"budget_{k}_s": math.nan for k in TIME_BUDGET},
+    "arrivals": 0,
     "arrival_error_median_abs_s": math.nan,
     "arrival_error_bias_s": math.nan,
     "median_plan_s": math.nan,
@@ -185,14 +187,11 @@ def _metrics_values(metrics: TrialMetrics | Mapping[str, Any]) -> dict[str, Any]
 
 
 def metrics_from_read(row: TrialMetricsRead, method: Method) -> TrialMetrics:
-    """Back to the runtime's :class:`TrialMetrics` (a NULL metric reads as :data:`NULLABLE_METRICS` says; NULL
-    arrivals as 0)."""
+    """Back to the runtime's :class:`TrialMetrics` (a NULL metric reads as :data:`NULLABLE_METRICS` says)."""
     values = {c: getattr(row, c) for c in METRIC_COLUMNS}
     for c, missing in NULLABLE_METRICS.items():
         if values[c] is None:
             values[c] = missing
-    if values["arrivals"] is None:
-        values["arrivals"] = 0
     return TrialMetrics(method=method, **values)
 
 
