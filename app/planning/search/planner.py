@@ -7,6 +7,7 @@ checks, heuristic), :mod:`.moves` (move checks), :mod:`.astar` (the search loops
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import math
 import time
@@ -334,16 +335,47 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         if not start_sep.check(q_start[None], np.array([float(t_start)]), np.zeros(1), np.zeros(1))[0]:
             reason = "start configuration violates the separation at t_start"
             return PlanResult(False, None, reason, 0, self._timer() - t0)
+        ssm_extra = None
+        if timing is not None and forecast is not None and cfg.ssm_aware_search:
+            table = timing.extra_clearance(v_creep_mps=cfg.ssm_creep_mps, decel_mps2=cfg.ssm_brake_decel_mps2)
+            ssm_extra = (0.05, table)
+        if ssm_extra is None or cfg.ssm_fallback_share >= 1.0:
+            return self._attempts(
+                q_start, t_start, goal_node, forecast, workers, deadline, qd0, timing, ssm_extra, t0
+            )
+        # the clearance the governor needs to let each move run at its speed, within a share of the budget;
+        # where that finds no plan in it, the plain clearance with the rest of the budget
+        share = None if deadline is None else t0 + cfg.ssm_fallback_share * (deadline - t0)
+        first = self._attempts(
+            q_start, t_start, goal_node, forecast, workers, share, qd0, timing, ssm_extra, t0
+        )
+        if first.ok:
+            return first
+        res = self._attempts(q_start, t_start, goal_node, forecast, workers, deadline, qd0, timing, None, t0)
+        return dataclasses.replace(res, expanded=res.expanded + first.expanded)
+
+    def _attempts(
+        self,
+        q_start: np.ndarray,
+        t_start: float,
+        goal_node: int,
+        forecast: HumanForecast | None,
+        workers: int,
+        deadline: float | None,
+        qd0: np.ndarray | None,
+        timing: GovernorModel | None,
+        ssm_extra: tuple[float, np.ndarray] | None,
+        t0: float,
+    ) -> PlanResult:
+        """The searches of :meth:`plan` with the clearance's SSM term ``ssm_extra`` (None: without): the
+        search, then, where its path fails verification, the time-robust re-search (``fallback_slack_s``)."""
+        cfg = self.config
         attempts: list[tuple[float, ...]] = [(0.0,)]
         if forecast is not None and cfg.fallback_slack_s > 0:
             s = cfg.fallback_slack_s
             attempts.append((-0.25 * s, 0.0, 0.5 * s, s))
         expanded = 0
         reason = "no plan"
-        ssm_extra = None
-        if timing is not None and forecast is not None and cfg.ssm_aware_search:
-            table = timing.extra_clearance(v_creep_mps=cfg.ssm_creep_mps, decel_mps2=cfg.ssm_brake_decel_mps2)
-            ssm_extra = (0.05, table)
         for offsets in attempts:
             sep = self._separation(
                 forecast, extra_m=cfg.corridor_margin_m, offsets=offsets, ssm_extra=ssm_extra
