@@ -309,7 +309,10 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
             timing: The speed governor's model: when given (with a forecast), the path found is verified
                 at the timing the governor is predicted to give it (:mod:`app.planning.ssm_timing`: the
                 person where they will be when the robot really gets there), and ``arrival_s`` is that
-                timing's arrival; the plan keeps its full-speed timing for the robot to execute.
+                timing's arrival; the plan keeps its full-speed timing for the robot to execute. With
+                ``PlannerConfig.ssm_aware_search`` the search also asks of each move the clearance the
+                governor needs to let it run at its speed, and where that finds no plan within
+                ``ssm_fallback_share`` of the budget, searches again without it in the rest.
 
         Returns:
             A :class:`PlanResult`; ``ok`` only with a trajectory verified against ``forecast``.
