@@ -37,6 +37,10 @@ machine disturb much less.
 * ``threads``: whether threads help on this machine: queries per second of independent ``parallel_plan``
   queries sharing one planner, in one thread and in ``os.cpu_count()`` threads (throughput for a caller
   with several queries at once; a single query is not split over threads). Processes are not measured.
+* ``phases_ms``: where the time of each search configuration's successful queries goes, per phase of
+  :attr:`app.planning.search.PlanResult.phases_s` (``search``: the separation check's set-up and the A*;
+  ``shortcut``; ``finish``: fitting the trajectory, its SSM-aware timing and its verification):
+  ``{"p50", "p95", "n"}`` (ms) per phase and ``share``, each phase's part of their summed wall time.
 * ``by_source``: the figures per kind of person (``synthetic``, ``recorded``).
 * ``scaling``: ``{"p50", "p95", "n"}`` of the parallel plan time (successful queries) on roadmaps of about
   1k, 4k and 16k nodes (built and cached on first use, which takes minutes; ``--quick`` reports only those
@@ -80,13 +84,38 @@ PARALLEL_KIND = (
 
 @dataclass(frozen=True, slots=True)
 class Run:
-    """One timed call: wall and thread CPU time (s), whether it returned a verified plan, and why not."""
+    """One timed call: wall and thread CPU time (s), whether it returned a verified plan, and why not; with
+    the time (s) of each of :data:`app.planning.search.config.PHASES` where the planner reports them."""
 
     wall_s: float
     cpu_s: float
     ok: bool
     reason: str = "ok"
     expanded: int = 0
+    phases_s: tuple[float, ...] | None = None
+
+
+def _run_of(res: Any, wall_s: float, cpu_s: float) -> Run:
+    """The :class:`Run` of one timed planner call's result ``res``."""
+    from app.planning.search.config import PHASES
+
+    took = getattr(res, "phases_s", None)
+    phases = None if took is None else tuple(float(took[p]) for p in PHASES)
+    return Run(wall_s, cpu_s, bool(res.ok), res.reason, res.expanded, phases)
+
+
+def phases_ms(runs: Sequence[Run]) -> dict[str, Any]:
+    """Where the successful runs' time went: per phase of :data:`app.planning.search.config.PHASES` the
+    ``{"p50", "p95", "n"}`` of its time (ms), and ``share``: each phase's part of their summed wall time."""
+    from app.planning.search.config import PHASES
+
+    ok = [(r.wall_s, r.phases_s) for r in runs if r.ok and r.phases_s is not None]
+    out: dict[str, Any] = {p: percentiles([ph[i] for _, ph in ok], scale=1e3) for i, p in enumerate(PHASES)}
+    total = sum(w for w, _ in ok)
+    out["share"] = {
+        p: (round(sum(ph[i] for _, ph in ok) / total, 3) if total > 0 else None) for i, p in enumerate(PHASES)
+    }
+    return out
 
 
 def _log(progress: bool, msg: str) -> None:
@@ -180,6 +209,7 @@ def summarise(runs: dict[str, list[Run]], generous: Sequence[bool | None]) -> di
     out["undecided"] = sum(s is None for s in solvable)
     out["failures"] = {c: failure_counts(runs[c]) for c in CONFIGS}
     out["cpu_ms"] = {c: successful_ms(runs[c], cpu=True) for c in CONFIGS}
+    out["phases_ms"] = {c: phases_ms(runs[c]) for c in CONFIGS[:4]}
     out["expanded_p50"] = {
         c: float(np.median([r.expanded for r in runs[c]])) if runs[c] else None for c in CONFIGS[:4]
     }
@@ -353,7 +383,7 @@ def _scaling(
         runs = []
         for qr in sub:
             res, w, c = _timed(_calls(planner, qr, timing)["parallel_plan"])
-            runs.append(Run(w, c, bool(res.ok), res.reason, res.expanded))
+            runs.append(_run_of(res, w, c))
         scaling[name] = successful_ms(runs)
         nodes[name] = got[0].num_nodes
     return scaling, nodes
@@ -401,7 +431,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
         for name in order:
             res, w, c = _timed(calls[name])
             results[name] = res
-            runs[name].append(Run(w, c, bool(res.ok), res.reason, res.expanded))
+            runs[name].append(_run_of(res, w, c))
         for name in ("plan", "parallel_plan"):
             if results[name].ok:
                 executed = _as_executed(results[name], qr.forecast, model, timing)

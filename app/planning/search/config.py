@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import inspect
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Protocol
 
@@ -182,6 +183,10 @@ class PlannerConfig:
         return replace(self, ssm=replace(self.ssm, t_reaction_s=float(t_reaction_s)))
 
 
+#: The parts of a planning query's time (:attr:`PlanResult.phases_s`).
+PHASES = ("search", "shortcut", "finish")
+
+
 @dataclass(frozen=True, slots=True)
 class PlanResult:
     """The outcome of a planning query.
@@ -195,6 +200,10 @@ class PlanResult:
         trajectory: The verified trajectory (the same as ``Trajectory.from_plan(plan)``) or None.
         arrival_s: When the robot is predicted to arrive (s, runtime clock): with ``Planner.plan(timing=...)``
             under the speed governor (the timing the plan was verified at), else the trajectory's end.
+        phases_s: Of :meth:`Planner.plan`'s query, the time (s) in each of :data:`PHASES`: ``search``
+            (setting up the separation check and the time-variant A*), ``shortcut`` (shortening the found
+            path) and ``finish`` (fitting the trajectory, its SSM-aware timing and its verification); None
+            where the query ended before any search (and for emergency plans).
     """
 
     ok: bool
@@ -204,6 +213,7 @@ class PlanResult:
     compute_s: float
     trajectory: Trajectory | None = None
     arrival_s: float | None = None
+    phases_s: Mapping[str, float] | None = None
 
 
 def _paired_options(model: RobotModel) -> set[str]:

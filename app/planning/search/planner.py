@@ -22,6 +22,7 @@ from app.planning.roadmap import NUM_BRANCHES, Roadmap
 from app.planning.search.astar import _Search
 from app.planning.search.config import (
     _TWO_PI,
+    PHASES,
     PlannerConfig,
     PlanResult,
     RobotModel,
@@ -355,7 +356,12 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         if first.ok:
             return first
         res = self._attempts(q_start, t_start, goal_node, forecast, workers, deadline, qd0, timing, None, t0)
-        return dataclasses.replace(res, expanded=res.expanded + first.expanded)
+        both = (
+            {k: first.phases_s[k] + res.phases_s[k] for k in PHASES}
+            if first.phases_s and res.phases_s
+            else None
+        )
+        return dataclasses.replace(res, expanded=res.expanded + first.expanded, phases_s=both)
 
     def _attempts(
         self,
@@ -379,7 +385,10 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
             attempts.append((-0.25 * s, 0.0, 0.5 * s, s))
         expanded = 0
         reason = "no plan"
+        clock = self._timer
+        took = dict.fromkeys(PHASES, 0.0)  # where the query's time goes (PlanResult.phases_s)
         for offsets in attempts:
+            c = clock()
             sep = self._separation(
                 forecast, extra_m=cfg.corridor_margin_m, offsets=offsets, ssm_extra=ssm_extra
             )
@@ -393,23 +402,30 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
                 workers=workers,
                 deadline=deadline,
             )
+            took["search"] += clock() - c
             expanded += n_exp
             if waypoints is None:
                 break  # the time-robust check cannot succeed where the plain one failed
             done = None
-            if cfg.shortcut and (deadline is None or self._timer() < deadline):
+            if cfg.shortcut and (deadline is None or clock() < deadline):
+                c = clock()
                 short = self._shortcut(waypoints, sep, hold_s=cfg.goal_hold_s)
+                took["shortcut"] += clock() - c
                 if short is not None:  # verified like any plan; the search's own path is the fallback
+                    c = clock()
                     done = self._finish(short, qd0, forecast, hold_s=cfg.goal_hold_s, timing=timing)
+                    took["finish"] += clock() - c
             if done is None:
+                c = clock()
                 done = self._finish(waypoints, qd0, forecast, hold_s=cfg.goal_hold_s, timing=timing)
+                took["finish"] += clock() - c
             if done is not None:
-                return PlanResult(True, done[0], "ok", expanded, self._timer() - t0, done[1], done[2])
+                return PlanResult(True, done[0], "ok", expanded, clock() - t0, done[1], done[2], took)
             reason = "trajectory failed verification against the forecast"
-            if deadline is not None and self._timer() > deadline:
+            if deadline is not None and clock() > deadline:
                 reason = "deadline"
                 break
-        return PlanResult(False, None, reason, expanded, self._timer() - t0)
+        return PlanResult(False, None, reason, expanded, clock() - t0, phases_s=took)
 
     def emergency(
         self,

@@ -101,12 +101,32 @@ def test_summarise_shape_and_like_for_like() -> None:
         bp.summarise(runs, [True] * (n + 1))
 
 
+def test_phases_are_over_the_successful_runs_with_their_share_of_the_wall_time() -> None:
+    runs = [
+        Run(0.010, 0.005, True, phases_s=(0.006, 0.001, 0.003)),
+        Run(0.030, 0.015, True, phases_s=(0.020, 0.002, 0.008)),
+        Run(0.900, 0.450, False, "deadline", phases_s=(0.900, 0.0, 0.0)),  # a failure: left out
+        Run(0.0003, 0.0003, True),  # no phases reported (an emergency plan): left out
+    ]
+    out = bp.phases_ms(runs)
+    assert out["search"] == {"p50": 13.0, "p95": 19.3, "n": 2}
+    assert out["shortcut"]["n"] == 2 and out["finish"]["p50"] == 5.5
+    assert out["share"] == {"search": 0.65, "shortcut": 0.075, "finish": 0.275}
+    empty = bp.phases_ms([Run(0.1, 0.1, False, "deadline")])
+    assert empty["search"] == {"p50": None, "p95": None, "n": 0} and empty["share"]["finish"] is None
+
+
 @pytest.mark.slow
 def test_quick_run_prints_every_key() -> None:
     out = bp.run(quick=True, progress=False)
     for key in ("plan_ms", "parallel_plan_ms", "static_ms", "parallel_static_ms", "emergency_ms"):
         assert set(out[key]) == {"p50", "p95", "n"}
     assert set(out["time_variant_over_static"]) == {"sequential", "parallel"}
+    for c in ("plan", "parallel_plan", "static", "parallel_static"):
+        phases = out["phases_ms"][c]
+        assert set(phases) == {"search", "shortcut", "finish", "share"}
+        assert phases["search"]["n"] == out[f"{c}_ms"]["n"]
+        assert 0.0 < sum(phases["share"].values()) <= 1.0 + 1e-9
     assert out["solvable"] + out["unsolvable"] + out["undecided"] == out["queries"]
     assert set(out["failures"]) == set(bp.CONFIGS)
     assert out["violations"] == 0

@@ -16,6 +16,7 @@ import pytest
 
 from app.planning.roadmap import Roadmap
 from app.planning.search import Planner, PlannerConfig
+from app.planning.search.config import PHASES
 from app.planning.trajectory import Plan, Trajectory
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import BONES, NUM_JOINTS
@@ -189,6 +190,23 @@ def test_without_a_person_the_search_is_plain_a_star(seed: int) -> None:
     for k, arr in before.items():
         np.testing.assert_array_equal(getattr(rm, k), arr)  # the search never writes into the roadmap
         assert not getattr(rm, k).flags.writeable
+
+
+def test_a_query_reports_where_its_time_went() -> None:
+    # a planner clock that advances 1 ms per reading: every phase is timed with the planner's own clock
+    # and the phases together never exceed the query
+    ticks = itertools.count()
+    rm = random_graph(0)
+    planner = Planner(rm, PointRobot(), config=config(), timer=lambda: next(ticks) * 1e-3)
+    res = planner.plan(q_start=rm.ik[0, 0], t_start=0.0, goal="g", forecast=None)
+    assert res.ok, res.reason
+    assert set(res.phases_s) == set(PHASES)
+    assert res.phases_s["search"] > 0 and res.phases_s["finish"] > 0
+    assert sum(res.phases_s.values()) <= res.compute_s
+    # a query that ends before any search reports none
+    bad = Planner(rm, PointRobot(), config=config(q_max=(0.5,) * 6))
+    out = bad.plan(q_start=np.full(6, 1.0), t_start=0.0, goal="g", forecast=None)
+    assert not out.ok and out.phases_s is None
 
 
 def test_a_person_crossing_an_edge_makes_the_robot_wait() -> None:
