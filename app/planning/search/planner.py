@@ -356,11 +356,8 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         if first.ok:
             return first
         res = self._attempts(q_start, t_start, goal_node, forecast, workers, deadline, qd0, timing, None, t0)
-        both = (
-            {k: first.phases_s[k] + res.phases_s[k] for k in PHASES}
-            if first.phases_s and res.phases_s
-            else None
-        )
+        assert first.phases_s is not None and res.phases_s is not None  # _attempts times every query
+        both = {k: first.phases_s[k] + res.phases_s[k] for k in PHASES}
         return dataclasses.replace(res, expanded=res.expanded + first.expanded, phases_s=both)
 
     def _attempts(

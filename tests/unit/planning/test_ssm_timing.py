@@ -10,6 +10,9 @@ it run fast. The UR5e tests use the real collision model; the search tests the p
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
@@ -210,16 +213,25 @@ def test_where_the_governors_clearance_leaves_no_plan_the_search_falls_back_to_t
     model = governor(tracking_margin_m=0.0, lookahead_s=0.2)
     kw = dict(shortcut=False, ssm_aware_search=True, ssm_brake_decel_mps2=3.0)
     query = dict(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc, timing=model, deadline_s=1.0)
-    only_aware = Planner(rm, robot, config=config(**kw, ssm_fallback_share=1.0)).plan(**query)
+
+    def ticks() -> Callable[[], float]:  # a planner clock that advances 1 ms per reading
+        count = itertools.count()
+        return lambda: next(count) * 1e-3
+
+    only_aware = Planner(rm, robot, config=config(**kw, ssm_fallback_share=1.0), timer=ticks()).plan(**query)
     assert not only_aware.ok and only_aware.expanded > 0
-    res = Planner(rm, robot, config=config(**kw, ssm_fallback_share=0.5)).plan(**query)
-    plain = Planner(rm, robot, config=config(shortcut=False, ssm_aware_search=False)).plan(**query)
+    res = Planner(rm, robot, config=config(**kw, ssm_fallback_share=0.5), timer=ticks()).plan(**query)
+    plain_cfg = config(shortcut=False, ssm_aware_search=False)
+    plain = Planner(rm, robot, config=plain_cfg, timer=ticks()).plan(**query)
     assert res.ok and plain.ok, (res.reason, plain.reason)
     assert res.plan.nodes.tolist() == plain.plan.nodes.tolist()
     np.testing.assert_allclose(res.plan.q, plain.plan.q)
     np.testing.assert_allclose(res.plan.times, plain.plan.times)
     assert res.arrival_s == pytest.approx(plain.arrival_s)
-    # both searches' expansions are counted: the first is the one that found nothing
+    # both searches' expansions and times are counted: the first is the one that found nothing
     assert res.expanded == only_aware.expanded + plain.expanded
+    assert res.phases_s["search"] == pytest.approx(only_aware.phases_s["search"] + plain.phases_s["search"])
+    assert res.phases_s["finish"] == pytest.approx(plain.phases_s["finish"])
+    assert res.phases_s["finish"] > 0
     with pytest.raises(ValueError, match="ssm_fallback_share"):
         config(ssm_fallback_share=0.0)
