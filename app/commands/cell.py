@@ -114,7 +114,7 @@ def check(
     from app.cell.recording import simulated_operator_sequences
     from app.config import Settings
     from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
-    from app.control.layout import check_layout, suggest_stations
+    from app.control.layout import DEFAULT_MAX_SHIFT_M, check_layout, suggest_stations
 
     settings, options = Settings(), EngineOptions()
     cell = settings.load_workcell()
@@ -169,8 +169,8 @@ def check(
     for m in moves:
         if m.suggested_xyz is None:
             typer.echo(
-                f"{m.name}: no place within 0.5 m away from the work spot is free {target_free:.0%} "
-                "of the time"
+                f"{m.name}: no place within {DEFAULT_MAX_SHIFT_M:g} m away from the work spot is free "
+                f"{target_free:.0%} of the time"
             )
         elif m.shift_m == 0.0:
             typer.echo(f"{m.name}: free {m.free:.0%} of the time where it is")

@@ -40,6 +40,8 @@ DEFAULT_TARGET_FREE = 0.75
 #: The ways :func:`suggest_stations` tries to move a station: straight away from the person's work spot
 #: first, then turned by 30 degrees either side (round a conveyor or an obstacle in the way).
 DIRECTIONS_RAD = (0.0, math.radians(-30.0), math.radians(30.0))
+#: How far :func:`suggest_stations` moves a station at most (m).
+DEFAULT_MAX_SHIFT_M = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,10 +144,10 @@ def check_layout(
                 branch=branch,
                 separation_m=(float(np.percentile(nearest, 5)), float(np.median(nearest))),
                 allowed_speed_mps=(float(np.percentile(allowed, 5)), float(np.median(allowed))),
-                free=float(np.mean(allowed >= speed_mps - 1e-9)),
+                free=_free_share(allowed, speed_mps),
             )
         )
-    ok = table.values[:, 0] >= speed_mps - 1e-9
+    ok = _allows(table.values[:, 0], speed_mps)
     zone = float(table.seps[np.argmax(ok)]) if np.any(ok) else float("inf")
     frames = sum(p.shape[0] - lag for p in used)
     return LayoutReport(speed_mps=float(speed_mps), frames=int(frames), zone_m=zone, poses=tuple(out))
@@ -198,7 +200,7 @@ def suggest_stations(
     fps: float,
     speed_mps: float = DEFAULT_SPEED_MPS,
     target_free: float = DEFAULT_TARGET_FREE,
-    max_shift_m: float = 0.5,
+    max_shift_m: float = DEFAULT_MAX_SHIFT_M,
     step_m: float = 0.025,
     chunk: int = 4096,
 ) -> tuple[StationMove, ...]:
@@ -260,7 +262,7 @@ def suggest_stations(
             if ok.size == 0:
                 return None
             _, sep, v_h = _farthest_branch(geometry, q[k, ok], used, lag, dt, governor.near_band_m, chunk)
-            shares.append(float(np.mean(table(sep, v_h).min(axis=1) >= speed_mps - 1e-9)))
+            shares.append(_free_share(table(sep, v_h).min(axis=1), speed_mps))
         return min(shares)
 
     out = []
@@ -293,6 +295,17 @@ def suggest_stations(
             )
         )
     return tuple(out)
+
+
+def _allows(allowed_mps: np.ndarray, speed_mps: float) -> np.ndarray:
+    """Where the governor's allowed speed (m/s) reaches ``speed_mps`` (to rounding)."""
+    return np.asarray(allowed_mps) >= speed_mps - 1e-9
+
+
+def _free_share(allowed_mps: np.ndarray, speed_mps: float) -> float:
+    """The share of the frames in which the slowest part may move at ``speed_mps`` (``allowed_mps``: the
+    allowed speed per frame, the smallest over the parts)."""
+    return float(np.mean(_allows(allowed_mps, speed_mps)))
 
 
 def _within_footprint(p: np.ndarray, box: Any, grow_m: float) -> bool:
