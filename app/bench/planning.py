@@ -99,8 +99,7 @@ def _run_of(res: Any, wall_s: float, cpu_s: float) -> Run:
     """The :class:`Run` of one timed planner call's result ``res``."""
     from app.planning.search.config import PHASES
 
-    took = getattr(res, "phases_s", None)
-    phases = None if took is None else tuple(float(took[p]) for p in PHASES)
+    phases = None if res.phases_s is None else tuple(float(res.phases_s[p]) for p in PHASES)
     return Run(wall_s, cpu_s, bool(res.ok), res.reason, res.expanded, phases)
 
 

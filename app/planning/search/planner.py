@@ -13,7 +13,7 @@ import math
 import time
 from collections.abc import Callable
 from types import MappingProxyType
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -384,6 +384,14 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         reason = "no plan"
         clock = self._timer
         took = dict.fromkeys(PHASES, 0.0)  # where the query's time goes (PlanResult.phases_s)
+
+        def timed(phase: str, fn: Callable[..., Any], *args: Any, **kw: Any) -> Any:
+            c = clock()
+            out = fn(*args, **kw)
+            took[phase] += clock() - c
+            return out
+
+        hold = cfg.goal_hold_s
         for offsets in attempts:
             c = clock()
             sep = self._separation(
@@ -395,7 +403,7 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
                 sep,
                 goal=goal_node,
                 stop_time=None,
-                hold_s=cfg.goal_hold_s,
+                hold_s=hold,
                 workers=workers,
                 deadline=deadline,
             )
@@ -405,17 +413,11 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
                 break  # the time-robust check cannot succeed where the plain one failed
             done = None
             if cfg.shortcut and (deadline is None or clock() < deadline):
-                c = clock()
-                short = self._shortcut(waypoints, sep, hold_s=cfg.goal_hold_s)
-                took["shortcut"] += clock() - c
+                short = timed("shortcut", self._shortcut, waypoints, sep, hold_s=hold)
                 if short is not None:  # verified like any plan; the search's own path is the fallback
-                    c = clock()
-                    done = self._finish(short, qd0, forecast, hold_s=cfg.goal_hold_s, timing=timing)
-                    took["finish"] += clock() - c
+                    done = timed("finish", self._finish, short, qd0, forecast, hold_s=hold, timing=timing)
             if done is None:
-                c = clock()
-                done = self._finish(waypoints, qd0, forecast, hold_s=cfg.goal_hold_s, timing=timing)
-                took["finish"] += clock() - c
+                done = timed("finish", self._finish, waypoints, qd0, forecast, hold_s=hold, timing=timing)
             if done is not None:
                 return PlanResult(True, done[0], "ok", expanded, clock() - t0, done[1], done[2], took)
             reason = "trajectory failed verification against the forecast"
