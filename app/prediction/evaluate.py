@@ -185,7 +185,7 @@ def evaluate_arbitrated(
     Returns ``{"mpjpe_mm": {ms: ...}, "coverage": {ms: ...}, "coverage_target": ..., "margin_mm": {ms:
     ...}, "forecasts": n, "chosen": {candidate: share of the steps}}``: the MPJPE of the combined forecast,
     the fraction of joints inside its margin and the mean margin, per horizon (margins interpolated like the
-    poses).
+    poses, on the grid of half steps where the arbiter calibrates them there).
     """
     from app.prediction.arbitration import ForecastArbiter
 
@@ -215,20 +215,24 @@ def evaluate_arbitrated(
             for n, fn in predictors.items()
         }
         combined = np.empty((ends.size, horizon + 1, *pos.shape[1:]))
-        margins = np.empty((ends.size, horizon + 1))
+        # the margins on the grid of half steps (the runtime's forecast carries the margins calibrated
+        # halfway between the steps, where the arbiter has them; else the steps' margins interpolated)
+        margins = np.empty((ends.size, 2 * horizon + 1))
         for j_end, i in enumerate(ends):
             t = i / fps
             arbiter.score(t, pos[i])
             out = arbiter.combine(t, {n: f[j_end] for n, f in futures.items()})
             combined[j_end] = out.joints
-            margins[j_end] = out.margins
+            margins[j_end, 0::2] = out.margins
+            half = out.half_margins
+            margins[j_end, 1::2] = 0.5 * (out.margins[:-1] + out.margins[1:]) if half is None else half
             for name in out.chosen[1:]:
                 chosen_counts[name] += 1
         truth = np.stack([pos[i : i + horizon + 1] for i in ends])
         for j, ms in enumerate(horizons_ms):
             p = interpolate_horizon(combined, ms / 1000.0, fps)
             g = interpolate_horizon(truth, ms / 1000.0, fps)
-            m = interpolate_horizon(margins[..., None, None], ms / 1000.0, fps)[:, 0, 0]
+            m = interpolate_horizon(margins[..., None, None], ms / 1000.0, 2.0 * fps)[:, 0, 0]
             d = np.linalg.norm(p - g, axis=-1)  # (forecasts, J)
             err_sum[j] += float(d.mean(axis=1).sum())
             cov_sum[j] += float(np.mean(d <= m[:, None], axis=1).sum())

@@ -107,3 +107,29 @@ class HumanForecast:
         """Pose (J, 3) and margin (m) at time ``t``."""
         joints, margins = self.poses_at(np.array([t]))
         return joints[0], float(margins[0])
+
+
+def half_step_grid(
+    times: np.ndarray, joints: np.ndarray, margins: np.ndarray, half_margins: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A forecast's samples ``times`` (H + 1,), ``joints`` (H + 1, J, 3) and ``margins`` (H + 1,) with a
+    sample inserted halfway between each two: the pose halfway (what linear interpolation gives there
+    anyway) and that sample's own margin from ``half_margins`` (H,). Returns (2H + 1,), (2H + 1, J, 3),
+    (2H + 1,)."""
+    times = np.asarray(times, dtype=np.float64)
+    joints = np.asarray(joints, dtype=np.float64)
+    margins = np.asarray(margins, dtype=np.float64)
+    half_margins = np.asarray(half_margins, dtype=np.float64)
+    H = times.shape[0] - 1
+    if joints.shape[0] != H + 1 or margins.shape != (H + 1,) or half_margins.shape != (H,):
+        raise ValueError(
+            f"half_step_grid: times {times.shape}, joints {joints.shape}, margins {margins.shape} and "
+            f"half_margins {half_margins.shape} do not fit (H + 1 samples, H halves)"
+        )
+    t = np.empty(2 * H + 1)
+    t[0::2], t[1::2] = times, 0.5 * (times[:-1] + times[1:])
+    j = np.empty((2 * H + 1, *joints.shape[1:]))
+    j[0::2], j[1::2] = joints, 0.5 * (joints[:-1] + joints[1:])
+    m = np.empty(2 * H + 1)
+    m[0::2], m[1::2] = margins, half_margins
+    return t, j, m

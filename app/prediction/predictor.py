@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from app.prediction.baselines import constant_velocity, zero_velocity
-from app.prediction.forecast import HumanForecast
+from app.prediction.forecast import HumanForecast, half_step_grid
 from app.prediction.skeleton import NUM_JOINTS, PARENTS, HumanFrame
 
 if TYPE_CHECKING:
@@ -503,13 +503,16 @@ class MotionPredictor:
             futures["graphmixer"] = net if np.all(np.isfinite(net)) else cv
         out = self.arbiter.combine(t_last, {k: self._cap_speed(last, v) for k, v in futures.items()})
         self.last_source = "arbitrated"
+        times, joints, margins = t_last + self._steps_s, out.joints, out.margins
+        if out.half_margins is not None:  # the margins calibrated halfway between the steps too
+            times, joints, margins = half_step_grid(times, joints, margins, out.half_margins)
         return HumanForecast(
             t0=t_last,
-            times=t_last + self._steps_s,
-            joints=out.joints,
-            margins=out.margins,
+            times=times,
+            joints=joints,
+            margins=margins,
             growth_mps=self.growth_mps,
-            max_margin_m=max(self.max_margin_m, float(out.margins.max())),
+            max_margin_m=max(self.max_margin_m, float(margins.max())),
         )
 
     def _cap_speed(self, last: np.ndarray, future: np.ndarray) -> np.ndarray:

@@ -93,15 +93,16 @@ def test_the_predictor_hands_on_the_arbitrated_forecast_when_asked() -> None:
         fc = arbitrated.update(HumanFrame(i / 30, pose))
         plain.update(HumanFrame(i / 30, pose))
     assert arbitrated.last_source == "arbitrated"
-    assert fc.joints.shape == (arbitrated.horizon + 1, NUM_JOINTS, 3) and np.all(np.isfinite(fc.joints))
+    # the steps and, between them, the samples whose margins are calibrated there
+    H_p = arbitrated.horizon
+    assert fc.joints.shape == (2 * H_p + 1, NUM_JOINTS, 3) and np.all(np.isfinite(fc.joints))
+    np.testing.assert_allclose(fc.times, fc.t0 + np.arange(2 * H_p + 1) * arbitrated.dt_s / 2)
+    np.testing.assert_allclose(fc.joints[1::2], 0.5 * (fc.joints[:-1:2] + fc.joints[2::2]))
     assert np.all(fc.margins >= 0.02) and fc.max_margin_m >= fc.margins.max()
     # on a person walking straight, constant velocity has been right: the far steps take it
-    assert (
-        arbitrated.arbiter.combine(fc.t0, {name: fc.joints for name in arbitrated.arbiter.candidates}).chosen[
-            -1
-        ]
-        == "constant_velocity"
-    )
+    steps = fc.joints[0::2]
+    chosen = arbitrated.arbiter.combine(fc.t0, dict.fromkeys(arbitrated.arbiter.candidates, steps)).chosen
+    assert chosen[-1] == "constant_velocity"
     arbitrated.reset()
     assert arbitrated.history_len == 0 and arbitrated.arbiter.scored.sum() == 0
 
@@ -152,6 +153,49 @@ def test_by_default_the_far_steps_aim_higher_and_each_step_tracks_its_own_target
     assert target[H] == pytest.approx(1.0 - 0.05 * FAR_ALPHA_FACTOR)
     assert np.all(np.diff(target) > 0)
     assert np.all(np.abs(arbiter.coverage()[1:] - target[1:]) < 0.015)
+
+
+def test_between_the_steps_the_margins_are_calibrated_where_the_frames_noise_averages_out() -> None:
+    # a still person seen through independent tracking noise, forecast exactly: a step's error is one frame's
+    # noise (Maxwell, sigma), the error halfway between two steps the mean of two frames' (sigma / sqrt 2)
+    rng = np.random.default_rng(8)
+    sigma = 0.03
+    truth = rng.normal(0.0, 0.2, size=(NUM_JOINTS, 3))
+    frames = truth[None] + rng.normal(0.0, sigma, size=(1500, NUM_JOINTS, 3))
+    exact = np.repeat(truth[None], H + 1, axis=0)
+    arbiter = ForecastArbiter(
+        ["exact"], horizon=H, dt_s=DT, coverage=0.95, floor_m=0.001, far_alpha_factor=1.0
+    )
+    outs = []
+    for i, frame in enumerate(frames):
+        arbiter.score(i * DT, frame)
+        outs.append(arbiter.combine(i * DT, {"exact": exact}))
+    assert np.all(np.abs(arbiter.coverage()[1:] - 0.95) < 0.015)
+    assert np.all(np.abs(arbiter.half_covered / arbiter.half_scored - 0.95) < 0.015)
+    q95 = _maxwell_quantile(0.95, sigma)
+    assert outs[-1].margins[1:] == pytest.approx(np.full(H, q95), rel=0.1)
+    assert outs[-1].half_margins == pytest.approx(np.full(H, q95 / np.sqrt(2.0)), rel=0.1)
+    # without: the steps' margins hold between them, where they cover more than the target
+    plain = ForecastArbiter(
+        ["exact"], horizon=H, dt_s=DT, coverage=0.95, floor_m=0.001, far_alpha_factor=1.0, half_steps=False
+    )
+    for i, frame in enumerate(frames):
+        plain.score(i * DT, frame)
+        out = plain.combine(i * DT, {"exact": exact})
+    assert out.half_margins is None and plain.half_scored.sum() == 0
+
+
+def test_the_half_step_grid_inserts_the_halfway_samples() -> None:
+    from app.prediction.forecast import half_step_grid
+
+    times = np.array([1.0, 1.1, 1.3])
+    joints = np.stack([np.full((NUM_JOINTS, 3), v) for v in (0.0, 1.0, 3.0)])
+    t, j, m = half_step_grid(times, joints, np.array([0.02, 0.1, 0.3]), np.array([0.05, 0.15]))
+    np.testing.assert_allclose(t, [1.0, 1.05, 1.1, 1.2, 1.3])
+    np.testing.assert_allclose(j[:, 0, 0], [0.0, 0.5, 1.0, 2.0, 3.0])
+    np.testing.assert_allclose(m, [0.02, 0.05, 0.1, 0.15, 0.3])
+    with pytest.raises(ValueError, match="do not fit"):
+        half_step_grid(times, joints, np.array([0.02, 0.1, 0.3]), np.array([0.05]))
 
 
 def test_the_margin_quantile_is_numpys() -> None:
