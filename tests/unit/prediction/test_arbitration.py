@@ -49,6 +49,26 @@ def test_the_arbiter_picks_what_has_been_right_lately_per_horizon() -> None:
     np.testing.assert_allclose(outs[-1].joints[1:], _cv(walking[-2], walking[-1])[1:])
 
 
+def test_the_arbitrated_forecast_converges_to_the_baseline_that_fits_the_motion() -> None:
+    rng = np.random.default_rng(11)
+    ramp = np.arange(H + 1)[:, None, None] / H
+
+    def network(p: np.ndarray, q: np.ndarray) -> np.ndarray:  # right on average, off by up to 10 cm
+        return _cv(p, q) + ramp * rng.normal(0.0, 0.1, size=(H + 1, NUM_JOINTS, 3))
+
+    candidates = {"network": network, "constant_velocity": _cv, "zero_velocity": _hold}
+    # pure constant-velocity motion: constant velocity at every step
+    walking = _walk(np.array([0.8, 0.3, 0.0]), 150, rng)
+    outs = _run(ForecastArbiter(list(candidates), horizon=H, dt_s=DT), walking, candidates)
+    assert outs[-1].chosen[1:] == ("constant_velocity",) * H
+    np.testing.assert_allclose(outs[-1].joints, _cv(walking[-2], walking[-1]), atol=1e-12)
+    # a still person seen with tracking noise: zero velocity (constant velocity extrapolates the noise)
+    still = _walk(np.zeros(3), 150, rng, noise=0.005)
+    outs = _run(ForecastArbiter(list(candidates), horizon=H, dt_s=DT), still, candidates)
+    assert outs[-1].chosen[1:] == ("zero_velocity",) * H
+    np.testing.assert_allclose(outs[-1].joints, _hold(still[-2], still[-1]), atol=1e-12)
+
+
 def test_adaptive_margins_cover_the_target_and_follow_the_motion() -> None:
     rng = np.random.default_rng(1)
     still = _walk(np.zeros(3), 400, rng, noise=0.01)
