@@ -447,7 +447,9 @@ class MotionPredictor:
         return self.forecast()
 
     def forecast(self) -> HumanForecast:
-        """Forecast from the current history (index 0 = newest held pose).
+        """Forecast from the current history (index 0 = newest held pose): one sample per step of the
+        horizon, and, when arbitrated, one more halfway between each two with the margin the arbiter
+        calibrates there (:func:`app.prediction.forecast.half_step_grid`).
 
         Raises:
             PredictorInputError: the history is empty.
