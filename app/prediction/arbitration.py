@@ -124,6 +124,40 @@ class ArbitratedForecast:
     half_margins: np.ndarray | None = None
 
 
+class _Ledger:
+    """The adaptive conformal bookkeeping of one set of horizon points (the steps, or the points halfway
+    between them): per point a ring of the recent joint errors, the ACI level and its target miss rate, the
+    quantiles found last time (a hint for the next) and the joints inside the margin so far."""
+
+    def __init__(self, alpha_k: np.ndarray, window: int) -> None:
+        n = alpha_k.shape[0]
+        self.alpha_k = alpha_k
+        self.window = window
+        self.err: np.ndarray | None = None  # (n, W, J), allocated at the first score
+        self.count = np.zeros(n, dtype=np.int64)
+        self.head = np.zeros(n, dtype=np.int64)
+        self.alpha_t = alpha_k.copy()
+        self.q_last = np.full(n, np.inf)
+        self.covered = np.zeros(n)
+        self.scored = np.zeros(n)
+
+    def record(self, ks: np.ndarray, per_joint: np.ndarray, miss: np.ndarray, gamma: float) -> np.ndarray:
+        """Store the joint errors ``per_joint`` (V, J) at the distinct points ``ks`` and move their ACI
+        levels by ``gamma`` toward the fractions ``miss`` (V,) of joints outside the margin; returns the ring
+        rows written."""
+        if self.err is None:
+            self.err = np.zeros((self.count.size, self.window, per_joint.shape[1]))
+        h = self.head[ks]
+        self.err[ks, h] = per_joint
+        self.head[ks] = (h + 1) % self.window
+        self.count[ks] = np.minimum(self.count[ks] + 1, self.window)
+        size = per_joint.shape[1]
+        self.covered[ks] += size * (1.0 - miss)
+        self.scored[ks] += size
+        self.alpha_t[ks] = np.clip(self.alpha_t[ks] + gamma * (self.alpha_k[ks] - miss), 0.0, 1.0)
+        return h
+
+
 class ForecastArbiter:
     """Scores candidate forecasts against the frames that arrive and combines them (module docstring).
 
@@ -227,12 +261,8 @@ class ForecastArbiter:
         n, W = self.horizon + 1, self.window
         # ring buffers per step: the candidates' mean joint errors and the combined forecast's joint errors
         self._cand_err = np.zeros((len(self.candidates), n, W))
-        self._joint_err: np.ndarray | None = None  # (n, W, J), allocated at the first score
-        self._scaled_err: np.ndarray | None = None  # (n, W, J): the same, each over its motion scale
-        self._count = np.zeros(n, dtype=np.int64)
-        self._q_last = np.full(n, np.inf)  # the quantiles found last time (a hint for the next)
-        self._head = np.zeros(n, dtype=np.int64)
-        self._alpha_t = self.alpha_k.copy()
+        self._steps = _Ledger(self.alpha_k, W)
+        self._scaled_err: np.ndarray | None = None  # (n, W, J): the joint errors over their motion scales
         # forecasts waiting to be scored, in a ring of slots (allocated at the first combine); a slot is
         # scored while its forecast's horizon has not passed
         self._slots = 4 * n
@@ -242,19 +272,30 @@ class ForecastArbiter:
         self._margins_at = np.zeros((self._slots, n))
         self._scale_at = np.ones((self._slots, n))  # the motion scale each stored forecast was made with
         self._next_slot = 0
-        self.covered = np.zeros(n)  # joints inside the margin, per step, since the start
-        self.scored = np.zeros(n)  # joints scored, per step
         # halfway between the steps (``half_steps``): the same bookkeeping, and the last frame scored against
-        H = self.horizon
-        self._half_err: np.ndarray | None = None  # (H, W, J)
-        self._half_count = np.zeros(H, dtype=np.int64)
-        self._half_head = np.zeros(H, dtype=np.int64)
-        self._half_q_last = np.full(H, np.inf)
-        self._half_alpha_t = self.half_alpha_k.copy()
-        self._half_margins_at = np.zeros((self._slots, H))
+        self._halves = _Ledger(self.half_alpha_k, W)
+        self._half_margins_at = np.zeros((self._slots, self.horizon))
         self._last_frame: tuple[float, np.ndarray] | None = None
-        self.half_covered = np.zeros(H)
-        self.half_scored = np.zeros(H)
+
+    @property
+    def covered(self) -> np.ndarray:
+        """(H + 1,) joints inside the margin, per step, since the start."""
+        return self._steps.covered
+
+    @property
+    def scored(self) -> np.ndarray:
+        """(H + 1,) joints scored, per step."""
+        return self._steps.scored
+
+    @property
+    def half_covered(self) -> np.ndarray:
+        """(H,) joints inside the margin halfway between the steps, since the start."""
+        return self._halves.covered
+
+    @property
+    def half_scored(self) -> np.ndarray:
+        """(H,) joints scored halfway between the steps."""
+        return self._halves.scored
 
     def reset(self) -> None:
         """Forget everything (a new person)."""
@@ -266,9 +307,8 @@ class ForecastArbiter:
         if self._futures is None or self._combined is None:
             return
         joints = np.asarray(joints, dtype=np.float64)
-        if self._joint_err is None:
-            self._joint_err = np.zeros((self.horizon + 1, self.window, joints.shape[0]))
-            self._scaled_err = np.zeros_like(self._joint_err)
+        if self._scaled_err is None:
+            self._scaled_err = np.zeros((self.horizon + 1, self.window, joints.shape[0]))
         last, self._last_frame = self._last_frame, (float(t), joints.copy())
         with np.errstate(invalid="ignore"):
             lag = (t - self._t0) / self.dt_s
@@ -303,8 +343,6 @@ class ForecastArbiter:
         ``ks``: the mean of the two steps against the mean of the frame before (``prev``, one step ago) and
         this one (``joints``), and move the ACI levels there."""
         assert self._combined is not None
-        if self._half_err is None:
-            self._half_err = np.zeros((self.horizon, self.window, joints.shape[0]))
         js = ks - 1
         mid = self._combined[slots, js] + self._combined[slots, ks]  # (V, J, 3), twice the mean
         err = 0.5 * np.linalg.norm(mid - (prev + joints)[None], axis=-1)  # (V, J)
@@ -312,38 +350,28 @@ class ForecastArbiter:
         # two forecasts due at one step (forecasts made twice per frame): one at a time
         distinct = np.unique(js).size == js.size
         for sel in [np.arange(js.size)] if distinct else [np.array([i]) for i in range(js.size)]:
-            j = js[sel]
-            h = self._half_head[j]
-            self._half_err[j, h] = err[sel]
-            self._half_head[j] = (h + 1) % self.window
-            self._half_count[j] = np.minimum(self._half_count[j] + 1, self.window)
-            size = err.shape[1]
-            self.half_covered[j] += size * (1.0 - miss[sel])
-            self.half_scored[j] += size
-            self._half_alpha_t[j] = np.clip(
-                self._half_alpha_t[j] + self.gamma * (self.half_alpha_k[j] - miss[sel]), 0.0, 1.0
-            )
+            self._halves.record(js[sel], err[sel], miss[sel], self.gamma)
 
     def _half_margins(self, margins: np.ndarray) -> np.ndarray:
         """(H,) the margins halfway between the steps, given the steps' ``margins`` (H + 1,): the ACI quantile
         of the half steps' recent errors where scored ``min_scores`` times (no smaller than the steps' mean
         during the warm-up), the mean of the two steps' margins before."""
         between = 0.5 * (margins[:-1] + margins[1:])
-        ready = self._half_count >= self.min_scores
-        if self._half_err is None or not np.any(ready):
+        halves = self._halves
+        ready = halves.count >= self.min_scores
+        if halves.err is None or not np.any(ready):
             return between
-        q = step_quantiles(self._half_err, self._half_count, 1.0 - self._half_alpha_t, self._half_q_last)
-        self._half_q_last = q
-        warm = self._half_count < self.warmup
+        q = self._quantiles(halves)
+        warm = halves.count < self.warmup
         out = np.where(ready, np.where(warm, np.maximum(q, between), q), between)
         return np.maximum(out, self.floor_m)
 
-    def _step_quantiles(self) -> np.ndarray:
-        """(H + 1,) per step the ``1 - alpha_t`` quantile of the recent joint errors (compiled:
+    def _quantiles(self, ledger: _Ledger) -> np.ndarray:
+        """Per point of ``ledger`` the ``1 - alpha_t`` quantile of its recent joint errors (compiled:
         :func:`app.prediction._aci_kernels.step_quantiles`, warm-started from the last frame's)."""
-        assert self._joint_err is not None
-        q = step_quantiles(self._joint_err, self._count, 1.0 - self._alpha_t, self._q_last)
-        self._q_last = q
+        assert ledger.err is not None
+        q = step_quantiles(ledger.err, ledger.count, 1.0 - ledger.alpha_t, ledger.q_last)
+        ledger.q_last = q
         return q
 
     def _record(
@@ -351,17 +379,10 @@ class ForecastArbiter:
     ) -> None:
         """Store scores at the distinct steps ``ks`` (the joint errors also over their motion scales,
         ``scaled``) and move the ACI levels there."""
-        assert self._joint_err is not None and self._scaled_err is not None
-        h = self._head[ks]
+        assert self._scaled_err is not None
+        h = self._steps.record(ks, per_joint, miss, self.gamma)
         self._cand_err[:, ks, h] = cand.T
-        self._joint_err[ks, h] = per_joint
         self._scaled_err[ks, h] = scaled
-        self._head[ks] = (h + 1) % self.window
-        self._count[ks] = np.minimum(self._count[ks] + 1, self.window)
-        size = per_joint.shape[1]
-        self.covered[ks] += size * (1.0 - miss)
-        self.scored[ks] += size
-        self._alpha_t[ks] = np.clip(self._alpha_t[ks] + self.gamma * (self.alpha_k[ks] - miss), 0.0, 1.0)
 
     def combine(self, t0: float, futures: Mapping[str, np.ndarray]) -> ArbitratedForecast:
         """Combine the candidates' forecasts (each (H + 1, J, 3), step 0 the frame at ``t0``) by their recent
@@ -372,8 +393,9 @@ class ForecastArbiter:
         n = self.horizon + 1
         stored = np.stack([np.asarray(futures[c], dtype=np.float64) for c in self.candidates])
         # per step, the candidate with the lowest mean error over its recent scores (the first until enough)
-        mean = self._cand_err.sum(axis=-1) / np.maximum(self._count, 1)
-        ready = self._count >= self.min_scores
+        count = self._steps.count
+        mean = self._cand_err.sum(axis=-1) / np.maximum(count, 1)
+        ready = count >= self.min_scores
         best = np.argmin(mean, axis=0)
         fallback = 0
         if self.transfer_ratio > 0 and np.any(ready):
@@ -416,16 +438,17 @@ class ForecastArbiter:
             scale = np.full(self.horizon + 1, self.scale_floor_m)
         prior = np.maximum(self.prior_m, self.cold_start_scale * scale)
         out = prior
-        ready = self._count >= self.min_scores
-        if self._joint_err is not None and np.any(ready):
-            q = self._step_quantiles()
-            warm = self._count < self.warmup
+        steps = self._steps
+        ready = steps.count >= self.min_scores
+        if steps.err is not None and np.any(ready):
+            q = self._quantiles(steps)
+            warm = steps.count < self.warmup
             if self.rescale_prior and np.any(warm | ~ready):
                 # the freshest evidence: the longest step scored enough (short steps are scored first)
                 assert self._scaled_err is not None
                 ref = int(np.flatnonzero(ready)[-1])
-                level = min(max(1.0 - float(self._alpha_t[ref]), 0.0), 1.0)
-                factor = np.quantile(self._scaled_err[ref, : self._count[ref]], level)
+                level = min(max(1.0 - float(steps.alpha_t[ref]), 0.0), 1.0)
+                factor = np.quantile(self._scaled_err[ref, : steps.count[ref]], level)
                 prior = np.maximum(prior, factor * scale)
             out = np.where(ready, np.where(warm, np.maximum(q, prior), q), prior)
         out[0] = min(out[0], self.floor_m)

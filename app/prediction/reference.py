@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.prediction.arbitration import ForecastArbiter
+from app.prediction.arbitration import ForecastArbiter, _Ledger
 
 __all__ = ["ReferenceForecastArbiter", "cap_speed_reference"]
 
@@ -43,14 +43,14 @@ class ReferenceForecastArbiter(ForecastArbiter):
         miss = np.mean(per_joint > self._margins_at[slots, ks][:, None], axis=1)
         return cand, per_joint, miss
 
-    def _step_quantiles(self) -> np.ndarray:
-        """(H + 1,) per step the ``1 - alpha_t`` quantile of the recent joint errors, in NumPy."""
-        assert self._joint_err is not None
-        n, W, J = self._joint_err.shape
-        m = self._count * J  # valid errors per step: the first ``count`` rows of the ring
-        flat = np.where(np.arange(W * J)[None] < m[:, None], self._joint_err.reshape(n, W * J), np.inf)
+    def _quantiles(self, ledger: _Ledger) -> np.ndarray:
+        """Per point of ``ledger`` the ``1 - alpha_t`` quantile of its recent joint errors, in NumPy."""
+        assert ledger.err is not None
+        n, W, J = ledger.err.shape
+        m = ledger.count * J  # valid errors per point: the first ``count`` rows of the ring
+        flat = np.where(np.arange(W * J)[None] < m[:, None], ledger.err.reshape(n, W * J), np.inf)
         flat.sort(axis=1)
-        pos = np.clip(1.0 - self._alpha_t, 0.0, 1.0) * np.maximum(m - 1, 0)
+        pos = np.clip(1.0 - ledger.alpha_t, 0.0, 1.0) * np.maximum(m - 1, 0)
         lo = np.floor(pos).astype(np.int64)
         hi = np.minimum(lo + 1, np.maximum(m - 1, 0))
         rows = np.arange(n)

@@ -224,8 +224,9 @@ def test_the_margin_quantile_is_numpys() -> None:
     arbiter = ForecastArbiter(["noisy"], horizon=H, dt_s=DT, window=20, warmup=0, floor_m=0.0)
     _replay(arbiter, poses, futures)
     k = 4
-    errs = arbiter._joint_err[k, : arbiter._count[k]].ravel()
-    expected = np.quantile(errs, 1.0 - arbiter._alpha_t[k])
+    steps = arbiter._steps
+    errs = steps.err[k, : steps.count[k]].ravel()
+    expected = np.quantile(errs, 1.0 - steps.alpha_t[k])
     assert arbiter.margins()[k] == pytest.approx(expected, rel=1e-9)
 
 
@@ -357,10 +358,11 @@ def test_the_compiled_arbiter_gives_the_numpy_reference_numbers() -> None:
     reference = ReferenceForecastArbiter(["noisy", "other"], **kwargs)
     for a, b in zip(_replay(compiled, poses, futures), _replay(reference, poses, futures), strict=True):
         np.testing.assert_allclose(a.margins, b.margins, rtol=1e-12, atol=0)
+        np.testing.assert_allclose(a.half_margins, b.half_margins, rtol=1e-12, atol=0)
         np.testing.assert_array_equal(a.joints, b.joints)
         assert a.chosen == b.chosen
     np.testing.assert_allclose(compiled._cand_err, reference._cand_err, rtol=1e-12)
-    np.testing.assert_allclose(compiled._alpha_t, reference._alpha_t, rtol=1e-12)
+    np.testing.assert_allclose(compiled._steps.alpha_t, reference._steps.alpha_t, rtol=1e-12)
     np.testing.assert_array_equal(compiled.covered, reference.covered)
 
 
