@@ -53,6 +53,7 @@ from app.control.engine import (
 from app.control.headless import make_predictor, run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
 from app.control.supervisor import SupervisorConfig
+from app.prediction.forecast import HumanForecast
 
 log = logging.getLogger(__name__)
 
@@ -771,7 +772,7 @@ class Runtime:
             required_separation_m=st.required_separation_m,
             planning_ms=tuple(1e3 * x for x in times),
             counters=engine.counters(),
-            forecast=None if fc is None else fc.joints,
+            forecast=None if fc is None else _shown_forecast(fc, self._frame_period),
             plan_tcp=self._tcp_path(st.plan),
             backup_tcp=self._tcp_path(st.backup),
             trial_elapsed_s=engine.elapsed(t),
@@ -780,6 +781,14 @@ class Runtime:
             time_budget_by_goal=by_goal,
             **base,
         )
+
+
+def _shown_forecast(fc: HumanForecast, period_s: float) -> np.ndarray:
+    """The forecast's poses as a snapshot shows them: one per frame period over its horizon (K, J, 3),
+    whatever its own samples (the arbitrated forecast's halfway samples add nothing to a picture, and would
+    double the live messages)."""
+    n = math.floor((fc.horizon_end - fc.t0) / period_s + 1e-6)
+    return fc.poses_at(fc.t0 + period_s * np.arange(n + 1))[0]
 
 
 def _pool_jobs(computer: BackupComputer, cfg: SupervisorConfig, clock: Clock) -> PoolPlanJobs:

@@ -28,7 +28,7 @@ from app.control.runtime import (
     run_headless_trial,
 )
 from app.prediction.predictor import DEFAULT_WEIGHTS
-from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS
+from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
 from app.safety.ssm import SSMParams
 
 
@@ -96,6 +96,23 @@ def test_subscription_is_bounded_and_drops_the_oldest() -> None:
     assert sub.get(0.0) is None and sub.closed
     with pytest.raises(ValueError):
         Subscription(0)
+
+
+def test_a_snapshot_shows_the_forecast_once_per_frame_whatever_its_samples() -> None:
+    from app.control.runtime import _shown_forecast
+    from app.prediction.forecast import HumanForecast, half_step_grid
+
+    H, dt = 30, 1.0 / 30.0
+    times = 2.0 + dt * np.arange(H + 1)
+    joints = np.cumsum(np.full((H + 1, NUM_JOINTS, 3), 0.01), axis=0)
+    margins = np.linspace(0.02, 0.5, H + 1)
+    steps = HumanForecast(t0=2.0, times=times, joints=joints, margins=margins)
+    halves = HumanForecast(2.0, *half_step_grid(times, joints, margins, 0.5 * (margins[:-1] + margins[1:])))
+    assert halves.joints.shape[0] == 2 * H + 1
+    for fc in (steps, halves):  # the same 31 poses either way
+        np.testing.assert_allclose(_shown_forecast(fc, dt), joints, atol=1e-12)
+    held = HumanForecast.hold(HumanFrame(2.0, joints[0]), margin_m=0.02)
+    np.testing.assert_allclose(_shown_forecast(held, dt), joints[:1])
 
 
 def test_snapshot_json_is_plain_and_arrays_are_frozen() -> None:
