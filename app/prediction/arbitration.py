@@ -142,9 +142,17 @@ class _Ledger:
         self.scored = np.zeros(n)
 
     def record(self, ks: np.ndarray, per_joint: np.ndarray, miss: np.ndarray, gamma: float) -> np.ndarray:
-        """Store the joint errors ``per_joint`` (V, J) at the distinct points ``ks`` and move their ACI
-        levels by ``gamma`` toward the fractions ``miss`` (V,) of joints outside the margin; returns the ring
-        rows written."""
+        """Store the joint errors ``per_joint`` (V, J) at the points ``ks`` (V,) and move their ACI levels by
+        ``gamma`` toward the fractions ``miss`` (V,) of joints outside the margin; returns the ring rows
+        written (V,). Two scores at one point (forecasts made twice per frame) are stored one after the
+        other."""
+        if ks.size > 1 and np.unique(ks).size < ks.size:
+            return np.concatenate(
+                [
+                    self.record(ks[i : i + 1], per_joint[i : i + 1], miss[i : i + 1], gamma)
+                    for i in range(ks.size)
+                ]
+            )
         if self.err is None:
             self.err = np.zeros((self.count.size, self.window, per_joint.shape[1]))
         h = self.head[ks]
@@ -156,6 +164,12 @@ class _Ledger:
         self.scored[ks] += size
         self.alpha_t[ks] = np.clip(self.alpha_t[ks] + gamma * (self.alpha_k[ks] - miss), 0.0, 1.0)
         return h
+
+    def coverage(self) -> np.ndarray:
+        """Per point the fraction of joints that fell inside the margin since the start (NaN where none was
+        scored)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(self.scored > 0, self.covered / np.maximum(self.scored, 1), np.nan)
 
 
 class ForecastArbiter:
@@ -287,16 +301,6 @@ class ForecastArbiter:
         """(H + 1,) joints scored, per step."""
         return self._steps.scored
 
-    @property
-    def half_covered(self) -> np.ndarray:
-        """(H,) joints inside the margin halfway between the steps, since the start."""
-        return self._halves.covered
-
-    @property
-    def half_scored(self) -> np.ndarray:
-        """(H,) joints scored halfway between the steps."""
-        return self._halves.scored
-
     def reset(self) -> None:
         """Forget everything (a new person)."""
         self._clear()
@@ -322,12 +326,7 @@ class ForecastArbiter:
             self._score_half(slots, ks, last[1], joints)
         cand, per_joint, miss = self._score_due(slots, ks, joints)
         scaled = per_joint / self._scale_at[slots, ks][:, None]
-        if ks.size == 1 or np.unique(ks).size == ks.size:
-            self._record(ks, cand, per_joint, scaled, miss)
-        else:  # two forecasts due at one step (forecasts made twice per frame): one at a time
-            for i in range(ks.size):
-                one = slice(i, i + 1)
-                self._record(ks[one], cand[one], per_joint[one], scaled[one], miss[one])
+        self._record(ks, cand, per_joint, scaled, miss)
 
     def _score_due(
         self, slots: np.ndarray, ks: np.ndarray, joints: np.ndarray
@@ -347,10 +346,7 @@ class ForecastArbiter:
         mid = self._combined[slots, js] + self._combined[slots, ks]  # (V, J, 3), twice the mean
         err = 0.5 * np.linalg.norm(mid - (prev + joints)[None], axis=-1)  # (V, J)
         miss = np.mean(err > self._half_margins_at[slots, js][:, None], axis=1)
-        # two forecasts due at one step (forecasts made twice per frame): one at a time
-        distinct = np.unique(js).size == js.size
-        for sel in [np.arange(js.size)] if distinct else [np.array([i]) for i in range(js.size)]:
-            self._halves.record(js[sel], err[sel], miss[sel], self.gamma)
+        self._halves.record(js, err, miss, self.gamma)
 
     def _half_margins(self, margins: np.ndarray) -> np.ndarray:
         """(H,) the margins halfway between the steps, given the steps' ``margins`` (H + 1,): the ACI quantile
@@ -377,8 +373,8 @@ class ForecastArbiter:
     def _record(
         self, ks: np.ndarray, cand: np.ndarray, per_joint: np.ndarray, scaled: np.ndarray, miss: np.ndarray
     ) -> None:
-        """Store scores at the distinct steps ``ks`` (the joint errors also over their motion scales,
-        ``scaled``) and move the ACI levels there."""
+        """Store scores at the steps ``ks`` (the joint errors also over their motion scales, ``scaled``) and
+        move the ACI levels there."""
         assert self._scaled_err is not None
         h = self._steps.record(ks, per_joint, miss, self.gamma)
         self._cand_err[:, ks, h] = cand.T
@@ -454,11 +450,10 @@ class ForecastArbiter:
         out[0] = min(out[0], self.floor_m)
         return np.maximum(out, self.floor_m)
 
-    def coverage(self) -> np.ndarray:
+    def coverage(self, *, halves: bool = False) -> np.ndarray:
         """(H + 1,) fraction of joints that fell inside the margin, per step, since the start (NaN where none
-        was scored)."""
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self.scored > 0, self.covered / np.maximum(self.scored, 1), np.nan)
+        was scored); with ``halves``, (H,) the same halfway between the steps."""
+        return (self._halves if halves else self._steps).coverage()
 
 
 def prior_margins(

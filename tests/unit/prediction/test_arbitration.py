@@ -191,7 +191,7 @@ def test_between_the_steps_the_margins_are_calibrated_where_the_frames_noise_ave
         arbiter.score(i * DT, frame)
         outs.append(arbiter.combine(i * DT, {"exact": exact}))
     assert np.all(np.abs(arbiter.coverage()[1:] - 0.95) < 0.015)
-    assert np.all(np.abs(arbiter.half_covered / arbiter.half_scored - 0.95) < 0.015)
+    assert np.all(np.abs(arbiter.coverage(halves=True) - 0.95) < 0.015)
     q95 = _maxwell_quantile(0.95, sigma)
     assert outs[-1].margins[1:] == pytest.approx(np.full(H, q95), rel=0.1)
     assert outs[-1].half_margins == pytest.approx(np.full(H, q95 / np.sqrt(2.0)), rel=0.1)
@@ -202,7 +202,24 @@ def test_between_the_steps_the_margins_are_calibrated_where_the_frames_noise_ave
     for i, frame in enumerate(frames):
         plain.score(i * DT, frame)
         out = plain.combine(i * DT, {"exact": exact})
-    assert out.half_margins is None and plain.half_scored.sum() == 0
+    assert out.half_margins is None and np.all(np.isnan(plain.coverage(halves=True)))
+
+
+def test_two_scores_at_one_point_are_stored_one_after_the_other() -> None:
+    from app.prediction.arbitration import _Ledger
+
+    rng = np.random.default_rng(13)
+    alpha_k = np.full(4, 0.05)
+    ks, err, miss = np.array([2, 1, 2]), rng.random((3, NUM_JOINTS)), np.array([1.0, 0.5, 0.0])
+    together, apart = _Ledger(alpha_k, 8), _Ledger(alpha_k, 8)
+    rows = together.record(ks, err, miss, 0.1)
+    one_by_one = [apart.record(ks[i : i + 1], err[i : i + 1], miss[i : i + 1], 0.1) for i in range(3)]
+    np.testing.assert_array_equal(rows, np.concatenate(one_by_one))
+    assert rows.tolist() == [0, 0, 1]  # the second score at point 2 goes to the next ring row
+    for name in ("err", "count", "head", "alpha_t", "covered", "scored"):
+        np.testing.assert_array_equal(getattr(together, name), getattr(apart, name))
+    # at point 2 the level moves twice: down to 0 (clipped) after the miss, then up by 0.1 * 0.05
+    assert together.count[2] == 2 and together.alpha_t[2] == pytest.approx(0.005)
 
 
 def test_the_half_step_grid_inserts_the_halfway_samples() -> None:
