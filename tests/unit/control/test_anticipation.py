@@ -101,9 +101,44 @@ def test_a_reach_expected_later_starts_later() -> None:
     fc = _forecast(frame)
     ant.expect("C", t_release=10.5)  # the robot is still releasing: the hand is expected from 10.8 s on
     out = ant.apply(frame, fc)
-    moved = np.any(out.joints != fc.joints, axis=(1, 2))
+    moved = np.any(out.joints != fc.poses_at(out.times)[0], axis=(1, 2))
     assert not moved[out.times <= 10.8 + 1e-9].any()
     assert moved[-1]
+
+
+def test_a_reach_that_ends_beyond_the_horizon_extends_the_forecast_to_the_station() -> None:
+    """Held halfway at the horizon's end, the hand would seem to stop short of the station for good: the
+    forecast goes on, at its step, until the expected reach is over, with the margin grown as beyond the
+    horizon."""
+    p = FetchAnticipationParams(reaction_s=0.8, hand_speed_mps=0.6)
+    ant = FetchAnticipation(STATIONS, p)
+    frame = _frame(10.0)
+    fc = _forecast(frame, drift=0.05)
+    ant.expect("D", t_release=10.0)
+    out = ant.apply(frame, fc)
+    hand = ARM["r"][2]
+    station = STATIONS["D"]
+    length = float(np.linalg.norm(station - frame.joints[hand]))
+    t_done = 10.0 + p.reaction_s + max(p.min_reach_s, 1.875 * length / p.hand_speed_mps)
+    assert t_done > fc.times[-1] + 0.5
+    # the forecast's own samples keep their times and margins; the new ones follow at its step
+    n = fc.times.shape[0]
+    np.testing.assert_array_equal(out.times[:n], fc.times)
+    np.testing.assert_array_equal(out.margins[:n], fc.margins)
+    np.testing.assert_allclose(np.diff(out.times[n - 1 :]), 1.0 / FPS)
+    assert out.times[-2] < t_done <= out.times[-1] + 1e-9
+    # beyond the horizon: the last predicted pose held, its margin grown, the hand arriving at the station
+    held, grown = fc.poses_at(out.times[n:])
+    np.testing.assert_allclose(out.margins[n:], grown)
+    others = [j for j in range(fc.joints.shape[1]) if j not in ARM["r"]]
+    np.testing.assert_array_equal(out.joints[n:, others], held[:, others])
+    np.testing.assert_allclose(out.joints[-1, hand], station)
+    d = np.linalg.norm(out.joints[:, hand] - station, axis=1)
+    assert np.all(np.diff(d) <= 1e-9)
+    # a reach already over by the horizon's end adds nothing
+    quick = FetchAnticipation(STATIONS, FetchAnticipationParams(reaction_s=0.0, hand_speed_mps=3.0))
+    quick.expect("D", t_release=10.0)
+    np.testing.assert_array_equal(quick.apply(frame, fc).times, fc.times)
 
 
 def test_a_fetch_is_over_once_the_hand_came_and_withdrew_then_the_next_one_counts() -> None:
