@@ -2,7 +2,7 @@
 one row per seed and method with the ground-truth monitor's verdict, as JSON lines and a Markdown table.
 
     .venv/bin/python scripts/seed_table.py --seeds 1-10 --duration 300 [--source replay --clip PATH]
-        [--workers 2] [--out table.jsonl]
+        [--forecast oracle] [--workers 2] [--out table.jsonl]
 
 Uses the settings of the environment (``HRC_*``), like ``hrc simulate``. Report seeds outside 1000-1999
 (those are for tuning).
@@ -30,16 +30,22 @@ COLUMNS = (
 )
 
 
-def _run(args: tuple[int, str, float, str, str | None]) -> dict:
+def _run(args: tuple[int, str, float, str, str | None, str]) -> dict:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    seed, method, duration, source, clip = args
+    seed, method, duration, source, clip, forecast = args
     from app.config import Settings
     from app.control.headless import run_headless_trial
 
     res = run_headless_trial(
-        settings=Settings(), method=method, duration_s=duration, seed=seed, source=source, clip=clip
+        settings=Settings(),
+        method=method,
+        duration_s=duration,
+        seed=seed,
+        source=source,
+        clip=clip,
+        forecast=forecast,
     )
-    return {"seed": seed, "source": source, "clip": clip, **res.summary()}
+    return {"seed": seed, "source": source, "clip": clip, "forecast": forecast, **res.summary()}
 
 
 def _seeds(text: str) -> list[int]:
@@ -57,12 +63,21 @@ def main() -> None:
     ap.add_argument("--methods", default="proactive,reactive")
     ap.add_argument("--source", default="sim", choices=("sim", "replay"))
     ap.add_argument("--clip", action="append", default=None, help="replay clip(s); one row per clip")
+    ap.add_argument(
+        "--forecast",
+        default="model",
+        choices=("model", "oracle"),
+        help="proactive's forecast: the motion predictor, or the simulated operator's own future (sim only)",
+    )
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
     clips = a.clip or [None]
     jobs = [
-        (s, m, a.duration, a.source, c) for c in clips for s in _seeds(a.seeds) for m in a.methods.split(",")
+        (s, m, a.duration, a.source, c, a.forecast)
+        for c in clips
+        for s in _seeds(a.seeds)
+        for m in a.methods.split(",")
     ]
     rows = []
     with ProcessPoolExecutor(a.workers) as pool:
