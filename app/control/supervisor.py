@@ -58,7 +58,13 @@ from typing import Any, Literal
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
-from app.control.counters import SupervisorCounters, SupervisorState
+from app.control.counters import (
+    FrameDecision,
+    ServoCommand,
+    SupervisorCounters,
+    SupervisorState,
+    SupervisorStatus,
+)
 from app.control.metrics import Method
 from app.control.trajectory_views import (
     Goal,
@@ -180,44 +186,6 @@ class SupervisorConfig:
         return self.frame_period_s + self.deadline_s
 
 
-@dataclass(frozen=True, slots=True)
-class ServoCommand:
-    """What the robot is told at one servo tick.
-
-    Attributes:
-        t: Time of the tick (s).
-        q: (6,) joint positions (rad).
-        qd: (6,) joint velocities (rad/s).
-        scale: Speed scale in [0, 1] applied along the path.
-        hold: True when the robot is meant to stand still.
-    """
-
-    t: float
-    q: np.ndarray
-    qd: np.ndarray
-    scale: float
-    hold: bool
-
-
-@dataclass(frozen=True, slots=True)
-class FrameDecision:
-    """The outcome of one frame's decision (for logs, tests and the loop benchmark).
-
-    Attributes:
-        action: ``nominal``, ``online_replan`` (switch scheduled), ``stop_replan``, ``start`` (switch
-            scheduled from rest), ``resume`` (switch scheduled after an emergency plan), ``hold`` (nothing to
-            do), ``skipped`` (the state changed while deciding).
-        violation_t: Predicted violation time of the plan in execution, if any (s).
-        separation_m: Measured separation minus the tracking margin (m).
-        decide_s: Compute time of the decision itself (s), without the backup plan's search.
-    """
-
-    action: str
-    violation_t: float | None
-    separation_m: float
-    decide_s: float
-
-
 @dataclass
 class _Active:
     traj: TrajectoryLike
@@ -264,37 +232,6 @@ class _Brake:
     emergency: _Active | None = None
     emergency_ready_t: float = math.inf
     emergency_tried: bool = False
-
-
-@dataclass(frozen=True, slots=True)
-class SupervisorStatus:
-    """An immutable read-out of the supervisor, for snapshots.
-
-    Attributes:
-        t: Time of the last servo tick (s).
-        state: One of :data:`SUPERVISOR_STATES`.
-        scale: Current speed scale.
-        separation_m: Last measured separation (m), inf when no person was seen.
-        required_separation_m: S_p for the robot's current speed (m).
-        q: (6,) last commanded configuration.
-        plan: The trajectory in execution (None when holding).
-        plan_tau: Path time in it.
-        backup: The trajectory of a pending switch, when known.
-        stale: The stream is stale (the robot is held).
-        estopped: E-stop latched.
-    """
-
-    t: float
-    state: SupervisorState
-    scale: float
-    separation_m: float
-    required_separation_m: float
-    q: np.ndarray
-    plan: TrajectoryLike | None
-    plan_tau: float
-    backup: TrajectoryLike | None
-    stale: bool
-    estopped: bool
 
 
 EventSink = Callable[[float, str, dict[str, Any]], None]
