@@ -21,15 +21,15 @@ from app.config import Settings, load_workcell
 EXAMPLE_CELL = Path(__file__).resolve().parents[2] / "examples" / "workcell_stations_moved.toml"
 DURATION_S = 120.0
 SEED = 12  # a report seed whose operator fetches twice in the first 120 s
+_MAKE_OPERATOR = headless.make_operator
 
 
 def _fetches_stopped(monkeypatch: pytest.MonkeyPatch) -> tuple[int, int]:
     """(fetches, fetches during which the robot was stopped & replanned) of one proactive trial."""
     operators: list[Any] = []
-    make_operator = headless.make_operator
 
     def keep(*args: Any, **kwargs: Any) -> Any:
-        operators.append(make_operator(*args, **kwargs))
+        operators.append(_MAKE_OPERATOR(*args, **kwargs))
         return operators[-1]
 
     monkeypatch.setattr(headless, "make_operator", keep)
