@@ -72,6 +72,9 @@ class PlanOutcome:
         reason: The planner's reason or the error message.
         arrival_s: When the planner predicts the robot to arrive (s, runtime clock; with SSM-aware timing,
             under the speed governor), or None for the trajectory's end.
+        blocked: Of a ``failed`` plan, where the person as forecast was in the way: ``start`` (the robot
+            could not leave where it stood) or ``goal`` (occupied); None where the planner found no plan for
+            another reason (:attr:`app.planning.search.PlanResult.blocked`).
     """
 
     status: OutcomeStatus
@@ -81,6 +84,7 @@ class PlanOutcome:
     plan: Any = None
     reason: str = ""
     arrival_s: float | None = None
+    blocked: str | None = None
 
 
 class PlanJobs(Protocol):
@@ -145,7 +149,9 @@ class BackupComputer:
                 **extra,
             )
             if not res.ok or res.plan is None:
-                return PlanOutcome("failed", compute_s=self.timer() - t0, reason=str(res.reason))
+                blocked = getattr(res, "blocked", None)
+                dt = self.timer() - t0
+                return PlanOutcome("failed", compute_s=dt, reason=str(res.reason), blocked=blocked)
             traj = self.make_trajectory(res.plan, req.qd_start)
             prof = SpeedProfile.of(traj, self.geometry, window_s=self.profile_window_s)
         except Exception as exc:  # a planner fault must take the emergency path, never kill the loop

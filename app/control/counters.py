@@ -31,7 +31,12 @@ SUPERVISOR_STATES: tuple[SupervisorState, ...] = (
 #:   stale, E-stop, fault);
 #: - ``planned_wait``: a wait that the plan itself holds (the time-variant search waits for the person);
 #: - ``gripper``: at a station, gripping or releasing (the task's dwell before it may leave);
-#: - ``waiting_for_plan``: at rest with somewhere to go, and no safe plan yet;
+#: - ``waiting_for_person``: at rest with somewhere to go, the person in the way as forecast: the last plan
+#:   from rest failed because its goal is occupied (a hand at the station) or because the robot cannot leave
+#:   where it stands (the person is fetching the block it has just placed)
+#:   (:attr:`app.control.backup.PlanOutcome.blocked`);
+#: - ``waiting_for_plan``: at rest with somewhere to go, and no safe plan yet for another reason (a plan being
+#:   computed, no way found in time, a missed deadline, a plan that a newer forecast broke);
 #: - ``idle``: nothing to do.
 TIME_BUDGET: tuple[str, ...] = (
     "moving_full",
@@ -40,6 +45,7 @@ TIME_BUDGET: tuple[str, ...] = (
     "stopped",
     "planned_wait",
     "gripper",
+    "waiting_for_person",
     "waiting_for_plan",
     "idle",
 )

@@ -106,6 +106,7 @@ class TrialMetrics:
     budget_stopped_s: float = 0.0
     budget_planned_wait_s: float = 0.0
     budget_gripper_s: float = 0.0
+    budget_waiting_for_person_s: float = 0.0
     budget_waiting_for_plan_s: float = 0.0
     budget_idle_s: float = 0.0
     arrivals: int = 0

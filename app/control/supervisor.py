@@ -320,6 +320,8 @@ class Supervisor:
         self._stopped_latch = False
         self._moved_since_stop = 0.0
         self._retry_after = -math.inf
+        # where the person as forecast blocked the last plan from rest ("start", "goal"; None: they did not)
+        self._blocked: str | None = None
         self._state: SupervisorState = "idle"
         self._recent_decide_s: deque[float] = deque(maxlen=256)
 
@@ -333,6 +335,7 @@ class Supervisor:
             self._goal = goal
             self._not_before = float(not_before)
             self._arrived = None
+            self._blocked = None
 
     @property
     def goal(self) -> Goal | None:
@@ -889,6 +892,7 @@ class Supervisor:
         moving = active.kind != "hold" and active.complete
         if out.status != "ok" and pend.from_rest:
             self._retry_after = t + self.config.retry_after_s
+            self._blocked = out.blocked if out.status == "failed" else None
         if out.status != "ok":
             if out.status == "deadline_miss":
                 self.counters.deadline_misses += 1
@@ -910,6 +914,7 @@ class Supervisor:
                 self.counters.plan_failures += 1
                 if self.config.clear_start and pend.from_rest:
                     self._retry_after = t + self.config.retry_after_s
+                    self._blocked = None
                 if moving and pend.reason == "online_replan":
                     self._emergency_path(t, reason="backup_invalid", violation_t=t_v)
                 return
@@ -917,6 +922,7 @@ class Supervisor:
         tau_new = out.traj.t_start + max(self._tau - pend.tau_branch, 0.0)
         pid = self._new_plan_id()
         self._active = _Active(out.traj, out.profile, pid, "plan", True, self._goal, self._seq, out.arrival_s)
+        self._blocked = None
         self._tau = tau_new
         self._generation += 1
         if pend.reason == "online_replan":
@@ -1020,7 +1026,7 @@ class Supervisor:
             return "gripper"
         if self._state == "stopped":
             return "stopped"
-        return "waiting_for_plan"
+        return "waiting_for_plan" if self._blocked is None else "waiting_for_person"
 
     def _emit(self, t: float, kind: str, payload: dict[str, Any]) -> None:
         if self.on_event is not None:

@@ -187,6 +187,8 @@ class TrialMetricsRow(Base):
     budget_stopped_s: Mapped[float | None] = mapped_column(Float)
     budget_planned_wait_s: Mapped[float | None] = mapped_column(Float)
     budget_gripper_s: Mapped[float | None] = mapped_column(Float)
+    # revision 0006; NULL: a trial stored before it (its waits for the person count as waits for a plan)
+    budget_waiting_for_person_s: Mapped[float | None] = mapped_column(Float)
     budget_waiting_for_plan_s: Mapped[float | None] = mapped_column(Float)
     budget_idle_s: Mapped[float | None] = mapped_column(Float)
     arrivals: Mapped[int | None] = mapped_column(Integer)
@@ -230,6 +232,7 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "budget_stopped_s",
     "budget_planned_wait_s",
     "budget_gripper_s",
+    "budget_waiting_for_person_s",
     "budget_waiting_for_plan_s",
     "budget_idle_s",
     "arrivals",

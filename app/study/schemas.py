@@ -130,6 +130,7 @@ class TrialMetricsRead(_Out):
     budget_stopped_s: float | None = None
     budget_planned_wait_s: float | None = None
     budget_gripper_s: float | None = None
+    budget_waiting_for_person_s: float | None = None
     budget_waiting_for_plan_s: float | None = None
     budget_idle_s: float | None = None
     arrivals: int | None = None

@@ -68,6 +68,7 @@ BUDGET_LABELS: dict[str, str] = {
     "stopped": "held still",
     "planned_wait": "planned wait",
     "gripper": "gripper",
+    "waiting_for_person": "waiting for the person",
     "waiting_for_plan": "waiting for a plan",
     "idle": "idle",
 }
@@ -284,7 +285,9 @@ def summarize_rows(
 
 def _time_budget(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Where the trials' time went: per :data:`BUDGET_LABELS` part the mean seconds per trial, over the trials
-    that kept a budget (``trials``; those stored before it was recorded have none)."""
+    that kept a whole budget (``trials``; those stored before it was recorded, or before the wait for the
+    person was counted apart from the wait for a plan (revision 0006), have none: their parts would not add
+    up)."""
     cols = [f"budget_{k}_s" for k in BUDGET_LABELS]
     kept = [r for r in rows if all(r.get(c) is not None for c in cols)]
     out: dict[str, Any] = {"trials": len(kept)}

@@ -150,8 +150,9 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
     expect(page.get_by_test_id("trial-time")).to_contain_text("of 4 s", timeout=UI_TIMEOUT_MS)
     # where the trial's time goes, live: one row per part of the time budget, their sum the time so far
     expect(page.get_by_test_id("budget-waiting_for_plan")).to_contain_text(" s", timeout=UI_TIMEOUT_MS)
+    expect(page.get_by_test_id("budget-waiting_for_person")).to_contain_text(" s", timeout=UI_TIMEOUT_MS)
     rows = page.get_by_test_id("time-budget").locator("dd")
-    expect(rows).to_have_count(8)
+    expect(rows).to_have_count(9)
     wait_until(
         lambda: float(page.get_by_test_id("budget-total").inner_text().split(" s")[0]) > 0.5,
         "the time budget to count the trial's time",
@@ -232,6 +233,7 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
         row = page.get_by_test_id(f"results-budget-{method}")
         if summary["time_budget_s"][method]["trials"]:
             expect(row).to_contain_text("held still", timeout=UI_TIMEOUT_MS)
+            expect(row).to_contain_text("waiting for the person")
             expect(row.locator(".budget-bar span").first).to_be_attached()
         else:
             expect(row).to_have_count(0)

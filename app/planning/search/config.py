@@ -7,7 +7,7 @@ import inspect
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 
@@ -190,6 +190,29 @@ class PlannerConfig:
 #: The parts of a planning query's time (:attr:`PlanResult.phases_s`).
 PHASES = ("search", "shortcut", "finish")
 
+#: The reasons of a failed query where the forecast person is in the robot's way at either end (the planner
+#: words its reasons with these; :func:`blocked_by_person` reads them back):
+#: the robot cannot leave where it stands, the person is (or is forecast) within its clearance now;
+START_BLOCKED = "start configuration violates the separation at t_start"
+#: the goal is occupied: the person is forecast there for good, or from some time on;
+GOAL_BLOCKED = "goal blocked by the person"
+#: every way into the goal is blocked once the person's forecast holds still.
+GOAL_WAYS_BLOCKED = "goal unreachable: every way into it is blocked once the person holds still"
+
+#: Where the person blocks a query: ``start`` (the robot cannot leave yet) or ``goal`` (it is occupied).
+Blocked = Literal["start", "goal"]
+
+
+def blocked_by_person(reason: str) -> Blocked | None:
+    """Where the person as forecast blocks a query that failed with ``reason`` (a :attr:`PlanResult.reason`):
+    ``start``, ``goal``, or None where the query failed for another reason (no way found in time, a
+    trajectory that failed its verification, a missed deadline, bad input) or did not fail."""
+    if reason.startswith(START_BLOCKED):
+        return "start"
+    if reason.startswith((GOAL_BLOCKED, GOAL_WAYS_BLOCKED)):
+        return "goal"
+    return None
+
 
 @dataclass(frozen=True, slots=True)
 class PlanResult:
@@ -218,6 +241,12 @@ class PlanResult:
     trajectory: Trajectory | None = None
     arrival_s: float | None = None
     phases_s: Mapping[str, float] | None = None
+
+    @property
+    def blocked(self) -> Blocked | None:
+        """Where the person as forecast blocked a failed query (:func:`blocked_by_person`); None for a
+        plan."""
+        return None if self.ok else blocked_by_person(self.reason)
 
 
 def _paired_options(model: RobotModel) -> set[str]:

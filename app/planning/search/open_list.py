@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from app.planning import _kernels
+from app.planning.search.config import GOAL_BLOCKED, GOAL_WAYS_BLOCKED
 from app.planning.search.run import _Run
 
 
@@ -86,14 +87,14 @@ def _exhausted(
     """The result of a search whose open list ran empty."""
     if goal is not None and t_last < t_start + max_plan_s and not expanded:
         if t_last < t_start:
-            return None, expanded, "goal blocked by the person for good"
-        return None, expanded, f"goal blocked by the person from t={t_last - t_start:+.2f} s on"
+            return None, expanded, f"{GOAL_BLOCKED} for good"
+        return None, expanded, f"{GOAL_BLOCKED} from t={t_last - t_start:+.2f} s on"
     what = "goal" if goal is not None else "the emergency horizon"
     if blocked_from is not None:
         return (
             None,
             expanded,
-            f"goal unreachable: every way into it is blocked once the person holds still "
-            f"(t={blocked_from - t_start:+.2f} s), no safe path arrives before ({expanded} expansions)",
+            f"{GOAL_WAYS_BLOCKED} (t={blocked_from - t_start:+.2f} s), no safe path arrives before "
+            f"({expanded} expansions)",
         )
     return None, expanded, f"{what} unreachable: no safe path found after {expanded} expansions"

@@ -23,6 +23,7 @@ from app.planning.search.astar import _Search
 from app.planning.search.config import (
     _TWO_PI,
     PHASES,
+    START_BLOCKED,
     PlannerConfig,
     PlanResult,
     RobotModel,
@@ -337,8 +338,7 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
             )
         start_sep = self._separation(forecast, extra_m=0.0)
         if not start_sep.check(q_start[None], np.array([float(t_start)]), np.zeros(1), np.zeros(1))[0]:
-            reason = "start configuration violates the separation at t_start"
-            return PlanResult(False, None, reason, 0, self._timer() - t0)
+            return PlanResult(False, None, START_BLOCKED, 0, self._timer() - t0)
         ssm_extra = None
         if timing is not None and forecast is not None and cfg.ssm_aware_search:
             table = timing.extra_clearance(v_creep_mps=cfg.ssm_creep_mps, decel_mps2=cfg.ssm_brake_decel_mps2)

@@ -361,6 +361,7 @@
     ["stopped", "held still", "#d32f2f"],
     ["planned_wait", "planned wait", "#7e57c2"],
     ["gripper", "gripper", "#8d6e63"],
+    ["waiting_for_person", "waiting for the person", "#00acc1"],
     ["waiting_for_plan", "waiting for a plan", "#1e88e5"],
     ["idle", "idle", "#b0bec5"],
   ];
@@ -858,7 +859,7 @@
       facts.className = "muted small";
       const a = arrivals[method] || {};
       const parts = [`${total.toFixed(1)} s over ${b.trials} trial${b.trials === 1 ? "" : "s"}`];
-      for (const k of ["moving_scaled", "stopped", "waiting_for_plan"]) {
+      for (const k of ["moving_scaled", "stopped", "waiting_for_person", "waiting_for_plan"]) {
         const label = (BUDGET_PARTS.find(([key]) => key === k) || [k, k])[1];
         parts.push(`${label} ${(Number(b[k]) || 0).toFixed(1)} s`);
       }

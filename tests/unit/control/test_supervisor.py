@@ -105,6 +105,7 @@ class FakeResult:
     reason: str
     expanded: int = 0
     compute_s: float = 0.0
+    blocked: str | None = None
 
 
 class PointGeometry:
@@ -529,6 +530,38 @@ def test_a_robot_at_rest_sets_off_only_on_a_plan_the_latest_forecast_leaves_clea
     assert h.sup.counters.stop_replans == 0
     assert h.sup.take_arrival() == "B"
     assert _monitor_violations(h) == 0
+
+
+@pytest.mark.parametrize("blocked", ["goal", "start", None])
+def test_a_robot_at_rest_waits_for_the_person_apart_from_waiting_for_a_plan(blocked: str | None) -> None:
+    """For the first second the planner finds no plan: the person in the way as forecast (its goal occupied,
+    or the robot unable to leave), or for another reason (None). The time at rest counts as waiting for the
+    person in the first cases, for a plan in the last; the plan computed before the first failure counts as
+    waiting for a plan in all, and the plan that comes once the person has gone ends the wait."""
+    h = Harness(lambda t: person_at(FAR))
+    real = h.planner.plan
+
+    def plan(**kw: Any) -> FakeResult:
+        if h.t < 1.0:
+            return FakeResult(False, None, "in the way (test)", blocked=blocked)
+        return real(**kw)
+
+    h.planner.plan = plan  # type: ignore[method-assign]
+    h.sup.set_goal("B")
+    h.run(6.0)
+    assert h.sup.take_arrival() == "B"
+    budget = h.sup.counters.budget_s
+    assert sum(budget.values()) == pytest.approx(6.0, abs=0.02)
+    waited = budget["waiting_for_person"] + budget["waiting_for_plan"]
+    start_deadline = h.config.start_deadline
+    assert 1.0 <= waited <= 1.0 + start_deadline + 0.1  # until the first plan after t = 1 s is due
+    if blocked is None:
+        assert budget["waiting_for_person"] == 0.0
+    else:
+        first_failure = next(t for t, k, _ in h.events if k == "plan_failed")
+        assert budget["waiting_for_person"] >= 1.0 - first_failure - 0.02
+        assert budget["waiting_for_plan"] <= first_failure + start_deadline + 0.02
+    assert budget["moving_full"] + budget["moving_scaled"] > 0
 
 
 def test_missed_deadline_takes_the_emergency_path() -> None:

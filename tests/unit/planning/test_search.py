@@ -257,6 +257,7 @@ def test_an_unreachable_goal_is_a_clear_failure() -> None:
     res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=None)
     assert not res.ok and res.plan is None and res.trajectory is None
     assert "unreachable" in res.reason
+    assert res.blocked is None  # no person: the roadmap has no way
 
 
 def test_a_person_staying_at_the_goal_fails_instead_of_returning_an_unchecked_path() -> None:
@@ -265,14 +266,14 @@ def test_a_person_staying_at_the_goal_fails_instead_of_returning_an_unchecked_pa
     planner = Planner(rm, PointRobot(), config=config(max_wait_s=0.5))
     res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=fc)
     assert not res.ok and res.plan is None
-    assert res.reason
+    assert res.reason.startswith("goal blocked by the person") and res.blocked == "goal"
 
 
 def test_start_in_violation_and_unknown_goal() -> None:
     rm = roadmap([(0.0, 0.0), (0.4, 0.0)], [(0, 1)], s=0, g=1)
     planner = Planner(rm, PointRobot(), config=config())
     res = planner.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=person([0.0], [(0.05, 0.0)]))
-    assert not res.ok and "start" in res.reason
+    assert not res.ok and "start" in res.reason and res.blocked == "start"
     from app.planning.roadmap import RoadmapError
 
     with pytest.raises(RoadmapError, match="unknown station"):
@@ -392,12 +393,32 @@ def test_a_goal_that_cannot_be_entered_once_the_person_holds_still_fails_fast() 
     for res in (slow, fast):
         assert not res.ok and res.plan is None and res.trajectory is None
     assert "blocked once the person holds still" in fast.reason
+    assert fast.blocked == "goal"
     assert fast.expanded < 20 < len(side) <= slow.expanded  # the exhaustive search visits the side area
     # the same goal is planned to when the person stands further off the corridor
     away = person([0.0, 0.2, 0.25], [(3.0, 3.0), (3.0, 3.0), (0.7, 0.35)])
     res = probed.plan(q_start=q_of(0, 0), t_start=0.0, goal="g", forecast=away, workers=4)
     assert res.ok, res.reason
+    assert res.blocked is None
     assert_valid(res.trajectory, away, hold_s=0.2)
+
+
+def test_a_failed_query_says_whether_the_person_was_in_the_way() -> None:
+    from app.planning.search.config import blocked_by_person
+
+    assert blocked_by_person("start configuration violates the separation at t_start") == "start"
+    assert blocked_by_person("goal blocked by the person for good") == "goal"
+    assert blocked_by_person("goal blocked by the person from t=+0.40 s on") == "goal"
+    reason = "goal unreachable: every way into it is blocked once the person holds still (t=+0.50 s), ..."
+    assert blocked_by_person(reason) == "goal"
+    for other in (
+        "goal unreachable: no safe path found after 12 expansions",
+        "trajectory failed verification against the forecast",
+        "deadline",
+        "goal node has no valid IK branch",
+        "ok",
+    ):
+        assert blocked_by_person(other) is None, other
 
 
 def test_a_hand_resting_beside_the_goal_makes_the_robot_creep_in() -> None:
