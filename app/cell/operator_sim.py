@@ -657,6 +657,10 @@ class OracleForecaster:
         self.growth_mps = float(growth_mps)
         self.max_margin_m = max(float(max_margin_m), self.margin_m)
 
+    #: Its forecast is exact over its horizon (the trial engine's fetch anticipation then adds only what lies
+    #: beyond it: :class:`app.control.anticipation.FetchAnticipation`'s ``exact_horizon``).
+    exact_within_horizon = True
+
     def reset(self) -> None:
         """Nothing to forget: the forecast comes from the operator itself."""
 

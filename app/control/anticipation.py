@@ -38,6 +38,14 @@ leaves clear, :attr:`app.control.supervisor.SupervisorConfig.clear_start`) inste
 arriving hand, where the speed monitoring would stop it. The reactive baseline never sees this: it is fed
 the current pose held still.
 
+A forecast that is exact over its horizon (the simulated operator's own future,
+:class:`app.cell.operator_sim.OracleForecaster`, an analysis tool) needs only what lies beyond it: with
+``exact_horizon`` the forecast is left as it is within the horizon. Where it does not bring a hand to the
+station, the fetch comes after the horizon: from the horizon's end (or the expected start of the reach, if
+later) the hand goes on from where the forecast leaves it to the station, on the expected reach of that
+length. So the oracle knows what the task tells the proactive method, and nothing of the person's motion is
+guessed where it is known: the bound it gives is like for like.
+
 This is a forecast, not a safety function: the speed governor, the stop distance and the safety monitor
 work on the measured person, whatever the forecast says.
 """
@@ -142,12 +150,19 @@ class FetchAnticipation:
     Args:
         stations: Drop station name -> where the robot releases the block (3,), world frame (m).
         params: How a fetch is expected.
+        exact_horizon: The forecasts are exact over their horizon (the oracle): add only the part of an
+            expected reach beyond it (see the module docstring).
     """
 
     def __init__(
-        self, stations: Mapping[str, np.ndarray], params: FetchAnticipationParams | None = None
+        self,
+        stations: Mapping[str, np.ndarray],
+        params: FetchAnticipationParams | None = None,
+        *,
+        exact_horizon: bool = False,
     ) -> None:
         self.params = params or FetchAnticipationParams()
+        self.exact_horizon = bool(exact_horizon)
         self.stations: dict[str, np.ndarray] = {}
         for name, xyz in stations.items():
             p = np.asarray(xyz, dtype=np.float64)
@@ -260,14 +275,21 @@ class FetchAnticipation:
             reaction_s, hand_speed_mps = self._timing()
         p = self.params
         target = self.stations[station]
-        d_hands = np.linalg.norm(frame.joints[_HANDS] - target, axis=1)
+        t_on = max(frame.t, t_release + reaction_s)
+        start = frame.joints
+        if self.exact_horizon:
+            near = np.linalg.norm(forecast.joints[:, _HANDS] - target, axis=-1) <= p.reached_radius_m
+            if reached or bool(near.any()):
+                return forecast  # the forecast itself brings a hand to the station (or away from it)
+            # the fetch comes after the horizon, from where the forecast leaves the hands
+            start = forecast.joints[-1]
+            t_on = max(t_on, float(forecast.times[-1]))
+        d_hands = np.linalg.norm(start[_HANDS] - target, axis=1)
         wrist, hand, elbow = _ARM["l" if d_hands[0] <= d_hands[1] else "r"]
         if reached:
             progress = np.ones_like(forecast.times)
         else:
-            length = float(np.linalg.norm(target - frame.joints[hand]))
-            duration = max(p.min_reach_s, MIN_JERK_PEAK_SPEED * length / hand_speed_mps)
-            t_on = max(frame.t, t_release + reaction_s)
+            duration = max(p.min_reach_s, MIN_JERK_PEAK_SPEED * float(d_hands.min()) / hand_speed_mps)
             forecast = _extended(forecast, t_on + duration)
             progress = min_jerk((forecast.times - t_on) / duration)
         joints = np.array(forecast.joints, dtype=np.float64, copy=True)

@@ -645,6 +645,7 @@ class TrialEngine:
             self.anticipation = FetchAnticipation(
                 {st.name: np.asarray(st.xyz, dtype=np.float64) for st in stack.cell.drop_stations},
                 FetchAnticipationParams(reaction_s=settings.fetch_reaction_s),
+                exact_horizon=bool(getattr(predictor, "exact_within_horizon", False)),
             )
         self.monitor: GroundTruthMonitor | None = None
         if self.options.monitor:

@@ -211,8 +211,8 @@ def run_headless_trial(
             raise ValueError("the oracle forecast is for the proactive method, instead of its predictor")
         if not isinstance(truth, SimulatedOperator):
             raise ValueError("the oracle forecast needs the simulated operator (source 'sim')")
-        # the operator's own future, nothing added (it knows of a fetch as soon as the block is placed)
-        settings = settings.model_copy(update={"anticipate_fetch": False})
+        # the operator's own future over the horizon (it knows of a fetch as soon as the block is placed);
+        # beyond it, what the task tells the proactive method too: the expected fetch (exact_horizon)
         predictor = OracleForecaster(
             truth,
             margin_m=options.tracking_margin_m,

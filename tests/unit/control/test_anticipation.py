@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -139,6 +141,57 @@ def test_a_reach_that_ends_beyond_the_horizon_extends_the_forecast_to_the_statio
     quick = FetchAnticipation(STATIONS, FetchAnticipationParams(reaction_s=0.0, hand_speed_mps=3.0))
     quick.expect("D", t_release=10.0)
     np.testing.assert_array_equal(quick.apply(frame, fc).times, fc.times)
+
+
+def test_over_an_exact_horizon_only_the_reach_beyond_it_is_added() -> None:
+    """With a forecast that is exact over its horizon (the oracle), the forecast's own samples are kept as
+    they are. Where it brings no hand to the station, the fetch comes after the horizon: the hand goes on
+    from where the forecast leaves it to the station, on the expected reach of that length, starting at the
+    horizon's end (or at the reach's expected start, if later). Where the forecast brings a hand to the
+    station, or a hand has reached it, nothing is added."""
+    p = FetchAnticipationParams(reaction_s=0.8, hand_speed_mps=0.6)
+    frame = _frame(10.0)
+    fc = _forecast(frame, drift=0.05)
+    hand = ARM["r"][2]
+    station = STATIONS["D"]
+    n = fc.times.shape[0]
+    for reaction_s, start in ((0.8, fc.times[-1]), (1.5, 11.5)):
+        ant = FetchAnticipation(STATIONS, replace(p, reaction_s=reaction_s), exact_horizon=True)
+        ant.expect("D", t_release=10.0)
+        out = ant.apply(frame, fc)
+        length = float(np.linalg.norm(station - fc.joints[-1, hand]))
+        t_done = start + max(p.min_reach_s, 1.875 * length / p.hand_speed_mps)
+        assert out.times[-2] < t_done <= out.times[-1] + 1e-9
+        np.testing.assert_array_equal(out.joints[:n], fc.joints)  # the known part untouched
+        np.testing.assert_array_equal(out.margins[:n], fc.margins)
+        held, grown = fc.poses_at(out.times[n:])
+        np.testing.assert_allclose(out.margins[n:], grown)
+        others = [j for j in range(fc.joints.shape[1]) if j not in ARM["r"]]
+        np.testing.assert_array_equal(out.joints[n:, others], held[:, others])
+        # the hand waits at the forecast's last pose until the reach starts, then goes to the station
+        d = np.linalg.norm(out.joints[n - 1 :, hand] - station, axis=1)
+        waiting = out.times[n - 1 :] <= start + 1e-9
+        np.testing.assert_allclose(d[waiting], d[0])
+        assert np.all(np.diff(d) <= 1e-9) and d[-1] < 1e-9
+    # a forecast that brings the hand to the station shows the fetch itself
+    ant = FetchAnticipation(STATIONS, p, exact_horizon=True)
+    ant.expect("D", t_release=10.0)
+    reaching = HumanForecast(
+        t0=fc.t0,
+        times=fc.times,
+        joints=np.stack([_moved(frame, "r", station, k / H, t).joints for k, t in enumerate(fc.times)]),
+        margins=fc.margins,
+        growth_mps=0.1,
+    )
+    assert ant.apply(frame, reaching) is reaching
+    # a hand at the station: the exact forecast shows where it goes from there
+    at = FetchAnticipation(STATIONS, p, exact_horizon=True)
+    at.expect("D", t_release=10.0)
+    there = _moved(frame, "r", station, 1.0, 11.0)
+    at.apply(there, _forecast(there))
+    later = _moved(frame, "r", station, 1.0, 11.1)
+    fc_later = _forecast(later)
+    assert at.apply(later, fc_later) is fc_later
 
 
 def test_a_fetch_is_over_once_the_hand_came_and_withdrew_then_the_next_one_counts() -> None:

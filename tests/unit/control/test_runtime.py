@@ -276,8 +276,8 @@ def test_headless_trial_with_the_oracle_forecast(stack: PlanningStack) -> None:
 
 def test_the_proactive_forecast_expects_the_fetch_of_each_placed_block(stack: PlanningStack) -> None:
     """From the robot's arrival at a drop station on, the proactive method's forecast has the person's hand
-    reach for the block placed there; the reactive method, the oracle and ``anticipate_fetch=False`` never
-    add it."""
+    reach for the block placed there; the reactive method and ``anticipate_fetch=False`` never add it, and
+    the oracle, whose forecast is exact over its horizon, adds only the part of the reach beyond it."""
     seen: list[tuple[str, float]] = []
 
     def observer(t: float, engine) -> None:
@@ -318,7 +318,22 @@ def test_the_proactive_forecast_expects_the_fetch_of_each_placed_block(stack: Pl
         engines: list = []
         args = {"settings": Settings(), "duration_s": 0.2, "seed": 5, "stack": stack}
         run_headless_trial(**{**args, **kw}, observer=lambda t, e, into=engines: into.append(e))
-        assert engines and engines[0].anticipation is None, kw
+        assert engines, kw
+        ant = engines[0].anticipation
+        if kw.get("forecast") == "oracle":
+            assert ant is not None and ant.exact_horizon
+        else:
+            assert ant is None, kw
+    engines = []
+    run_headless_trial(
+        settings=Settings(),
+        method="proactive",
+        duration_s=0.2,
+        seed=5,
+        stack=stack,
+        observer=lambda t, e: engines.append(e),
+    )
+    assert engines[0].anticipation is not None and not engines[0].anticipation.exact_horizon
 
 
 def test_simulate_cli_explains_a_misplaced_oracle() -> None:
