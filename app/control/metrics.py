@@ -20,7 +20,7 @@ EVENT_KINDS: tuple[str, ...] = (
     "task_completed",  # [station, index]
     "state_changed",  # [from, to]
     "online_replan",  # [t_switch, violation_t]
-    "stop_replan",  # [violation_t, reason]
+    "stop_replan",  # [violation_t, reason, scale (the path scale at the decision; 0: held still)]
     "deadline_miss",  # [elapsed_s, deadline_s]
     "plan_failed",  # [reason]
     "stale_stream",  # [age_s]

@@ -707,7 +707,8 @@ class Supervisor:
         self.counters.stop_replans += 1
         self._stopped_latch = True
         self._moved_since_stop = 0.0
-        self._emit(t, "stop_replan", {"violation_t": violation_t, "reason": reason})
+        # the path scale at the decision: 0 where the speed governor already held the robot still
+        self._emit(t, "stop_replan", {"violation_t": violation_t, "reason": reason, "scale": round(s0, 4)})
         self._set_state("collision_avoidance", t)
 
     def _plan_emergency(self, brake: _Brake, frame: HumanFrame, *, gen_after: int) -> None:

@@ -441,6 +441,7 @@ def test_imminent_violation_stops_and_takes_the_emergency_plan() -> None:
     assert c.emergency_plans == 1
     ev = next(p for _, k, p in h.events if k == "stop_replan")
     assert ev["reason"] == "predicted_violation" and ev["violation_t"] <= 1.0 + h.config.deadline_s
+    assert ev["scale"] == pytest.approx(1.0)  # under way at full speed (nobody near) when it stopped
     # braking starts at once and never speeds up until the robot is at rest
     speeds = [v for t, _, _, v in h.log if 1.01 <= t <= 1.5]
     k_rest = next(i for i, v in enumerate(speeds) if v < 1e-9)
@@ -459,8 +460,12 @@ def test_stop_distance_violation_stops_the_robot() -> None:
     assert h.sup.counters.stop_replans >= 1
     ev = [p for _, k, p in h.events if k == "stop_replan"]
     assert any(p["reason"] == "stop_distance" for p in ev)
-    t_stop = next(t for t, k, p in h.events if k == "stop_replan")
+    t_stop, stop = next((t, p) for t, k, p in h.events if k == "stop_replan")
     assert min(v for t, _, _, v in h.log if t_stop <= t <= t_stop + 0.2) < 1e-9  # braked to rest
+    # the event says how fast the robot went along its path when stopped (the scale of the last tick; here
+    # the governor had already slowed it to rest as the person came near)
+    scale_before = [s for t, _, s, _ in h.log if t < t_stop][-1]
+    assert stop["scale"] == pytest.approx(scale_before, abs=1e-4)
     assert _monitor_violations(h) == 0
 
 
