@@ -56,6 +56,9 @@ class SupervisorCounters:
     """Running totals of one trial."""
 
     stop_replans: int = 0
+    #: the stop & replans of a robot under way (path scale above 0 at the decision); the others came to a
+    #: robot the speed governor already held still
+    stop_replans_moving: int = 0
     online_replans: int = 0
     deadline_misses: int = 0
     emergency_plans: int = 0

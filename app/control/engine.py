@@ -892,6 +892,7 @@ class TrialEngine:
             avg_planning_time_s=float(times.mean()) if times.size else 0.0,
             p95_planning_time_s=float(np.percentile(times, 95)) if times.size else 0.0,
             stop_replans=c.stop_replans,
+            stop_replans_moving=c.stop_replans_moving,
             online_replans=c.online_replans,
             deadline_misses=c.deadline_misses,
             emergency_plans=c.emergency_plans,

@@ -70,6 +70,10 @@ class TrialMetrics:
     moved; ``intrusions`` counts the frames in which the person appeared or jumped (a protective stop each).
     ``min_separation_m`` is the separation as the supervisor saw it (tracked frames).
 
+    ``stop_replans_moving`` counts the stop & replans of a robot under way (its path scale above 0 at the
+    decision); the others came to a robot the speed governor already held still (a hand within the stop
+    distance of a part its plan was about to move): they stop nothing, their cost is the replan.
+
     ``budget_*_s`` are the trial's time budget (:data:`app.control.counters.TIME_BUDGET`: where its time went,
     the parts summing to ``duration_s``; ``budget_stopped_s`` counts the governor's holds at scale 0 as well,
     unlike ``time_stopped_s``, the supervisor's stopped state). ``arrivals`` counts the plans that reached
@@ -84,6 +88,7 @@ class TrialMetrics:
     avg_planning_time_s: float = 0.0
     p95_planning_time_s: float = 0.0
     stop_replans: int = 0
+    stop_replans_moving: int = 0
     online_replans: int = 0
     deadline_misses: int = 0
     emergency_plans: int = 0

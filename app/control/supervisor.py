@@ -705,6 +705,8 @@ class Supervisor:
         self._pending = None
         self._generation += 1
         self.counters.stop_replans += 1
+        if s0 > 1e-3:
+            self.counters.stop_replans_moving += 1
         self._stopped_latch = True
         self._moved_since_stop = 0.0
         # the path scale at the decision: 0 where the speed governor already held the robot still

@@ -164,6 +164,8 @@ class TrialMetricsRow(Base):
     avg_planning_time_s: Mapped[float] = mapped_column(Float)
     p95_planning_time_s: Mapped[float] = mapped_column(Float)
     stop_replans: Mapped[int] = mapped_column(Integer)
+    # revision 0006; NULL: a trial stored before it (not counted apart)
+    stop_replans_moving: Mapped[int | None] = mapped_column(Integer)
     online_replans: Mapped[int] = mapped_column(Integer)
     deadline_misses: Mapped[int] = mapped_column(Integer)
     emergency_plans: Mapped[int] = mapped_column(Integer)
@@ -210,6 +212,7 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "avg_planning_time_s",
     "p95_planning_time_s",
     "stop_replans",
+    "stop_replans_moving",
     "online_replans",
     "deadline_misses",
     "emergency_plans",

@@ -108,6 +108,7 @@ class TrialMetricsRead(_Out):
     avg_planning_time_s: float
     p95_planning_time_s: float
     stop_replans: int
+    stop_replans_moving: int | None = None
     online_replans: int
     deadline_misses: int
     emergency_plans: int

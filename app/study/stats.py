@@ -44,6 +44,7 @@ REPORT_METRICS: tuple[str, ...] = (
     "deadline_misses",
     "time_stopped_s",
     "mean_speed_scale",
+    "stop_replans_moving",
     "violations",
     "contacts",
 )
@@ -56,6 +57,7 @@ METRIC_LABELS: dict[str, str] = {
     "deadline_misses": "Deadline misses",
     "time_stopped_s": "Time stopped (s)",
     "mean_speed_scale": "Mean speed scale under way",
+    "stop_replans_moving": "Stop & replans under way",
     "violations": "Violations (ground truth)",
     "contacts": "Contacts (ground truth)",
 }

@@ -110,6 +110,7 @@ def test_sessions_and_trial_lifecycle(repo: StudyRepository) -> None:
             budget_moving_scaled_s=41.5,
             budget_stopped_s=18.5,
             budget_waiting_for_person_s=7.25,
+            stop_replans_moving=1,
         ),
         events=[TrialEvent(t=1.0, kind="task_completed", payload={"station": "d1", "index": 0})],
     )
@@ -119,7 +120,7 @@ def test_sessions_and_trial_lifecycle(repo: StudyRepository) -> None:
     assert done.metrics.stop_replans_per_task == 0.5 and done.metrics.online_replans_per_task == 1.5
     # the time budget is stored; a trial without arrivals has no arrival error (NULL, not 0)
     assert (done.metrics.budget_moving_scaled_s, done.metrics.budget_stopped_s) == (41.5, 18.5)
-    assert done.metrics.budget_waiting_for_person_s == 7.25
+    assert done.metrics.budget_waiting_for_person_s == 7.25 and done.metrics.stop_replans_moving == 1
     assert done.metrics.arrivals == 0 and done.metrics.arrival_error_median_abs_s is None
     with pytest.raises(TrialStateError):
         repo.finish_trial(t0.id, status="aborted")

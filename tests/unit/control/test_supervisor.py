@@ -442,6 +442,7 @@ def test_imminent_violation_stops_and_takes_the_emergency_plan() -> None:
     ev = next(p for _, k, p in h.events if k == "stop_replan")
     assert ev["reason"] == "predicted_violation" and ev["violation_t"] <= 1.0 + h.config.deadline_s
     assert ev["scale"] == pytest.approx(1.0)  # under way at full speed (nobody near) when it stopped
+    assert c.stop_replans_moving == 1
     # braking starts at once and never speeds up until the robot is at rest
     speeds = [v for t, _, _, v in h.log if 1.01 <= t <= 1.5]
     k_rest = next(i for i, v in enumerate(speeds) if v < 1e-9)
@@ -466,6 +467,8 @@ def test_stop_distance_violation_stops_the_robot() -> None:
     # the governor had already slowed it to rest as the person came near)
     scale_before = [s for t, _, s, _ in h.log if t < t_stop][-1]
     assert stop["scale"] == pytest.approx(scale_before, abs=1e-4)
+    moving = sum(1 for _, k, p in h.events if k == "stop_replan" and p["scale"] > 1e-3)
+    assert h.sup.counters.stop_replans_moving == moving < h.sup.counters.stop_replans
     assert _monitor_violations(h) == 0
 
 

@@ -16,8 +16,8 @@ from app.study.models import METRIC_COLUMNS, Base, TrialMetricsRow, UTCDateTime
 HEAD = "0006"
 #: The ground-truth monitor's columns (revision 0004).
 _SAFETY_0004 = ("contacts", "violation_time_s", "violations_iso", "intrusions", "min_separation_moving_m")
-#: The time budget's wait for the person, counted apart (revision 0006).
-_PERSON_0006 = ("budget_waiting_for_person_s",)
+#: The time budget's wait for the person and the stops of a moving robot, counted apart (revision 0006).
+_PERSON_0006 = ("budget_waiting_for_person_s", "stop_replans_moving")
 #: The time budget's and the arrivals' columns (revision 0005).
 _BUDGET_0005 = tuple(
     c for c in METRIC_COLUMNS if c.startswith(("budget_", "arrival", "median_plan")) and c not in _PERSON_0006
@@ -103,7 +103,7 @@ def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
             budget = conn.execute(text(f"SELECT {', '.join(_BUDGET_0005)} FROM trial_metrics"))
             assert [tuple(r) for r in budget] == [(None,) * 12]  # no time budget kept then: unknown, not 0
             person = conn.execute(text(f"SELECT {', '.join(_PERSON_0006)} FROM trial_metrics"))
-            assert [tuple(r) for r in person] == [(None,)]
+            assert [tuple(r) for r in person] == [(None, None)]
             keys = conn.execute(text("SELECT id, trial_key, setting_label FROM trials"))
             assert [tuple(r) for r in keys] == [(1, None, None)]
     finally:
