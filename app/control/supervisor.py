@@ -14,8 +14,11 @@ For every new frame at ``T_i`` the :class:`Supervisor`
 3. decides: *Nominal Execution* (continue; speed scaled by separation), or *Collision Avoidance*: a violation
    predicted after ``T_i + D`` schedules a switch to the backup plan at ``T_i + D`` (an *online replan*); a
    violation before ``T_i + D`` or a violated stop distance stops the robot and switches to the *emergency
-   plan* (the person held at the current pose, horizon ``F + D``; a *stop & replan*). A backup that misses
-   its deadline, or a planner that raises, takes the emergency path too.
+   plan* (the person held at the current pose, horizon ``F + D``; a *stop & replan*). A planner that raises
+   takes the emergency path too. A backup that misses its deadline produces no plan (the paper's rule), as one
+   that finds no way produces none: the plan in execution, whose violation is still later than ``T_i + D``,
+   is left to the next frames' backups, and the stop comes when that violation is due (a planner too slow for
+   ``D`` thus costs the online replans it cannot deliver, not a stop of a robot that need not stop yet).
 
 A backup plan of frame ``i`` is used by nothing but the switch that frame ``i``'s decision schedules (later
 frames branch from the plan in execution at their own time, and a switch invalidates the backups that
@@ -905,9 +908,10 @@ class Supervisor:
             else:
                 self.counters.plan_failures += 1
                 self._emit(t, "plan_failed", {"reason": f"backup {out.status}: {out.reason}"})
-            # a missed deadline or a planner fault takes the emergency path; a search that found no path
-            # leaves the plan in execution (its violation is still ahead) to the next frames' backups
-            if moving and pend.reason == "online_replan" and out.status in ("deadline_miss", "error"):
+            # a planner fault takes the emergency path; a missed deadline produces no plan, as a search that
+            # found no path produces none: both leave the plan in execution (its violation is still later than
+            # the switch's T_i + D) to the next frames' backups, and its violation stops it when it is due
+            if moving and pend.reason == "online_replan" and out.status == "error":
                 self._emergency_path(t, reason=f"backup_{out.status}", violation_t=pend.violation_t)
             return
         if pend.checked_seq != self._seq and self._forecast is not None:

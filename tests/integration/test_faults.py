@@ -138,8 +138,17 @@ def test_planner_exception_takes_the_emergency_path(stack: PlanningStack) -> Non
     assert res.status == "completed"  # the loop survived the exceptions
 
 
-def test_missed_deadline_takes_the_emergency_path(stack: PlanningStack) -> None:
+def test_missed_deadlines_leave_the_plan_in_execution(stack: PlanningStack) -> None:
+    """No backup is produced in time, so none is switched to: the robot goes on along its plan, whose
+    phantom violation (a person forecast on the plan half a second ahead of the robot, wherever it is) never
+    comes within D; no miss stops it, and the ground truth sees no violation."""
     box: dict[str, TrialEngine] = {}
+    scales: list[tuple[float, float]] = []
+
+    def observer(t: float, e: TrialEngine) -> None:
+        box.setdefault("engine", e)
+        scales.append((t, e.supervisor.status().scale))
+
     # 150 ms per plan: starts from rest (deadline 3 D) succeed, backups under D = 100 ms do not
     res = _run(
         stack,
@@ -147,15 +156,14 @@ def test_missed_deadline_takes_the_emergency_path(stack: PlanningStack) -> None:
         method="proactive",
         fixed_compute_s=0.15,
         predictor=_phantom_predictor(box),
-        observer=lambda t, e: box.setdefault("engine", e),
+        observer=observer,
     )
     misses = [ev for ev in res.events if ev.kind == "deadline_miss"]
-    stops = [
-        ev for ev in res.events if ev.kind == "stop_replan" and ev.payload["reason"] == "backup_deadline_miss"
-    ]
-    assert misses and stops
-    assert res.metrics.deadline_misses == len(misses)
+    assert len(misses) >= 3 and res.metrics.deadline_misses == len(misses)
     assert res.metrics.online_replans == 0
+    assert not [ev for ev in res.events if ev.kind == "stop_replan"]
+    assert any(s > 1e-3 for t, s in scales if t > misses[-1].t)  # still under way after the last miss
+    assert res.metrics.violations == 0 and res.metrics.contacts == 0
 
 
 class _LosingRobot(SimRobot):

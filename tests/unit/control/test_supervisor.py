@@ -572,17 +572,26 @@ def test_a_robot_at_rest_waits_for_the_person_apart_from_waiting_for_a_plan(bloc
     assert budget["moving_full"] + budget["moving_scaled"] > 0
 
 
-def test_missed_deadline_takes_the_emergency_path() -> None:
+def test_a_missed_deadline_leaves_the_plan_until_its_violation_is_due() -> None:
+    """Every backup misses D, so none is produced (the paper's rule): the robot goes on along its plan, whose
+    predicted violation is still beyond T_i + D, and stops (with the emergency plan) once that violation
+    comes within D, not at the first miss; the separation holds throughout."""
     h = Harness(WALK_IN, forecast_fn=perfect_forecast(WALK_IN, 0.5))
     h.sup.set_goal("B")
     h.run(0.3)  # started (the start backup met its deadline)
     h.jobs.fixed_compute_s = 0.15  # slower than D = 0.1 from now on
-    h.run(2.0)
+    h.run(2.5)
     c = h.sup.counters
-    assert c.deadline_misses >= 1
+    misses = [t for t, k, _ in h.events if k == "deadline_miss"]
+    stops = [(t, p) for t, k, p in h.events if k == "stop_replan"]
+    assert len(misses) >= 3 and c.deadline_misses == len(misses)
     assert c.online_replans == 0
-    assert c.stop_replans >= 1
-    assert "deadline_miss" in h.kinds()
+    assert len(stops) == 1
+    t_stop, stop = stops[0]
+    assert stop["reason"] == "predicted_violation" and t_stop > misses[2]
+    assert stop["violation_t"] <= t_stop + h.config.deadline_s  # stopped once its violation was due
+    assert stop["scale"] > 0 and c.stop_replans_moving == 1  # under way until then
+    assert c.emergency_plans >= 1
     assert _monitor_violations(h) == 0
 
 
