@@ -303,6 +303,7 @@ class TrialResult:
             "stop_replans_per_task": m.stop_replans_per_task,
             "online_replans_per_task": m.online_replans_per_task,
             "stop_replans": m.stop_replans,
+            "stop_replans_moving": m.stop_replans_moving,
             "online_replans": m.online_replans,
             "deadline_misses": m.deadline_misses,
             "plans_computed": m.plans_computed,

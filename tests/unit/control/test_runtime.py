@@ -508,6 +508,9 @@ def test_the_time_budget_sums_to_the_trial_and_arrivals_are_compared_with_the_pl
     assert abs(arrivals["bias"]) < 0.2 * arrivals["median_plan_s"]
     summary = res.summary()
     assert summary["time_budget_s"] == budget and summary["arrival_error_s"] == arrivals
+    # and the stop & replans, with those of a robot under way apart
+    assert summary["stop_replans"] == res.metrics.stop_replans
+    assert summary["stop_replans_moving"] == res.metrics.stop_replans_moving <= res.metrics.stop_replans
     # the trial's metrics (what the study database stores) carry both
     m = res.metrics
     for k in TIME_BUDGET:
