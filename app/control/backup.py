@@ -8,7 +8,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 import numpy as np
 
@@ -21,6 +21,9 @@ from app.control.trajectory_views import (
     TrajectoryLike,
 )
 from app.prediction.forecast import HumanForecast
+
+if TYPE_CHECKING:
+    from app.planning.search.config import Blocked
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +87,7 @@ class PlanOutcome:
     plan: Any = None
     reason: str = ""
     arrival_s: float | None = None
-    blocked: str | None = None
+    blocked: Blocked | None = None
 
 
 class PlanJobs(Protocol):

@@ -239,6 +239,10 @@ class _Brake:
 
 EventSink = Callable[[float, str, dict[str, Any]], None]
 
+#: A path scale above this counts as under way (the time budget's moving parts, the stop & replans of a
+#: moving robot); at or below it the robot is held still.
+_UNDER_WAY_SCALE = 1e-3
+
 
 class Supervisor:
     """The replan state machine of one robot. See the module docstring.
@@ -323,8 +327,8 @@ class Supervisor:
         self._stopped_latch = False
         self._moved_since_stop = 0.0
         self._retry_after = -math.inf
-        # where the person as forecast blocked the last plan from rest ("start", "goal"; None: they did not)
-        self._blocked: str | None = None
+        # the last plan from rest failed because the person as forecast was in the way (PlanOutcome.blocked)
+        self._person_in_way = False
         self._state: SupervisorState = "idle"
         self._recent_decide_s: deque[float] = deque(maxlen=256)
 
@@ -338,7 +342,7 @@ class Supervisor:
             self._goal = goal
             self._not_before = float(not_before)
             self._arrived = None
-            self._blocked = None
+            self._person_in_way = False
 
     @property
     def goal(self) -> Goal | None:
@@ -708,7 +712,7 @@ class Supervisor:
         self._pending = None
         self._generation += 1
         self.counters.stop_replans += 1
-        if s0 > 1e-3:
+        if s0 > _UNDER_WAY_SCALE:
             self.counters.stop_replans_moving += 1
         self._stopped_latch = True
         self._moved_since_stop = 0.0
@@ -898,7 +902,7 @@ class Supervisor:
         moving = active.kind != "hold" and active.complete
         if out.status != "ok" and pend.from_rest:
             self._retry_after = t + self.config.retry_after_s
-            self._blocked = out.blocked if out.status == "failed" else None
+            self._person_in_way = out.blocked is not None  # only a failed search says where it was blocked
         if out.status != "ok":
             if out.status == "deadline_miss":
                 self.counters.deadline_misses += 1
@@ -921,7 +925,7 @@ class Supervisor:
                 self.counters.plan_failures += 1
                 if self.config.clear_start and pend.from_rest:
                     self._retry_after = t + self.config.retry_after_s
-                    self._blocked = None
+                    self._person_in_way = False
                 if moving and pend.reason == "online_replan":
                     self._emergency_path(t, reason="backup_invalid", violation_t=t_v)
                 return
@@ -929,7 +933,7 @@ class Supervisor:
         tau_new = out.traj.t_start + max(self._tau - pend.tau_branch, 0.0)
         pid = self._new_plan_id()
         self._active = _Active(out.traj, out.profile, pid, "plan", True, self._goal, self._seq, out.arrival_s)
-        self._blocked = None
+        self._person_in_way = False
         self._tau = tau_new
         self._generation += 1
         if pend.reason == "online_replan":
@@ -1003,11 +1007,12 @@ class Supervisor:
 
     def _account(self, dt: float) -> None:
         st = self._effective_state()
-        if st == "nominal" and self._active.kind != "hold" and self._s <= 1e-3 and self._goal is not None:
+        held = self._s <= _UNDER_WAY_SCALE
+        if st == "nominal" and self._active.kind != "hold" and held and self._goal is not None:
             st = "stopped"  # held at zero speed by the governor
         c = self.counters
         c.state_time_s[st] += dt
-        if self._s > 1e-3 and self._active.under_way(self._tau):
+        if self._s > _UNDER_WAY_SCALE and self._active.under_way(self._tau):
             c.moving_time_s += dt
             c.scale_time_s += self._s * dt
         part = self._budget_part()
@@ -1020,9 +1025,9 @@ class Supervisor:
         if self._estop or self._fault or self._stale:
             return "stopped"
         if self._brake is not None:
-            return "braking" if self._s > 1e-3 else "stopped"
+            return "braking" if self._s > _UNDER_WAY_SCALE else "stopped"
         if active.kind != "hold" and active.under_way(self._tau):
-            if self._s <= 1e-3:
+            if self._s <= _UNDER_WAY_SCALE:
                 return "stopped"  # held at zero speed by the governor
             if float(active.profile.speed_at(self._tau).max()) <= 1e-6:
                 return "planned_wait"
@@ -1033,7 +1038,7 @@ class Supervisor:
             return "gripper"
         if self._state == "stopped":
             return "stopped"
-        return "waiting_for_plan" if self._blocked is None else "waiting_for_person"
+        return "waiting_for_person" if self._person_in_way else "waiting_for_plan"
 
     def _emit(self, t: float, kind: str, payload: dict[str, Any]) -> None:
         if self.on_event is not None:
