@@ -19,6 +19,7 @@ from pathlib import Path
 COLUMNS = (
     "completed_tasks",
     "stop_replans",
+    "stop_replans_moving",
     "violations",
     "contacts",
     "violation_time_s",
