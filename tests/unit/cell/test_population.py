@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -112,3 +113,25 @@ def test_study_takes_a_population_file_and_refuses_a_wrong_path(tmp_path: Path) 
         assert all(t.settings["population"] == str(DEFAULT_POPULATION_PATH) for t in trials)
     finally:
         repo.close()
+
+
+def test_the_instructed_population_reaches_in_only_to_fetch() -> None:
+    """``examples/population_instructed.toml``: the paper's participants, advised to minimise movements in
+    front of the robot, make no spontaneous reaches across the table; everything else is drawn as in the
+    shipped population, participant by participant."""
+    from app.cell.operator_sim import SimulatedOperator
+    from app.config import load_workcell
+
+    path = Path(__file__).resolve().parents[3] / "examples/population_instructed.toml"
+    instructed = OperatorParams.population(path)
+    for seed in range(20):
+        p, q = OperatorParams.draw(seed, instructed), OperatorParams.draw(seed)
+        assert p.reach_rate_hz == 0.0 and q.reach_rate_hz > 0.0
+        assert dataclasses.replace(p, reach_rate_hz=q.reach_rate_hz) == q
+    cell = load_workcell()
+    kinds = {}
+    for params in (OperatorParams.draw(4, instructed), OperatorParams.draw(4)):
+        op = SimulatedOperator(cell, params, seed=4)
+        op.frame_at(120.0)
+        kinds[params.reach_rate_hz == 0.0] = {a.kind for a in op.actions}
+    assert "reach_across" not in kinds[True] and "reach_across" in kinds[False]
