@@ -324,6 +324,13 @@ class Settings(BaseSettings):
         "separation) instead of its whole speed; false: every part judged as if it moved straight at "
         "the person",
     )
+    station_choice: Literal["sequence", "forecast"] = Field(
+        "sequence",
+        description="which drop station of the round the robot serves next: 'sequence', the round's seeded "
+        "order; 'forecast', chosen as the robot leaves the conveyor with the block, the one farthest from "
+        "the person in the method's forecast (app.control.task; tuning seeds 1000-1009 x 300 s, example "
+        "cell: 47 and 49 tasks for proactive and reactive either way)",
+    )
     fetch_reaction_s: float = Field(
         0.6,
         ge=0.0,

@@ -640,7 +640,13 @@ class TrialEngine:
             pick_dwell_s=self.options.pick_dwell_s,
             place_dwell_s=self.options.place_dwell_s,
             goals=stack.goal_names(),
+            chooser=self._choose_station if settings.station_choice == "forecast" else None,
         )
+        self._station_poses = {
+            st.name: np.asarray(st.xyz, dtype=np.float64)
+            + np.array([[0.0, 0.0, 0.0], [0.0, 0.0, stack.cell.approach_height_m]])
+            for st in stack.cell.drop_stations
+        }
         self.anticipation: FetchAnticipation | None = None
         if method == "proactive" and settings.anticipate_fetch:
             self.anticipation = FetchAnticipation(
@@ -683,6 +689,25 @@ class TrialEngine:
         self._emit_abs(t0, "trial_started", {"method": method, "seed": self.seed})
         self.supervisor.begin(t0)
         self.supervisor.set_goal(self.task.current.goal, not_before=t0)
+
+    def _choose_station(self, allowed: list[str]) -> str:
+        """The drop station for the block in the gripper (``Settings.station_choice="forecast"``): of the
+        stations the round allows, the one farthest from the person over the method's latest forecast (the
+        proactive one, or the reactive method's held pose): the least, over the forecast's steps, of the
+        distance from the station and its approach pose to the nearest joint less the step's margin. Ties
+        (and no forecast yet) keep the round's order."""
+        forecast = self.last_forecast
+        if forecast is None:
+            return allowed[0]
+        joints = np.asarray(forecast.joints, dtype=np.float64)  # (K, J, 3)
+        margins = np.asarray(forecast.margins, dtype=np.float64)  # (K,)
+
+        def clearance(name: str) -> float:
+            poses = self._station_poses[name]  # (2, 3): the station and its approach pose
+            d = np.linalg.norm(joints[:, :, None, :] - poses[None, None], axis=-1)  # (K, J, 2)
+            return float((d.min(axis=(1, 2)) - margins).min())
+
+        return max(allowed, key=clearance)
 
     # ---------------------------------------------------------------------------------------------------
     def _emit_abs(self, t: float, kind: str, payload: dict[str, Any]) -> None:

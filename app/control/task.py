@@ -1,5 +1,5 @@
-"""The task executive: pick a block at the conveyor, place it at the drop station the participant's assembly
-needs next, repeat.
+"""The task executive: pick a block at the conveyor, place it at the drop station that comes next (the
+round's order, or the one the forecast leaves freest), repeat.
 
 A task is a sequence of *legs*, each a motion to a named task pose of the roadmap followed by an action:
 
@@ -7,14 +7,18 @@ A task is a sequence of *legs*, each a motion to a named task pose of the roadma
 
 where ``X`` is the drop station of this block and ``<name>_approach`` is the pose ``approach_height_m`` above
 a station (the robot descends and rises vertically). A task counts as completed when the block is released
-at ``X`` (the end of the release dwell). The order of drop stations is the participant's assembly sequence:
-seeded, reproducible, drawn in rounds that visit the stations in a shuffled order without serving the same
-station twice in a row.
+at ``X`` (the end of the release dwell). The drop stations are served in rounds that visit every station
+once (the participant's assembly gets its blocks evenly), never the same station twice in a row. Which
+station of the round comes next is either the round's seeded, shuffled order (the default), or chosen when
+the robot leaves the conveyor with the block, by a ``chooser`` that sees the stations the round still allows
+(:meth:`AssemblySequence.choose`): the engine lets the method's forecast choose the one farthest from where
+the person will be (``Settings.station_choice``). The paper's participants received their blocks "without
+specific instructions", so the order within a round is the robot's to choose.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -82,6 +86,29 @@ class AssemblySequence:
         self._last = self._queue.pop(0)
         return self._last
 
+    def allowed(self) -> list[str]:
+        """The stations the next drop may serve: those the current round has not served yet (a new round
+        when it is over), in the round's seeded order, without the station just served where another is
+        left."""
+        if not self._queue:
+            self._queue = [self._stations[i] for i in self._rng.permutation(len(self._stations))]
+        out = [s for s in self._queue if s != self._last]
+        return out or list(self._queue)
+
+    def choose(self, chooser: Callable[[list[str]], str]) -> str:
+        """The next drop station, picked by ``chooser`` from :meth:`allowed` (and taken from the round).
+
+        Raises:
+            ValueError: the chooser picked a station that is not allowed.
+        """
+        allowed = self.allowed()
+        pick = chooser(list(allowed))
+        if pick not in allowed:
+            raise ValueError(f"the station chooser picked {pick!r}, not one of {allowed}")
+        self._queue.remove(pick)
+        self._last = pick
+        return pick
+
     def peek(self, n: int) -> list[str]:
         """The next ``n`` stations without consuming them (draws rounds as needed)."""
         state = (self._rng.bit_generator.state, list(self._queue), self._last)
@@ -101,6 +128,8 @@ class TaskExecutive:
         use_approach: Go through the approach poses above the stations (vertical descent and rise).
         goals: The goal names the roadmap knows; approach legs are used only for stations whose approach
             pose is among them (None: assume all exist).
+        chooser: Picks each block's drop station from those the round allows, when the robot leaves the
+            conveyor with it (None: the round's seeded order).
     """
 
     def __init__(
@@ -112,6 +141,7 @@ class TaskExecutive:
         place_dwell_s: float = 0.4,
         use_approach: bool = True,
         goals: Sequence[str] | None = None,
+        chooser: Callable[[list[str]], str] | None = None,
     ) -> None:
         if pick_dwell_s < 0 or place_dwell_s < 0:
             raise ValueError("dwell times must be >= 0")
@@ -122,9 +152,11 @@ class TaskExecutive:
         self.place_dwell_s = float(place_dwell_s)
         self._known = None if goals is None else set(goals)
         self.use_approach = use_approach
+        self.chooser = chooser
         self.completed = 0
         self._legs: list[TaskLeg] = []
         self._current: TaskLeg | None = None
+        self._carrying = False  # a block in the gripper: the next legs take it to its drop station
 
     def _approach(self, station: str) -> str | None:
         if not self.use_approach:
@@ -134,15 +166,19 @@ class TaskExecutive:
             return None
         return name
 
-    def _task_legs(self, drop: str) -> list[TaskLeg]:
+    def _pickup_legs(self) -> list[TaskLeg]:
         legs: list[TaskLeg] = []
         pa = self._approach(self.pickup)
-        da = self._approach(drop)
         if pa is not None:
             legs.append(TaskLeg(pa, "move", self.pickup, 0.0))
         legs.append(TaskLeg(self.pickup, "pick", self.pickup, self.pick_dwell_s))
         if pa is not None:
             legs.append(TaskLeg(pa, "move", self.pickup, 0.0))
+        return legs
+
+    def _drop_legs(self, drop: str) -> list[TaskLeg]:
+        legs: list[TaskLeg] = []
+        da = self._approach(drop)
         if da is not None:
             legs.append(TaskLeg(da, "move", drop, 0.0))
         legs.append(TaskLeg(drop, "place", drop, self.place_dwell_s))
@@ -159,11 +195,17 @@ class TaskExecutive:
 
     def _pop(self) -> TaskLeg:
         if not self._legs:
-            self._legs = self._task_legs(self.sequence.next())
+            if not self._carrying:
+                self._legs = self._pickup_legs()
+            elif self.chooser is None:
+                self._legs = self._drop_legs(self.sequence.next())
+            else:
+                self._legs = self._drop_legs(self.sequence.choose(self.chooser))
         return self._legs.pop(0)
 
     def upcoming_drops(self, n: int) -> list[str]:
-        """The current task's drop station (if one is in progress) followed by the next ones."""
+        """The current task's drop station (if one is chosen) followed by the next ones (with a chooser,
+        the round's order: the chooser may pick otherwise)."""
         current = [leg.station for leg in self._legs if leg.action == "place"]
         if self._current is not None and self._current.action == "place":
             current = [self._current.station, *current]
@@ -173,7 +215,10 @@ class TaskExecutive:
         """The robot reached the current leg's goal at time ``t`` (s): do its action, move on."""
         leg = self.current
         placed = None
+        if leg.action == "pick":
+            self._carrying = True
         if leg.action == "place":
+            self._carrying = False
             self.completed += 1
             placed = leg.station
         self._current = self._pop()

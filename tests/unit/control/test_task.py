@@ -61,3 +61,51 @@ def test_without_approach_poses_the_legs_are_direct() -> None:
     assert [leg.action for leg in legs] == ["pick", "place"]
     with pytest.raises(ValueError, match="dwell"):
         TaskExecutive(cell, seed=0, pick_dwell_s=-1.0)
+
+
+def test_a_chooser_picks_each_drop_within_the_round_when_the_block_is_picked() -> None:
+    """With a chooser, every round still serves every station once and never one twice in a row; the
+    chooser sees only the stations the round allows, is asked when the robot leaves the conveyor with the
+    block, and a pick outside them is refused."""
+    cell = load_workcell()
+    offered: list[list[str]] = []
+
+    def last_allowed(allowed: list[str]) -> str:
+        offered.append(allowed)
+        return allowed[-1]
+
+    ex = TaskExecutive(cell, seed=5, chooser=last_allowed)
+    placed = []
+    for _ in range(6 * 12):
+        leg = ex.current
+        if leg.goal == "pickup":
+            n = len(offered)
+            ex.arrived(0.0)
+            assert len(offered) == n  # not yet: the robot is still at the conveyor
+            continue
+        done = ex.arrived(0.0)
+        if done.placed:
+            placed.append(done.placed)
+    assert len(placed) == 12 and len(offered) == 12
+    for k in range(0, 12, 4):
+        assert sorted(placed[k : k + 4]) == sorted(s.name for s in cell.drop_stations)
+    assert all(x != y for x, y in itertools.pairwise(placed))
+    assert all(p == o[-1] for p, o in zip(placed, offered, strict=True))
+    assert len(offered[0]) == 4 and len(offered[1]) == 3  # the round shrinks as it is served
+    assert placed[3] not in offered[4]  # a new round never starts with the station just served
+
+    seq = AssemblySequence(["A", "B", "C"], seed=0)
+    with pytest.raises(ValueError, match="not one of"):
+        seq.choose(lambda allowed: "Z")
+
+
+def test_without_a_chooser_the_drops_follow_the_seeded_sequence() -> None:
+    cell = load_workcell()
+    ex = TaskExecutive(cell, seed=9)
+    expected = AssemblySequence([s.name for s in cell.drop_stations], seed=9)
+    placed = []
+    while len(placed) < 8:
+        done = ex.arrived(0.0)
+        if done.placed:
+            placed.append(done.placed)
+    assert placed == [expected.next() for _ in range(8)]
