@@ -80,9 +80,12 @@ def quat_z_to(direction: np.ndarray) -> np.ndarray:
     ok = n > 1e-12
     u[ok] = d[ok] / n[ok, None]
     u[~ok] = (0.0, 0.0, 1.0)
-    # q = (1 + z.u, z x u), normalised; z x u = (-u_y, u_x, 0).
-    q = np.stack([1.0 + u[:, 2], -u[:, 1], u[:, 0], np.zeros(len(u))], axis=1)
-    opposite = q[:, 0] < 1e-9  # u == -z: rotate by pi about x
+    # q = (1 + z.u, z x u), normalised; z x u = (-u_y, u_x, 0). Near -z, 1 + u_z cancels: it is computed as
+    # (u_x^2 + u_y^2) / (1 - u_z) there, so that a direction a hair off -z keeps its own axis.
+    s2 = u[:, 0] ** 2 + u[:, 1] ** 2
+    w = np.where(u[:, 2] >= 0.0, 1.0 + u[:, 2], s2 / (1.0 - np.minimum(u[:, 2], 0.0)))
+    q = np.stack([w, -u[:, 1], u[:, 0], np.zeros(len(u))], axis=1)
+    opposite = (s2 == 0.0) & (u[:, 2] < 0.0)  # u == -z: rotate by pi about x
     q[opposite] = (0.0, 1.0, 0.0, 0.0)
     return q / np.linalg.norm(q, axis=1, keepdims=True)
 
