@@ -78,13 +78,8 @@ class AssemblySequence:
         self._last: str | None = None
 
     def next(self) -> str:
-        if not self._queue:
-            order = [self._stations[i] for i in self._rng.permutation(len(self._stations))]
-            if len(order) > 1 and order[0] == self._last:
-                order[0], order[1] = order[1], order[0]
-            self._queue = order
-        self._last = self._queue.pop(0)
-        return self._last
+        """The next drop station in the round's seeded order."""
+        return self.choose(_first)
 
     def allowed(self) -> list[str]:
         """The stations the next drop may serve: those the current round has not served yet (a new round
@@ -115,6 +110,10 @@ class AssemblySequence:
         out = [self.next() for _ in range(n)]
         self._rng.bit_generator.state, self._queue, self._last = state[0], state[1], state[2]
         return out
+
+
+def _first(allowed: list[str]) -> str:
+    return allowed[0]
 
 
 class TaskExecutive:
