@@ -642,15 +642,13 @@ class TrialEngine:
             goals=stack.goal_names(),
             chooser=self._choose_station if settings.station_choice == "forecast" else None,
         )
-        self._station_poses = {
-            st.name: np.asarray(st.xyz, dtype=np.float64)
-            + np.array([[0.0, 0.0, 0.0], [0.0, 0.0, stack.cell.approach_height_m]])
-            for st in stack.cell.drop_stations
-        }
+        # where the robot releases each block (world, m), and its approach pose above it
+        self._stations = {st.name: np.asarray(st.xyz, dtype=np.float64) for st in stack.cell.drop_stations}
+        self._approach_up = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, stack.cell.approach_height_m]])
         self.anticipation: FetchAnticipation | None = None
         if method == "proactive" and settings.anticipate_fetch:
             self.anticipation = FetchAnticipation(
-                {st.name: np.asarray(st.xyz, dtype=np.float64) for st in stack.cell.drop_stations},
+                self._stations,
                 FetchAnticipationParams(reaction_s=settings.fetch_reaction_s),
                 exact_horizon=bool(getattr(predictor, "exact_within_horizon", False)),
             )
@@ -703,7 +701,7 @@ class TrialEngine:
         margins = np.asarray(forecast.margins, dtype=np.float64)  # (K,)
 
         def clearance(name: str) -> float:
-            poses = self._station_poses[name]  # (2, 3): the station and its approach pose
+            poses = self._stations[name] + self._approach_up  # (2, 3): the station and its approach pose
             d = np.linalg.norm(joints[:, :, None, :] - poses[None, None], axis=-1)  # (K, J, 2)
             return float((d.min(axis=(1, 2)) - margins).min())
 

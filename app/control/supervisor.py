@@ -1012,7 +1012,7 @@ class Supervisor:
             st = "stopped"  # held at zero speed by the governor
         c = self.counters
         c.state_time_s[st] += dt
-        if self._s > _UNDER_WAY_SCALE and self._active.under_way(self._tau):
+        if not held and self._active.under_way(self._tau):
             c.moving_time_s += dt
             c.scale_time_s += self._s * dt
         part = self._budget_part()
