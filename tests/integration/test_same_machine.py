@@ -22,7 +22,8 @@ from app.prediction.forecast import HumanForecast
 EXAMPLE_CELL = Path(__file__).resolve().parents[2] / "examples" / "workcell_stations_moved.toml"
 
 
-def _engine(method: str) -> Any:
+def engine_of(method: str, settings: Settings | None = None) -> Any:
+    """The engine of a 1-s headless trial of ``method`` (default settings unless given)."""
     seen: list[Any] = []
 
     def observe(t: float, engine: Any) -> None:
@@ -30,13 +31,18 @@ def _engine(method: str) -> Any:
             seen.append(engine)
 
     run_headless_trial(
-        settings=Settings(), method=method, duration_s=1.0, seed=11, observer=observe, fixed_compute_s=0.01
+        settings=settings or Settings(),
+        method=method,
+        duration_s=1.0,
+        seed=11,
+        observer=observe,
+        fixed_compute_s=0.01,
     )
     return seen[0]
 
 
 def test_proactive_and_reactive_differ_only_in_the_forecast() -> None:
-    pro, rea = _engine("proactive"), _engine("reactive")
+    pro, rea = engine_of("proactive"), engine_of("reactive")
     # the supervisor's configuration: equal but for the method's name
     assert dataclasses.replace(pro.config, method="reactive") == rea.config
     # one planner (the same object), the same governor, law, separation model and SSM-aware timing

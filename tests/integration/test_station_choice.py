@@ -7,27 +7,13 @@ from typing import Any
 import numpy as np
 
 from app.config import Settings
-from app.control.headless import run_headless_trial
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import HumanFrame
+from tests.integration.test_same_machine import engine_of
 
 
 def _engine(method: str, choice: str) -> Any:
-    seen: list[Any] = []
-
-    def observe(t: float, engine: Any) -> None:
-        if not seen:
-            seen.append(engine)
-
-    run_headless_trial(
-        settings=Settings(station_choice=choice),
-        method=method,
-        duration_s=1.0,
-        seed=11,
-        observer=observe,
-        fixed_compute_s=0.01,
-    )
-    return seen[0]
+    return engine_of(method, Settings(station_choice=choice))
 
 
 def test_both_methods_choose_with_their_own_forecast_and_only_when_asked() -> None:
@@ -38,12 +24,12 @@ def test_both_methods_choose_with_their_own_forecast_and_only_when_asked() -> No
 
 def test_the_station_farthest_from_the_forecast_person_is_chosen() -> None:
     engine = _engine("reactive", "forecast")
-    poses = engine._station_poses
+    poses = engine._stations
     names = sorted(poses)
-    far = max(names, key=lambda n: float(np.linalg.norm(poses[n][0] - poses[names[0]][0])))
+    far = max(names, key=lambda n: float(np.linalg.norm(poses[n] - poses[names[0]])))
     frame = engine.last_frame
     # the person's every joint at the first station now, then at the farthest one a second later
-    at_first = np.broadcast_to(poses[names[0]][0], frame.joints.shape)
+    at_first = np.broadcast_to(poses[names[0]], frame.joints.shape)
     still = HumanForecast.hold(HumanFrame(frame.t, at_first.copy()), margin_m=0.02)
     engine.last_forecast = still
     assert engine._choose_station(names) != names[0]
@@ -51,7 +37,7 @@ def test_the_station_farthest_from_the_forecast_person_is_chosen() -> None:
     moving = HumanForecast(
         t0=frame.t,
         times=frame.t + np.array([0.0, 1.0]),
-        joints=np.stack([at_first, np.broadcast_to(poses[far][0], frame.joints.shape)]),
+        joints=np.stack([at_first, np.broadcast_to(poses[far], frame.joints.shape)]),
         margins=np.array([0.02, 0.02]),
     )
     engine.last_forecast = moving  # ... and where they will be: neither end of their way
