@@ -248,11 +248,12 @@ def load_workcell(path: str | Path | None = None) -> WorkCell:
         raise WorkCellError(_format_validation_error(source, exc)) from None
 
 
-#: The fastest a part of a person may approach the robot, for the speed governor's worst case (m/s): the 99th
-#: percentile of joint speeds in the CMU training clips (32 clips, 8,428 frames at 30 Hz, frames with a
-#: tracking jump excluded as intrusions: 3.65 m/s; 99.9th: 5.8 m/s). ISO 13855's 2.0 m/s (a hand reaching in)
-#: is too slow for the people of those clips: with it, replaying the CMU test clips of walking, running and
-#: ball games gave violations of the protective separation by the ground-truth judge; with 3.65 none.
+#: The what-if person ``human_model = "cmu_p99"``: the fastest a part of a person may approach the robot
+#: (m/s): the 99th percentile of joint speeds in the CMU training clips (32 clips, 8,428 frames at 30 Hz,
+#: frames with a tracking jump excluded as intrusions: 3.65 m/s; 99.9th: 5.8 m/s). ISO 13855's 2.0 m/s (a
+#: hand reaching in) is too slow for the people of those clips: with it, replaying the CMU test clips of
+#: walking, running and ball games gave violations of the protective separation by the measured-speed judge
+#: of that version; with 3.65 none.
 HUMAN_SPEED_MAX_MPS = 3.65
 
 #: How fast a person's speed may change, for the speed governor's worst case (m/s^2). Tuned on the CMU
@@ -263,6 +264,11 @@ HUMAN_SPEED_MAX_MPS = 3.65
 #: in 23 of 64 trials; with 12, 12 in 11 (the rest are people faster than ``HUMAN_SPEED_MAX_MPS``); with
 #: 16, 10 in 9, and no task at all in the simulated cell (12: 0.12 per 120 s per method; 8: 0.75-0.88).
 HUMAN_ACCEL_MAX_MPS2 = 12.0
+
+HumanModel = Literal["iso13855", "cmu_p99"]
+#: ISO 13855:2010's approach speed of a hand or an arm (m/s; :data:`app.safety.pfl.ISO13855_ARM_MPS`, whose
+#: table :data:`app.safety.pfl.BODY_REGIONS` gives each body region's).
+ISO13855_ARM_MPS = 2.0
 
 
 class Settings(BaseSettings):
@@ -366,19 +372,39 @@ class Settings(BaseSettings):
         description="frame arrival to the robot's command (validation, forecast, decision; s): part of T_r; "
         "measure it with hrc bench loop",
     )
-    human_speed_max_mps: float = Field(
-        HUMAN_SPEED_MAX_MPS,
+    human_model: HumanModel = Field(
+        "iso13855",
+        description="the person the speed governor assumes: 'iso13855', ISO 13855's approach speeds "
+        "(2.0 m/s for a hand or arm, 1.6 m/s for the body, at constant speed over T_r + T_s), raised "
+        "where the tracker measures a faster approach, never lowered; 'cmu_p99', a what-if: the 99th "
+        "percentiles of the CMU clips (3.65 m/s, 12 m/s^2) from the measured speed",
+    )
+    human_speed_max_mps: float | None = Field(
+        None,
         gt=0.0,
         le=10.0,
-        description="the speed governor's worst case: the fastest a part of a person may approach the robot "
-        "(m/s); the default is the 99th percentile of joint speeds in the CMU training clips",
+        description="override of the person's fastest assumed approach (m/s); default: the human model's "
+        "(iso13855: 2.0, cmu_p99: 3.65)",
     )
-    human_accel_max_mps2: float = Field(
-        HUMAN_ACCEL_MAX_MPS2,
-        gt=0.0,
+    human_accel_max_mps2: float | None = Field(
+        None,
+        ge=0.0,
         le=100.0,
-        description="the speed governor's worst case: how fast a person's speed may change (m/s^2); the "
-        "default is tuned on the CMU training clips (the 99th percentile of joint accelerations over 0.3 s)",
+        description="override of how fast the assumed person's speed may change (m/s^2); default: the human "
+        "model's (iso13855: 0, the standard's constant speed; cmu_p99: 12)",
+    )
+    pfl: bool = Field(
+        True,
+        description="power and force limiting inside S_p (ISO/TS 15066 Annex A): a robot part may be closer "
+        "than S_p to a body region while its speed toward it stays within the region's permissible contact "
+        "speed (none for skull, face, neck); false: SSM alone, the paper's setting",
+    )
+    pfl_payload_kg: float = Field(
+        1.0,
+        ge=0.0,
+        le=5.0,
+        description="m_L of ISO/TS 15066 Annex A: the gripper and the part it carries (kg); the shipped "
+        "cell's Robotiq 2F-85 weighs 0.925 kg",
     )
     forecast_arbitration: bool = Field(
         True,
@@ -423,6 +449,34 @@ class Settings(BaseSettings):
             burst_p=self.tracker_burst_p,
             max_burst_s=self.tracker_max_burst_s,
         )
+
+    @model_validator(mode="after")
+    def _iso_person_never_slower(self) -> Settings:
+        if (
+            self.human_model == "iso13855"
+            and self.human_speed_max_mps is not None
+            and self.human_speed_max_mps < ISO13855_ARM_MPS
+        ):
+            raise ValueError(
+                f"human_speed_max_mps = {self.human_speed_max_mps} m/s is below ISO 13855's "
+                f"{ISO13855_ARM_MPS} m/s for a hand or arm: the governor never assumes a slower person "
+                "(raise it, or set human_model = 'cmu_p99' for a what-if)"
+            )
+        return self
+
+    @property
+    def assumed_human_speed_mps(self) -> float:
+        """The fastest approach the speed governor assumes of a person (m/s), by :attr:`human_model`."""
+        if self.human_speed_max_mps is not None:
+            return self.human_speed_max_mps
+        return ISO13855_ARM_MPS if self.human_model == "iso13855" else HUMAN_SPEED_MAX_MPS
+
+    @property
+    def assumed_human_accel_mps2(self) -> float:
+        """How fast the assumed person's speed may change (m/s^2), by :attr:`human_model`."""
+        if self.human_accel_max_mps2 is not None:
+            return self.human_accel_max_mps2
+        return 0.0 if self.human_model == "iso13855" else HUMAN_ACCEL_MAX_MPS2
 
     def reaction_time_s(self, servo_period_s: float) -> float:
         """ISO/TS 15066's ``T_r`` of this system (:func:`app.safety.stopping.reaction_time_s`): tracker

@@ -47,6 +47,7 @@ from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import HumanFrame
 from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw, directed_approach
 from app.safety.monitor import GroundTruthMonitor, MonitorTotals, is_intrusion
+from app.safety.pfl import PFLModel
 from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
@@ -96,6 +97,11 @@ class CellGeometry:
         poses = np.stack([np.asarray(joints, dtype=np.float64), np.asarray(joints_before, dtype=np.float64)])
         d = self.pair_distances(q, poses)  # (2, L, M)
         return directed_approach(d[0], d[1], dt_s, band_m=band_m)
+
+    def human_static_gaps(self, joints: np.ndarray) -> np.ndarray:
+        """(M,) each of the person's capsules' gap (m) to the static scene
+        (:meth:`app.planning.collision.CollisionModel.human_static_gaps`)."""
+        return self.collision.human_static_gaps(joints)
 
     def path_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """(K, L) surface distance (m) of each part of the robot at each of ``q`` (K, 6) to the person at
@@ -312,6 +318,11 @@ class TrialResult:
             "contacts": m.contacts,
             "violation_time_s": m.violation_time_s,
             "violations_iso": m.violations_iso,
+            "violations_person_faster": m.violations_person_faster,
+            "harmful_contacts": m.harmful_contacts,
+            "violations_measured_vh": m.violations_measured_vh,
+            "exceedance_s": m.exceedance_s,
+            "max_approach_mps": m.max_approach_mps,
             "intrusions": m.intrusions,
             "min_separation_moving_m": (
                 None if not math.isfinite(m.min_separation_moving_m) else m.min_separation_moving_m
@@ -503,13 +514,13 @@ def governor_model(
     ssm = dataclasses.replace(ssm, t_reaction_s=settings.reaction_time_s(options.servo_period_s))
     if separation is None:
         v_max = (
-            settings.human_speed_max_mps
+            settings.assumed_human_speed_mps
             if options.human_speed_max_mps is None
             else options.human_speed_max_mps
         )
         accel = options.human_accel_mps2
         if accel is None:
-            accel = settings.human_accel_max_mps2
+            accel = settings.assumed_human_accel_mps2
         separation = SeparationModel.from_ssm(
             ssm,
             human_speed_max_mps=v_max,
@@ -526,9 +537,36 @@ def governor_model(
         near_band_m=config.near_band_m,
         speed_noise_mps=SPEED_NOISE_GAIN * settings.tracker_noise_m / config.human_speed_window_s,
         lookahead_s=config.profile_window_s,
-        law=SpeedScaleLaw(ssm),
+        # the standard's constant-speed law (T_s fixed at SSMParams.t_stop_s) beside the braking envelope, for
+        # the what-if person measured from their speed; ISO 13855's person is the envelope's, at constant
+        # speed with the stopping model's T_s (the same S_p = v_h (T_r + T_s) + ..., T_s the robot's own)
+        law=SpeedScaleLaw(ssm) if settings.human_model == "cmu_p99" else None,
         robot_toward=config.robot_toward,
+        pfl_caps_mps=tuple(float(v) for v in pfl_model(settings).transient_mps) if settings.pfl else (),
+        approach_floor_mps=tuple(float(v) for v in approach_floors(settings)) if _floored(settings) else (),
     )
+
+
+def pfl_model(settings: Settings) -> PFLModel:
+    """The power and force limiting of a trial (:class:`app.safety.pfl.PFLModel`): the person's capsules,
+    the UR5e's moving mass and the declared payload; ``enabled`` by ``Settings.pfl``."""
+    from app.planning.collision import HUMAN_CAPSULES
+
+    return PFLModel.for_capsules(HUMAN_CAPSULES, payload_kg=settings.pfl_payload_kg, enabled=settings.pfl)
+
+
+def _floored(settings: Settings) -> bool:
+    return settings.human_model == "iso13855"
+
+
+def approach_floors(settings: Settings) -> np.ndarray:
+    """(M,) each person capsule's least approach speed (m/s) that the governor assumes: ISO 13855's by region
+    (``Settings.human_model = "iso13855"``: never lower; the measured one where faster); zeros for the
+    what-if person (the measured speed alone)."""
+    model = pfl_model(settings)
+    if not _floored(settings):
+        return np.zeros(len(model.capsules))
+    return model.iso_speeds_mps
 
 
 class TrialEngine:
@@ -607,7 +645,7 @@ class TrialEngine:
         )
         self.separation = self.governor_model.separation
         law = self.governor_model.law
-        ssm = law.params  # the planner's SSM parameters with this system's T_r
+        ssm = dataclasses.replace(stack.ssm, t_reaction_s=self.reaction_time_s)  # with this system's T_r
         computer = BackupComputer(
             stack.planner,
             stack.make_trajectory,
@@ -633,6 +671,8 @@ class TrialEngine:
             t0=t0,
             on_event=self._emit_abs,
             timer=timer,
+            pfl=pfl_model(settings),
+            approach_floor_mps=approach_floors(settings) if _floored(settings) else None,
         )
         self.task = TaskExecutive(
             stack.cell,
@@ -662,6 +702,7 @@ class TrialEngine:
                 part_names=ROBOT_LINKS,
                 human_capsules=HUMAN_CAPSULES,
                 reaction_time_s=self.reaction_time_s,
+                pfl=pfl_model(settings),
             )
         self.truth = truth
         self._truth_prev: tuple[float, np.ndarray] | None = None
@@ -805,7 +846,7 @@ class TrialEngine:
             old = self._older_frame(frame)
             joints = frame.joints
             before, dt = (joints, 0.0) if old is None else (old.joints, frame.t - old.t)
-        violations, contacts = mon.violations, mon.contacts
+        violations, contacts, harmful_before = mon.violations, mon.contacts, mon.harmful_contacts
         sample = mon.check(t, state.q, state.qd, joints, before, dt)
         if mon.violations > violations:
             log.error(
@@ -817,15 +858,26 @@ class TrialEngine:
             payload = sample.to_json()
             payload.pop("t")
             self._emit_abs(t, "violation", payload)
-        if mon.contacts > contacts:
-            log.error("safety monitor: contact of %s with the person", sample.part)
+        harmful = mon.harmful_contacts > harmful_before
+        if mon.contacts > contacts or harmful:
+            (log.error if harmful else log.info)(
+                "safety monitor: %s contact of %s with the %s at %.2f m/s toward it (permissible %.2f)",
+                "harmful" if harmful else "permitted",
+                sample.part,
+                sample.region,
+                sample.robot_speed_mps,
+                sample.permissible_mps,
+            )
             self._emit_abs(
                 t,
                 "contact",
                 {
                     "part": sample.part,
+                    "region": sample.region,
+                    "harmful": harmful,
                     "separation_m": sample.separation_m,
                     "robot_speed_mps": sample.robot_speed_mps,
+                    "permissible_mps": sample.permissible_mps,
                 },
             )
 
@@ -926,6 +978,11 @@ class TrialEngine:
             contacts=0 if mon is None else mon.contacts,
             violation_time_s=0.0 if mon is None else round(mon.violation_time_s, 6),
             violations_iso=0 if mon is None else mon.violations_iso,
+            violations_person_faster=0 if mon is None else mon.violations_person_faster,
+            harmful_contacts=0 if mon is None else mon.harmful_contacts,
+            violations_measured_vh=0 if mon is None else mon.violations_measured_vh,
+            exceedance_s=0.0 if mon is None else round(mon.exceedance_s, 6),
+            max_approach_mps=0.0 if mon is None else round(mon.max_approach_mps, 4),
             intrusions=self.intrusions,
             min_separation_moving_m=math.inf if mon is None else mon.min_separation_moving_m,
             time_stopped_s=st["stopped"] + st["estop"] + st["fault"],

@@ -64,10 +64,14 @@ class TrialMetrics:
     means that the plans ran at the speed they were planned for, and ``1 - mean_speed_scale`` is what speed
     and separation monitoring (and braking) took from them.
 
-    The safety counts come from the ground-truth monitor (:mod:`app.safety.monitor`): ``violations`` and
-    ``contacts`` are episodes, ``violation_time_s`` their total time, ``violations_iso`` the episodes with ISO
-    13855's constant human speeds, ``min_separation_moving_m`` the smallest true separation while the robot
-    moved; ``intrusions`` counts the frames in which the person appeared or jumped (a protective stop each).
+    The safety counts come from the ground-truth monitor (:mod:`app.safety.monitor`): ``violations``
+    (SSM with PFL, ISO 13855's person), ``violations_person_faster`` (those a person faster than assumed
+    opened), ``contacts`` and ``harmful_contacts`` are episodes, ``violation_time_s`` their total time,
+    ``exceedance_s`` and ``max_approach_mps`` how long and how fast the true person approached faster than
+    assumed; ``violations_iso`` (ISO 13855's constant speeds) and ``violations_measured_vh`` (the true
+    measured speed), both SSM alone, are stress figures; ``min_separation_moving_m`` the smallest true
+    separation while the robot moved; ``intrusions`` counts the frames in which the person appeared or jumped
+    (a protective stop each).
     ``min_separation_m`` is the separation as the supervisor saw it (tracked frames).
 
     ``stop_replans_moving`` counts the stop & replans of a robot under way (its path scale above 0 at the
@@ -98,6 +102,11 @@ class TrialMetrics:
     contacts: int = 0
     violation_time_s: float = 0.0
     violations_iso: int = 0
+    violations_person_faster: int = 0
+    harmful_contacts: int = 0
+    violations_measured_vh: int = 0
+    exceedance_s: float = 0.0
+    max_approach_mps: float = 0.0
     intrusions: int = 0
     min_separation_moving_m: float = math.inf
     time_stopped_s: float = 0.0

@@ -81,7 +81,7 @@ from app.control.trajectory_views import (
 )
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
-from app.safety._kernels import PartSeparation, RobotMotion, ServoGovernor
+from app.safety._kernels import PartSeparation, PFLLevels, RobotMotion, ServoGovernor
 from app.safety._kernels import governed_scale as _kernel_governed_scale
 from app.safety.governor import (
     BRAKE_INSTANTS,
@@ -91,7 +91,10 @@ from app.safety.governor import (
     SeparationModel,
     SpeedScaleLaw,
     brake_rate,
+    directed_pairs,
+    ssm_alone,
 )
+from app.safety.pfl import PFLModel, pfl_levels
 from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
@@ -260,6 +263,10 @@ class Supervisor:
         t0: Initial time (s).
         on_event: ``(t, kind, payload)`` for every event (kinds of :data:`app.control.metrics.EVENT_KINDS`).
         timer: Monotonic timer for compute times (the emergency plan's).
+        pfl: Power and force limiting inside ``S_p`` (:class:`app.safety.pfl.PFLModel`; the geometry then
+            also gives ``human_static_gaps``); None: SSM alone.
+        approach_floor_mps: (M,) each person capsule's least approach speed (ISO 13855's; the measured one
+            where faster); None: the measured speed alone.
     """
 
     def __init__(
@@ -276,6 +283,8 @@ class Supervisor:
         t0: float = 0.0,
         on_event: EventSink | None = None,
         timer: Callable[[], float] = time.perf_counter,
+        pfl: PFLModel | None = None,
+        approach_floor_mps: np.ndarray | None = None,
     ) -> None:
         q0 = np.asarray(q0, dtype=np.float64)
         if q0.shape != (6,):
@@ -286,6 +295,10 @@ class Supervisor:
         self.make_trajectory = make_trajectory
         self.ssm = separation
         self.speed_scale_law = speed_scale
+        self.pfl = pfl
+        self._floors = (
+            None if approach_floor_mps is None else np.asarray(approach_floor_mps, dtype=np.float64)
+        )
         self.config = config
         self.on_event = on_event
         self.timer = timer
@@ -312,7 +325,7 @@ class Supervisor:
         L = self.n_parts
         # per robot part: the separation (none yet), the person's approach speed measured over a window and
         # their worst-case approach from its middle to the frame, the travel since (the compiled tick's input)
-        self._parts = PartSeparation(np.full(L, math.inf), np.zeros(L), np.zeros(L))
+        self._parts = PartSeparation(np.full(L, math.inf), np.zeros(L), np.zeros(L), ssm_alone(L))
         self._travel = np.zeros(L)  # each part's travel since the robot's pose of the measurement (a bound)
         self._toward: tuple[_Active, PathClosing] | None = None  # the parts' closing along the plan in
         # execution, measured at the last frame
@@ -469,7 +482,21 @@ class Supervisor:
         # separation of each robot part now (robot at its last commanded pose vs the person as seen), and
         # the person's approach speed: how fast their motion closed the distance over the last window
         old = self._older_frame(frame.t - cfg.human_speed_window_s)
-        if old is not None:
+        pfl = None
+        if self.pfl is not None or self._floors is not None:
+            # ISO 13855's person: each capsule approaches at least at its region's speed; power and force
+            # limiting inside S_p by region
+            before = None if old is None else old.joints
+            d_now, v_pairs = directed_pairs(
+                self.geometry, q_now, frame.joints, before, None if old is None else frame.t - old.t,
+                v_unknown_mps=self.ssm.human_speed_max_mps, floor_mps=self._floors,
+            )  # fmt: skip
+            t_mid = frame.t if old is None else 0.5 * (frame.t + old.t)
+            near = d_now <= d_now.min(axis=1, keepdims=True) + cfg.near_band_m
+            sep_parts = d_now.min(axis=1) - cfg.tracking_margin_m
+            v_h0 = np.where(near, v_pairs, 0.0).max(axis=1)
+            pfl = self._pfl_levels(d_now, v_pairs, frame.joints)
+        elif old is not None:
             # the person's directed speed toward each part: the fastest approach of the body parts that are
             # (nearly) the nearest to it (over all of them, so it does not jump when the nearest pair changes)
             sep_parts, v_h0 = self.geometry.near_person(
@@ -482,6 +509,8 @@ class Supervisor:
             d = np.asarray(self.geometry.part_separations(q_now, frame.joints[None]), dtype=np.float64)
             sep_parts = d[0] - cfg.tracking_margin_m
             v_h0, t_mid = np.full(self.n_parts, self.ssm.human_speed_max_mps), frame.t
+        if pfl is None:
+            pfl = ssm_alone(self.n_parts)
         sep = float(sep_parts.min())
         toward = None
         if cfg.robot_toward and active.kind != "hold":
@@ -496,6 +525,7 @@ class Supervisor:
                 sep_parts,
                 np.asarray(self.ssm.human_approach(v_h0, frame.t - t_mid)[0], dtype=np.float64),
                 v_h0,
+                pfl,
             )
             self._travel = np.maximum(self._travel - travel0, 0.0)  # travel since q_now was read
             self._sep_person_t = frame.t
@@ -525,7 +555,11 @@ class Supervisor:
         # the speed governor allows for what they may do before the next frame)
         # (every part of a robot that is to move: a part at rest on a moving robot must keep S_p(0) too)
         to_move = bool(np.any(active.profile.window_at(tau) > 1e-6))
-        stop_distance = to_move and bool(np.any(sep_parts <= self.ssm.s0_m + self.ssm.t_reaction_s * v_h0))
+        # (power and force limiting: a part may come within S_p(0) of a region it may touch, at that region's
+        # speed, which the governor keeps; the capsules that admit no contact are at pfl.extra[:, 0])
+        stop_distance = to_move and bool(
+            np.any(sep_parts + pfl.extra[:, 0] <= self.ssm.s0_m + self.ssm.t_reaction_s * v_h0)
+        )
 
         # 3. pre-check a finished backup of the pending switch against this (latest) forecast
         with self._lock:
@@ -1089,6 +1123,17 @@ class Supervisor:
                 stale=self._stale,
                 estopped=self._estop,
             )
+
+    def _pfl_levels(self, d_pairs: np.ndarray, v_pairs: np.ndarray, joints: np.ndarray) -> PFLLevels:
+        """Power and force limiting inside ``S_p`` (:meth:`app.safety.pfl.PFLModel.levels`; SSM alone
+        without a model); each level at its own approach speed where the person is assumed at constant
+        speed (ISO 13855's), at the part's grown worst case for a person who may speed up."""
+        v = v_pairs if self.ssm.human_accel_mps2 <= 0.0 else None
+        band = self.config.near_band_m
+        if self.pfl is None:
+            return PFLLevels(*pfl_levels(d_pairs, np.full(d_pairs.shape[1], -1.0), v, band_m=band))
+        gaps = self.geometry.human_static_gaps(joints) if self.pfl.enabled else None
+        return self.pfl.levels(d_pairs, v, gaps, band_m=band)
 
     def _older_frame(self, t: float) -> HumanFrame | None:
         """The newest remembered frame at or before ``t``."""

@@ -719,6 +719,24 @@ class CollisionModel:
         b_box = np.einsum("pij,bpj->bpi", R, b) + t
         return a_box, b_box, np.broadcast_to(self._box_half[bi], a_box.shape)
 
+    def human_static_gaps(self, joints: np.ndarray) -> np.ndarray:
+        """(M,) the surface gap (m) of each of the person's capsules at ``joints`` (J, 3) to the nearest
+        static box (table, conveyor, obstacles): where a hand lies on the table, 0 or less. The power and
+        force limiting uses it to find the regions that a part could pin against the scene."""
+        joints = np.asarray(joints, dtype=np.float64).reshape(1, -1, 3)
+        a, b, r = self.human_capsules(joints)
+        a, b = a[0], b[0]  # (M, 3)
+        n_box = self._T_box_world.shape[0]
+        if n_box == 0:
+            return np.full(a.shape[0], np.inf)
+        R = self._T_box_world[:, :3, :3]  # (NB, 3, 3)
+        t = self._T_box_world[:, :3, 3]
+        a_box = np.einsum("nij,mj->nmi", R, a) + t[:, None]
+        b_box = np.einsum("nij,mj->nmi", R, b) + t[:, None]
+        half = np.broadcast_to(self._box_half[:, None], a_box.shape)
+        sd = segment_box_distance(a_box.reshape(-1, 3), b_box.reshape(-1, 3), half.reshape(-1, 3))
+        return sd.reshape(n_box, -1).min(axis=0) - r
+
     def static_distances(self, q: np.ndarray) -> np.ndarray:
         """Signed distance of every robot capsule to every static box (exact for every pair).
 

@@ -87,7 +87,7 @@ def predicted_scales(
     ha, hb, hr = collision.human_capsules(np.asarray(forecast.joints, dtype=np.float64))
     path = TimingPath(tau, _f64(ra), _f64(rb - ra), _f64(rr), _f64(v), _f64(w))
     person = TimingPerson(_f64(forecast.times), _f64(ha), _f64(hb - ha), _f64(hr))
-    t, scales = _kernel_predicted_scales(path, person, _governor_arrays(model, ahead), float(t0))
+    t, scales = _kernel_predicted_scales(path, person, _governor_arrays(model, ahead, hr.shape[0]), float(t0))
     return tau, t, scales
 
 
@@ -95,8 +95,9 @@ def _f64(x: Any) -> np.ndarray:
     return np.ascontiguousarray(x, dtype=np.float64)
 
 
-def _governor_arrays(model: GovernorModel, ahead: int) -> TimingGovernor:
-    """``model`` as the compiled walk reads it, its look-ahead ``ahead`` sample points."""
+def _governor_arrays(model: GovernorModel, ahead: int, n_caps: int) -> TimingGovernor:
+    """``model`` as the compiled walk reads it, its look-ahead ``ahead`` sample points, for a person of
+    ``n_caps`` capsules."""
     misc = (
         model.tracking_margin_m,
         model.speed_window_s,
@@ -110,8 +111,16 @@ def _governor_arrays(model: GovernorModel, ahead: int) -> TimingGovernor:
         1.0 if model.robot_toward else 0.0,
     )
     law = np.zeros(0) if model.law is None else model.law.kernel_params
+    caps = model.caps_for(n_caps)
     return TimingGovernor(
-        _f64(model.separation.kernel_params), _f64(law), _f64(SCALE_GRID), _f64(BRAKE_INSTANTS), _f64(misc)
+        _f64(model.separation.kernel_params),
+        _f64(law),
+        _f64(SCALE_GRID),
+        _f64(BRAKE_INSTANTS),
+        _f64(misc),
+        caps,
+        _f64(np.unique(np.append(caps, -1.0))),
+        model.floors_for(n_caps),
     )
 
 

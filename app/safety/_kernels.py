@@ -20,7 +20,15 @@ import numpy as np
 
 from app.jit import jit
 
-__all__ = ["PartSeparation", "RobotMotion", "ServoGovernor", "governed_scale", "law_scale", "max_scale"]
+__all__ = [
+    "PFLLevels",
+    "PartSeparation",
+    "RobotMotion",
+    "ServoGovernor",
+    "governed_scale",
+    "law_scale",
+    "max_scale",
+]
 
 
 class PartSeparation(NamedTuple):
@@ -32,11 +40,32 @@ class PartSeparation(NamedTuple):
         x_h0: The person's worst-case approach from the middle of the speed window to the frame (m), already
             in ``sep_m``.
         v_h0: The person's approach speed toward each part, measured over the window (m/s).
+        pfl: Power and force limiting inside ``S_p`` (:class:`PFLLevels`).
     """
 
     sep_m: np.ndarray
     x_h0: np.ndarray
     v_h0: np.ndarray
+    pfl: PFLLevels
+
+
+class PFLLevels(NamedTuple):
+    """Power and force limiting inside ``S_p``, per robot part (:func:`app.safety.pfl.pfl_levels`): a part
+    closing on the person at ``v`` must keep ``S_p`` from the capsules whose permissible contact speed is
+    below ``v`` only, at ``extra[l, k]`` beyond its nearest separation, ``k`` the last of ``levels`` below
+    ``v``. ``levels[0]`` is -1 (the capsules that admit no contact).
+
+    Attributes:
+        levels: (K,) the capsules' distinct permissible speeds (m/s), ascending.
+        extra: (L, K) the separation beyond each part's nearest one that SSM keeps at each level (m).
+        v_h: (L, K) the person's approach speed toward each part of the capsules at or below each level
+            (m/s; ISO 13855's by region, the measured one where faster; inf: the part's own ``v_h`` alone):
+            the governor takes the lesser of it and the part's.
+    """
+
+    levels: np.ndarray
+    extra: np.ndarray
+    v_h: np.ndarray
 
 
 class RobotMotion(NamedTuple):
@@ -97,6 +126,17 @@ def _sp(v_part: float, t_s: float, v_human: float, s0: float, t_r: float) -> flo
     return max(v_human, 0.0) * (t_r + t_s) + (v_part * t_r + v_part * (0.5 * t_s) + s0)
 
 
+@jit(inline="always")
+def _pfl_level(v: float, levels: np.ndarray) -> int:
+    """The level (:class:`PFLLevels`) whose capsules a part closing at ``v`` (m/s) must keep ``S_p`` from:
+    the last whose permissible speed is below ``v``."""
+    k = 0
+    for j in range(1, levels.shape[0]):
+        if levels[j] < v:
+            k = j
+    return k
+
+
 @jit
 def _scale_ok(
     sc: float,
@@ -106,19 +146,28 @@ def _scale_ok(
     rate: float,
     env_u: np.ndarray,
     params: np.ndarray,
+    levels: np.ndarray,
+    extra: np.ndarray,
+    v_lv: np.ndarray,
 ) -> bool:
     s0, t_r, v_max_h, accel = params[0], params[1], params[3], params[4]
     r = max(rate, 1e-6)
     for i in range(d.shape[0]):
         a = rate * vp[i]
         v = sc * vp[i]
+        # power and force limiting: the capsules this part may touch at v need no S_p (braking only slows it)
+        lv = _pfl_level(v, levels)
+        d_i = d[i] + extra[i, lv]
+        if d_i == np.inf:
+            continue
+        vh_i = min(vh[i], v_lv[i, lv])
         for k in range(env_u.shape[0]):
             t = env_u[k] * sc / r
-            x_h, v_h = _approach(vh[i], t, v_max_h, accel)
+            x_h, v_h = _approach(vh_i, t, v_max_h, accel)
             travel = v * t - 0.5 * a * t * t
             s_t = sc - rate * t
             need = _sp(s_t * vp[i], s_t / r, v_h, s0, t_r)
-            if not (d[i] - x_h - travel - need >= 0.0):
+            if not (d_i - x_h - travel - need >= 0.0):
                 return False
     return True
 
@@ -134,6 +183,9 @@ def max_scale(
     scales: np.ndarray,
     env_u: np.ndarray,
     params: np.ndarray,
+    levels: np.ndarray,
+    extra: np.ndarray,
+    v_lv: np.ndarray,
 ) -> float:
     """Largest safe path-speed scale in ``[lo, hi]`` for parts at separations ``d`` (L,) (m), the person
     approaching each at ``vh`` (L,) (m/s), the parts closing on the person at ``s * vp`` (L,) (m/s; negative:
@@ -141,7 +193,8 @@ def max_scale(
     ``s / rate``, the stopping model's (:mod:`app.safety.stopping`; the brake's rate is the slower of its
     fastest point's and fastest joint's deceleration). ``scales``: the grid; ``env_u``: the instants of a
     brake (fractions of it); ``params``: ``(s0_m, t_reaction_s, stop_decel_mps2, human_speed_max_mps,
-    human_accel_mps2)``."""
+    human_accel_mps2)``; ``levels``, ``extra``, ``v_lv``: power and force limiting (:class:`PFLLevels`;
+    ``[-1]``, zeros (L, 1) and inf (L, 1): SSM alone)."""
     n = d.shape[0]
     if n == 0:
         return 1.0
@@ -162,7 +215,7 @@ def max_scale(
         return hi
     # the candidates in increasing order: lo, the grid strictly inside (lo, hi), hi; the answer is the
     # last one of the leading run of safe ones
-    if not _scale_ok(lo, d, vh, vp, rate, env_u, params):
+    if not _scale_ok(lo, d, vh, vp, rate, env_u, params, levels, extra, v_lv):
         return 0.0
     if not hi > lo:
         return lo
@@ -170,10 +223,10 @@ def max_scale(
     for j in range(scales.shape[0]):
         sc = scales[j]
         if sc - lo > 0.0 and sc - hi < 0.0:
-            if not _scale_ok(sc, d, vh, vp, rate, env_u, params):
+            if not _scale_ok(sc, d, vh, vp, rate, env_u, params, levels, extra, v_lv):
                 return best
             best = sc
-    if _scale_ok(hi, d, vh, vp, rate, env_u, params):
+    if _scale_ok(hi, d, vh, vp, rate, env_u, params, levels, extra, v_lv):
         return hi
     return best
 
@@ -193,11 +246,31 @@ def _law_one(d: float, v_nom: float, v_h: float, law: np.ndarray) -> float:
 
 
 @jit
-def law_scale(d: np.ndarray, v_nom: np.ndarray, v_h: np.ndarray, law: np.ndarray) -> float:
-    """The smallest scale of the speed-scaling law over parts (L,) (1 for none)."""
+def law_scale(
+    d: np.ndarray,
+    v_nom: np.ndarray,
+    v_h: np.ndarray,
+    law: np.ndarray,
+    levels: np.ndarray,
+    extra: np.ndarray,
+    v_lv: np.ndarray,
+) -> float:
+    """The smallest scale of the speed-scaling law over parts (L,) (1 for none), with power and force
+    limiting (:class:`PFLLevels`): at level ``k`` the part keeps the law's ``S_p`` from the capsules up to
+    that level and closes on the others no faster than the next level's permissible speed."""
     out = 1.0
+    n_lv = levels.shape[0]
     for i in range(d.shape[0]):
-        out = min(out, _law_one(d[i], v_nom[i], v_h[i], law))
+        best = 0.0
+        for k in range(n_lv):
+            if extra[i, k] == np.inf:
+                s_k = 1.0
+            else:
+                s_k = _law_one(d[i] + extra[i, k], v_nom[i], min(v_h[i], v_lv[i, k]), law)
+            if k + 1 < n_lv and v_nom[i] > 1e-9:
+                s_k = min(s_k, levels[k + 1] / v_nom[i])
+            best = max(best, s_k)
+        out = min(out, best)
     return out
 
 
@@ -251,7 +324,10 @@ def governed_scale(
             vp[k] = toward[i]
             vm[k] = max(v_h0[i], 0.0)
             k += 1
-    target = max_scale(d[:k], vh[:k], vp[:k], rate, lo, hi, governor.scales, governor.env_u, params)
+    lv, extra, v_lv = parts.pfl.levels, parts.pfl.extra, parts.pfl.v_h
+    target = max_scale(
+        d[:k], vh[:k], vp[:k], rate, lo, hi, governor.scales, governor.env_u, params, lv, extra, v_lv
+    )
     if law.shape[0] > 0 and k > 0:
-        target = min(target, max(law_scale(d[:k], vp[:k], vm[:k], law), 0.0))
+        target = min(target, max(law_scale(d[:k], vp[:k], vm[:k], law, lv, extra, v_lv), 0.0))
     return target

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from app.safety._kernels import RobotMotion
+from app.safety._kernels import PFLLevels, RobotMotion
 from app.safety._kernels import max_scale as _kernel_max_scale
 from app.safety.ssm import max_safe_speed, required_separation
 
@@ -149,6 +149,7 @@ class SeparationModel:
         rate: float,
         lo: float = 0.0,
         hi: float = 1.0,
+        pfl: PFLLevels | None = None,
     ) -> float:
         """Largest path-speed scale in [0, 1] that is safe for every part: part i closes on the person at
         ``s * v_parts_mps[i]`` (its speed toward the person, ISO/TS 15066's directed ``v_r``; its whole
@@ -159,11 +160,16 @@ class SeparationModel:
 
         Only scales in ``[lo, hi]`` are examined (the grid's and both ends; the servo passes the range it
         can reach within one tick): the answer is the largest of them up to which every one is safe, ``hi``
-        at most, and 0 when ``lo`` is not safe. Compiled (:func:`app.safety._kernels.max_scale`); the tests
+        at most, and 0 when ``lo`` is not safe. ``pfl``: power and force limiting inside ``S_p``
+        (:class:`app.safety._kernels.PFLLevels`); None: SSM alone. Compiled
+        (:func:`app.safety._kernels.max_scale`); the tests
         compare it with a NumPy reference (``tests/governor_reference.py``)."""
+        d = np.ascontiguousarray(separation_m, dtype=np.float64).reshape(-1)
+        if pfl is None:
+            pfl = ssm_alone(d.shape[0])
         return float(
             _kernel_max_scale(
-                np.ascontiguousarray(separation_m, dtype=np.float64).reshape(-1),
+                d,
                 np.ascontiguousarray(v_human_mps, dtype=np.float64).reshape(-1),
                 np.ascontiguousarray(v_parts_mps, dtype=np.float64).reshape(-1),
                 float(rate),
@@ -172,6 +178,9 @@ class SeparationModel:
                 SCALE_GRID,
                 BRAKE_INSTANTS,
                 self._kernel_params,
+                np.ascontiguousarray(pfl.levels, dtype=np.float64),
+                np.ascontiguousarray(pfl.extra, dtype=np.float64),
+                np.ascontiguousarray(pfl.v_h, dtype=np.float64),
             )
         )
 
@@ -204,6 +213,11 @@ class SpeedScaleLaw:
         return float(np.min(speed_scale(d, v_nominal_mps, self.params, v_human_mps=v_human_mps)))
 
 
+def ssm_alone(n_parts: int) -> PFLLevels:
+    """Power and force limiting off for ``n_parts`` robot parts: each keeps ``S_p`` from every capsule."""
+    return PFLLevels(np.array([-1.0]), np.zeros((n_parts, 1)), np.full((n_parts, 1), np.inf))
+
+
 #: The governor's law parameters when it applies no scaling law (the braking envelope alone).
 NO_LAW = np.zeros(0)
 #: The speed scales the governor chooses from.
@@ -232,7 +246,12 @@ def brake_rate(v_top_mps: float, w_top_radps: float, decel_mps2: float, joint_de
 
 
 def directed_approach(
-    d_now: np.ndarray, d_before: np.ndarray, dt_s: float, *, band_m: float
+    d_now: np.ndarray,
+    d_before: np.ndarray,
+    dt_s: float,
+    *,
+    band_m: float,
+    floor_mps: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each robot part's separation (L,) and the person's *directed* speed toward it (L,), from the surface
     distances (L, M) of the robot's parts to the person's capsules now and ``dt_s`` earlier.
@@ -240,13 +259,42 @@ def directed_approach(
     ISO/TS 15066 5.5.4.2.3 asks for the operator's speed in the direction of the robot. Of the person's
     capsules within ``band_m`` of the nearest one to a part, the fastest rate at which the distance to the
     part shrank counts (not only the nearest pair, so the value does not jump when the nearest pair
-    changes); a limb that moves sideways or away does not count. The supervisor measures the person with
-    it, and :class:`GovernorModel` predicts the governor from a forecast with it."""
+    changes); a limb that moves sideways or away does not count. ``floor_mps`` (M,): each capsule's least
+    approach speed (ISO 13855's; the measured one where it is faster, never lower). The supervisor
+    measures the person with it, and :class:`GovernorModel` predicts the governor from a forecast with it."""
     d_now = np.asarray(d_now, dtype=np.float64)
     sep = d_now.min(axis=-1)
     approach = np.maximum(np.asarray(d_before, dtype=np.float64) - d_now, 0.0) / max(float(dt_s), 1e-6)
+    if floor_mps is not None:
+        approach = np.maximum(approach, np.asarray(floor_mps, dtype=np.float64))
     near = d_now <= sep[..., None] + band_m
     return sep, np.where(near, approach, 0.0).max(axis=-1)
+
+
+def directed_pairs(
+    geometry: Any,
+    q: np.ndarray,
+    joints: np.ndarray,
+    joints_before: np.ndarray | None,
+    dt_s: float | None,
+    *,
+    v_unknown_mps: float,
+    floor_mps: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The surface distances (L, M) of the robot's parts at ``q`` to the person's capsules at ``joints``,
+    and the person's speed toward each part per capsule (L, M): how fast each distance shrank since
+    ``joints_before``, ``dt_s`` earlier (``v_unknown_mps`` without an earlier pose), at least ``floor_mps``
+    (M,), ISO 13855's speed of each capsule's region (None: the measured speed alone)."""
+    if joints_before is None or dt_s is None:
+        d_now = np.asarray(geometry.pair_distances(q, np.asarray(joints)[None]), dtype=np.float64)[0]
+        v = np.full(d_now.shape, float(v_unknown_mps))
+    else:
+        d2 = np.asarray(geometry.pair_distances(q, np.stack([joints, joints_before])), dtype=np.float64)
+        d_now = d2[0]
+        v = np.maximum(d2[1] - d_now, 0.0) / max(float(dt_s), 1e-6)
+    if floor_mps is not None:
+        v = np.maximum(v, np.asarray(floor_mps, dtype=np.float64)[None, :])
+    return d_now, v
 
 
 def closing_bound(taus: np.ndarray, d: np.ndarray, v_lip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -380,6 +428,10 @@ class GovernorModel:
             person has moved; a plan timed as standing still forever would never arrive).
         robot_toward: The governor takes each part's speed toward the person
             (``SupervisorConfig.robot_toward``); False: their whole speeds.
+        pfl_caps_mps: Each person capsule's permissible contact speed (m/s; -1: no contact permitted), power
+            and force limiting inside ``S_p`` (:class:`app.safety.pfl.PFLModel`); empty: SSM alone.
+        approach_floor_mps: Each person capsule's least approach speed (m/s), ISO 13855's
+            (:attr:`app.safety.pfl.PFLModel.iso_speeds_mps`); empty: the measured speed alone.
     """
 
     separation: SeparationModel
@@ -394,6 +446,8 @@ class GovernorModel:
     law: SpeedScaleLaw | None = None
     min_scale: float = 0.1
     robot_toward: bool = True
+    pfl_caps_mps: tuple[float, ...] = ()
+    approach_floor_mps: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("brake_decel_mps2", "brake_joint_decel", "speed_window_s"):
@@ -407,6 +461,31 @@ class GovernorModel:
         if not 0.0 < self.min_scale <= 1.0:
             raise ValueError(f"GovernorModel.min_scale must be in (0, 1], got {self.min_scale}")
 
+    def caps_for(self, n_caps: int) -> np.ndarray:
+        """(M,) the capsules' permissible contact speeds (m/s), -1 everywhere for SSM alone."""
+        if not self.pfl_caps_mps:
+            return np.full(n_caps, -1.0)
+        if len(self.pfl_caps_mps) != n_caps:
+            raise ValueError(
+                f"GovernorModel.pfl_caps_mps has {len(self.pfl_caps_mps)} capsules, not {n_caps}"
+            )
+        return np.asarray(self.pfl_caps_mps, dtype=np.float64)
+
+    def floors_for(self, n_caps: int) -> np.ndarray:
+        """(M,) the capsules' least approach speeds (m/s), 0 everywhere without a floor."""
+        if not self.approach_floor_mps:
+            return np.zeros(n_caps)
+        if len(self.approach_floor_mps) != n_caps:
+            raise ValueError(
+                f"GovernorModel.approach_floor_mps has {len(self.approach_floor_mps)} capsules, not {n_caps}"
+            )
+        return np.asarray(self.approach_floor_mps, dtype=np.float64)
+
+    @property
+    def approach_floor_max_mps(self) -> float:
+        """The fastest of the capsules' least approach speeds (m/s; 0 without a floor)."""
+        return max(self.approach_floor_mps, default=0.0)
+
     def extra_clearance(
         self, *, v_creep_mps: float, decel_mps2: float, dv_mps: float = 0.05, v_max_mps: float = 3.0
     ) -> np.ndarray:
@@ -416,7 +495,7 @@ class GovernorModel:
         after a frame of typical age). The planner adds it to the clearance it asks of a move at speed
         ``v`` from the forecast person: a move near the person at full speed, which the governor would slow
         to a crawl, fails the search's check, and the search takes it slower or goes round."""
-        vh0 = self.speed_noise_mps
+        vh0 = max(self.speed_noise_mps, self.approach_floor_max_mps)
         _, v1 = self.separation.human_approach(vh0, 0.5 * self.speed_window_s + self.sensing_age_s)
         d = np.arange(0.0, 4.0 + 1e-9, 0.005)
         vmax = np.maximum.accumulate(
@@ -438,7 +517,7 @@ class GovernorModel:
         tracked frames: their noise is in it already, unlike a forecast's in :meth:`scale`): the braking
         envelope with the person's worst case since the middle of the window and the frame's age, and the
         speed-scaling law where this model has one. Arrays broadcast."""
-        vh0 = np.maximum(np.asarray(v_human_mps, dtype=np.float64), 0.0)
+        vh0 = np.maximum(np.asarray(v_human_mps, dtype=np.float64), self.approach_floor_max_mps)
         sep_lb, v1 = self._worst_case(sep_m, vh0)
         v = np.asarray(
             self.separation.max_speed(
@@ -481,7 +560,9 @@ class GovernorModel:
         if vtop <= 1e-4:
             return 1.0
         toward = v_parts if v_toward_mps is None else np.asarray(v_toward_mps, dtype=np.float64)
-        vh0 = np.asarray(v_human_mps, dtype=np.float64) + self.speed_noise_mps
+        vh0 = np.maximum(
+            np.asarray(v_human_mps, dtype=np.float64) + self.speed_noise_mps, self.approach_floor_max_mps
+        )
         sep_lb, v1 = self._worst_case(sep_m, vh0)
         rate = self.brake_rate(vtop, float(w_top_radps))
         s = self.separation.max_scale(sep_lb, v_human_mps=v1, v_parts_mps=toward, rate=rate)

@@ -2,30 +2,43 @@
 
 It runs at the robot's servo rate on the robot's state and the *true* pose of the person (in simulation the
 simulated operator or the replayed clip, never the tracker's frames that the supervisor acts on), and shares
-nothing with the supervisor but the geometry of the bodies. For every robot part (capsule) and every check:
+nothing with the supervisor but the geometry of the bodies and the rules of the safety model
+(:mod:`app.safety.pfl`): speed and separation monitoring combined with power and force limiting, with ISO
+13855's person. For every robot part (capsule), every capsule of the person and every check:
 
-- the surface separation ``d`` to the person (capsule to capsule);
-- the part's speed *toward* the person ``v_r``: how fast the robot's own motion closes the distance to the
-  nearest body capsules (a part moving sideways or away counts 0);
-- the person's speed toward the part ``v_h``: how fast the person's true motion closes it (likewise);
+- the surface separation ``d`` (capsule to capsule);
+- the part's speed *toward* that capsule ``v_r``: how fast the robot's own motion closes the distance;
+- the person's true speed toward the part ``v_true``: how fast the person's true motion closes it;
+- the governor's ``v_h`` rule: ISO 13855's speed of the capsule's region (2.0 m/s for a hand or arm,
+  1.6 m/s for the body), the true speed where it is faster;
 - ISO/TS 15066's ``S_p = v_h (T_r + T_s) + v_r T_r + S_s + C + Z_r``, with ``T_s`` and ``S_s`` from the
-  one stopping model (:mod:`app.safety.stopping`) at the robot's current speed and ``T_r`` of the system
-  (tracker latency + frame period + processing + controller cycle). The sensing uncertainty ``Z_d`` is not
-  added: it stands for the difference between the person as measured and the true person, and the judge
-  sees the true person (a system that keeps the measured separation above the full ``S_p`` keeps the true
-  one above ``S_p - Z_d``).
+  one stopping model (:mod:`app.safety.stopping`) at the robot's current speed and ``T_r`` of the system.
+  The sensing uncertainty ``Z_d`` is not added: the judge sees the true person;
+- the region's permissible contact speed (ISO/TS 15066 Annex A; quasi-static where a hand or forearm lies
+  on the scene; none for skull, face and neck).
 
-A **violation** is a robot that is not at standstill with a part closer than its ``S_p``; a **contact** is a
-robot that is not at standstill touching the person (``d <= 0``), the severe case, counted apart. An episode
-lasts while consecutive checks violate: it ends when the robot is at standstill (every joint slower than
-``standstill_radps``) or the separation has recovered. A braking robot is judged like any other until it is
-at standstill. The same trial is also judged with ISO 13855's constant speeds instead of the measured ones
-(1.6 m/s for the body, 2.0 m/s for a hand or arm reaching in) and reported apart (``violations_iso``): that
-is what a cell without a person tracker would have to keep.
+What it counts, while the robot is not at standstill:
+
+- a **violation**: a part closer than its ``S_p`` to a capsule while its speed toward that capsule is above
+  the region's permissible speed. An episode that a person approaching faster than ISO 13855's speed opened
+  (within ``T_r + T_s`` of such an approach) is counted apart (``violations_person_faster``), as one that an
+  intrusion (a jump no person makes) opened is (``violations_in_intrusions``);
+- a **contact**: a part touching the person (``d <= 0``); a **harmful contact**: a contact at a speed toward
+  the region above its permissible speed, or any contact with skull, face or neck;
+- the **exceedance**: how long (``exceedance_s``) and how fast (``max_approach_mps``) the true person
+  approached a moving part, within its ``S_p``, faster than the speed the governor assumes: the residual risk
+  that a cell's risk assessment must accept, reported, never hidden;
+- two stress figures, reported apart: ``violations_measured_vh``, SSM alone with the person's true measured
+  speed as ``v_h`` (the judge of earlier versions), and ``violations_iso``, SSM alone with ISO 13855's
+  constant speeds (what a cell without a tracker and without PFL would have to keep).
+
+An episode lasts while consecutive checks count it: it ends when the robot is at standstill (every joint
+slower than ``standstill_radps``) or the condition has cleared. A braking robot is judged like any other
+until it is at standstill.
 
 What it does not judge: the accuracy of the capsules themselves (a test checks that they enclose the UR5e's
-meshes), contact forces (ISO/TS 15066's power and force limiting), or the person's safety against the static
-scene.
+meshes), the contact forces of a real arm (the model's masses are Annex A's), or the person's safety
+against the static scene.
 """
 
 from __future__ import annotations
@@ -37,6 +50,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from app.safety.pfl import PFLModel, capsule_region, pinned_capsules
 from app.safety.ssm import SSMParams, required_separation
 from app.safety.stopping import UR5E_STOP, StoppingModel
 
@@ -51,8 +65,6 @@ __all__ = [
 
 #: ISO 13855's constant approach speeds (m/s): the body (walking) and a hand or arm reaching in.
 ISO13855_SPEEDS = {"body": 1.6, "arm": 2.0}
-#: Joints whose bones are the arm and the hand (ISO 13855's 2.0 m/s).
-_ARM_WORDS = ("shoulder-", "elbow", "wrist", "hand")
 
 
 def is_intrusion(joint_speeds_mps: np.ndarray, *, body_mps: float = 5.0) -> bool:
@@ -71,10 +83,12 @@ class BodyGeometry(Protocol):
 
     def part_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray: ...
 
+    def human_static_gaps(self, joints: np.ndarray) -> np.ndarray: ...
+
 
 @dataclass(frozen=True, slots=True)
 class MonitorSample:
-    """One check of one robot part (the worst one of the check).
+    """One check of one robot part against one capsule of the person (the worst pair of the check).
 
     Attributes:
         t: Time (s).
@@ -83,8 +97,10 @@ class MonitorSample:
         required_m: Its ``S_p`` (m).
         robot_speed_mps: Its speed toward the person (m/s).
         human_speed_mps: The person's true speed toward it (m/s).
-        violation: The robot was not at standstill and ``separation_m < required_m``.
+        violation: The robot was not at standstill, closer than ``S_p`` and faster than ``permissible_mps``.
         contact: The robot was not at standstill and touched the person.
+        region: The body region of the person's capsule (:data:`app.safety.pfl.BODY_REGIONS`).
+        permissible_mps: The region's permissible contact speed (m/s; -1: no contact permitted).
     """
 
     t: float
@@ -95,29 +111,34 @@ class MonitorSample:
     human_speed_mps: float
     violation: bool
     contact: bool
+    region: str = ""
+    permissible_mps: float = -1.0
 
     def to_json(self) -> dict[str, Any]:
         return {
             "t": round(self.t, 4),
             "part": self.part,
+            "region": self.region,
             "separation_m": round(self.separation_m, 4),
             "required_m": round(self.required_m, 4),
             "robot_speed_mps": round(self.robot_speed_mps, 4),
             "human_speed_mps": round(self.human_speed_mps, 4),
+            "permissible_mps": round(self.permissible_mps, 4),
         }
 
 
 @dataclass(frozen=True, slots=True)
 class MonitorEpisode:
-    """One violation or contact episode, as the trial's JSON lists it.
+    """One episode, as the trial's JSON lists it.
 
     Attributes:
-        kind: ``violation`` or ``contact``.
-        intrusion: Started by an intrusion (counted apart, in ``violations_in_intrusions``).
+        kind: ``violation``, ``contact`` or ``harmful_contact``.
+        intrusion: A violation that an intrusion opened (counted apart, in ``violations_in_intrusions``).
         start_s: Time of its first check (s).
         duration_s: From its first check to its last (s); 0 for an episode of one check.
         first: Its first check.
-        worst: Its check with the least ``separation - S_p``.
+        worst: Its check with the least ``separation - S_p`` (contacts: the fastest toward the region).
+        person_faster: A violation that a person approaching faster than assumed opened (counted apart).
     """
 
     kind: str
@@ -126,11 +147,13 @@ class MonitorEpisode:
     duration_s: float
     first: MonitorSample
     worst: MonitorSample
+    person_faster: bool = False
 
     def to_json(self) -> dict[str, Any]:
         return {
             "kind": self.kind,
             "intrusion": self.intrusion,
+            "person_faster": self.person_faster,
             "start_s": round(self.start_s, 4),
             "duration_s": round(self.duration_s, 4),
             "first": self.first.to_json(),
@@ -143,10 +166,17 @@ class MonitorTotals:
     """A trial's verdict (see the module docstring).
 
     Attributes:
-        violations: Violation episodes.
-        contacts: Contact episodes.
+        violations: Violation episodes (SSM with PFL, ISO 13855's person), those a faster person or an
+            intrusion opened apart.
+        violations_person_faster: Violation episodes that a person approaching faster than assumed opened.
+        contacts: Contact episodes (a moving robot touching the person).
+        harmful_contacts: Contact episodes above the region's permissible speed, or with skull, face or neck.
         violation_time_s: Time spent in violation (s).
-        violations_iso: Violation episodes with ISO 13855's constant human speeds.
+        violations_iso: SSM alone with ISO 13855's constant speeds (stress figure).
+        violations_measured_vh: SSM alone with the person's true measured speed (stress figure).
+        exceedance_s: How long the true person approached a moving part within its ``S_p`` faster than
+            assumed (s).
+        max_approach_mps: The fastest such approach (m/s; 0 where none).
         intrusions: Checks at which the true person jumped faster than a person moves.
         violations_in_intrusions: Violation episodes that an intrusion started (not in ``violations``).
         min_separation_m: Smallest separation (m), robot moving or not.
@@ -168,34 +198,41 @@ class MonitorTotals:
     worst: MonitorSample | None
     checks: int
     episodes: tuple[MonitorEpisode, ...] = ()
+    violations_person_faster: int = 0
+    harmful_contacts: int = 0
+    violations_measured_vh: int = 0
+    exceedance_s: float = 0.0
+    max_approach_mps: float = 0.0
+
+
+_KINDS = ("violation", "contact", "harmful_contact", "iso", "measured_vh")
 
 
 class GroundTruthMonitor:
     """Judges the robot against the true person at every check (see the module docstring).
 
     Args:
-        geometry: The robot's and the person's bodies (``pair_distances``, ``part_speeds``): the collision
-            model's capsules.
+        geometry: The robot's and the person's bodies (``pair_distances``, ``part_speeds``,
+            ``human_static_gaps``): the collision model's capsules.
         ssm: ``C``, ``Z_d``, ``Z_r`` (:class:`~app.safety.ssm.SSMParams`).
         part_names: The robot parts (capsules), in the geometry's order.
-        human_capsules: The person's capsules, in the geometry's order (their names say which are arm and
-            hand, for ISO 13855's 2.0 m/s).
+        human_capsules: The person's capsules, in the geometry's order (their names give their regions).
         reaction_time_s: ``T_r`` of the system (:func:`app.safety.stopping.reaction_time_s`).
         stopping: The robot's stopping model.
+        pfl: Power and force limiting (:class:`app.safety.pfl.PFLModel`); None or disabled: SSM alone (no
+            contact permitted anywhere, every contact harmful).
         standstill_radps: The robot is at standstill when every joint is slower than this (rad/s): 0.01 rad/s
             (0.57 deg/s), at most 1 cm/s at the UR5e's 0.85 m reach. Our choice, not a standard's figure: a
             robot held still by the supervisor settles onto its set-point with a tail of a few mrad/s that
             no one would call motion, while every commanded motion is far faster.
         near_band_m: The capsules of the person within this of the nearest one to a part count for the
-            directed speeds.
+            measured-speed stress figure's directed speeds.
         fd_step_s: Time step of the robot's directed speed (finite difference along ``qd``).
         intrusion_speed_mps: The true person moving like no person moves between two checks
             (:func:`is_intrusion` with this body speed) is an intrusion: a person appearing, or a recording
             or a tracker jumping. A violation episode that starts within the reaction time ``T_r`` of an
-            intrusion's last check (until then no system can have reacted to the jump; the jump itself,
-            spread over a few checks, may open the episode a check or two after it was seen) is the
-            intrusion's, not the planner's, until it ends (the robot at standstill or the separation
-            recovered): it is counted apart (``violations_in_intrusions``), never dropped.
+            intrusion's last check is the intrusion's until it ends: counted apart
+            (``violations_in_intrusions``), never dropped.
     """
 
     #: How many episodes :meth:`totals` lists (all are counted).
@@ -210,6 +247,7 @@ class GroundTruthMonitor:
         human_capsules: Sequence[str],
         reaction_time_s: float,
         stopping: StoppingModel = UR5E_STOP,
+        pfl: PFLModel | None = None,
         standstill_radps: float = 0.01,
         near_band_m: float = 0.05,
         fd_step_s: float = 1e-3,
@@ -226,30 +264,66 @@ class GroundTruthMonitor:
         self.near_band_m = float(near_band_m)
         self.fd_step_s = float(fd_step_s)
         self.intrusion_speed_mps = float(intrusion_speed_mps)
+        self.pfl = pfl if pfl is not None else PFLModel(tuple(human_capsules), enabled=False)
+        if len(self.pfl.capsules) != len(tuple(human_capsules)):
+            raise ValueError("the PFL model's capsules are not the person's capsules of the geometry")
+        self.regions = tuple(capsule_region(c) for c in human_capsules)
+        self.iso_speeds = self.pfl.iso_speeds_mps
+        self._pinnable = self.pfl.pinnable
+        self._use_pins = self.pfl.enabled and bool(self._pinnable.any())
         self.intrusions = 0
         self.violations_in_intrusions = 0
+        self.violations_person_faster = 0
         self._intrusion_t = -math.inf  # time of the last check that saw an intrusion
-        self._episode_intrusion = False  # the open violation episode is an intrusion's
+        self._faster_t = (
+            -math.inf
+        )  # time of the last check at which the person approached faster than assumed
         self._open: dict[str, _OpenEpisode] = {}  # the episodes under way, by kind
         self.episodes: list[MonitorEpisode] = []
         # judged on the true person, the sensing uncertainty Z_d is not added: it stands for the difference
         # between the measured and the true person, which the judge does not have (a system that keeps the
         # *measured* separation above S_p keeps the true one above S_p - Z_d)
         self._constant_m = float(ssm.intrusion_m + ssm.z_robot_m)
-        arm = [any(w in name for w in _ARM_WORDS) for name in human_capsules]
-        self.iso_speeds = np.where(arm, ISO13855_SPEEDS["arm"], ISO13855_SPEEDS["body"])
         self.checks = 0
-        self.violations = 0
-        self.contacts = 0
-        self.violations_iso = 0
+        self.counts = dict.fromkeys(_KINDS, 0)
         self.violation_time_s = 0.0
+        self.exceedance_s = 0.0
+        self.max_approach_mps = 0.0
         self.min_separation_m = math.inf
         self.min_separation_moving_m = math.inf
         self.worst: MonitorSample | None = None
-        self._in = {"violation": False, "contact": False, "iso": False}
+        self._in = dict.fromkeys(_KINDS, False)
         self._last_t: float | None = None
 
+    @property
+    def violations(self) -> int:
+        return self.counts["violation"]
+
+    @property
+    def contacts(self) -> int:
+        return self.counts["contact"]
+
+    @property
+    def harmful_contacts(self) -> int:
+        return self.counts["harmful_contact"]
+
+    @property
+    def violations_iso(self) -> int:
+        return self.counts["iso"]
+
+    @property
+    def violations_measured_vh(self) -> int:
+        return self.counts["measured_vh"]
+
     # ------------------------------------------------------------------------------------------------
+    def caps_mps(self, joints: np.ndarray) -> np.ndarray:
+        """(M,) each capsule's permissible contact speed (m/s) with the person at ``joints``: quasi-static
+        where a hand or forearm lies on the scene; -1 where no contact is permitted (or PFL is off)."""
+        if not self._use_pins:
+            return self.pfl.caps_mps(None)
+        gaps = np.asarray(self.geometry.human_static_gaps(joints), dtype=np.float64)
+        return self.pfl.caps_mps(pinned_capsules(gaps, self._pinnable, pin_gap_m=self.pfl.pin_gap_m))
+
     def check(
         self,
         t: float,
@@ -260,7 +334,7 @@ class GroundTruthMonitor:
         dt: float,
     ) -> MonitorSample:
         """Judge the robot at ``q``, ``qd`` (6,) against the true person at ``joints`` (J, 3), who was at
-        ``joints_before`` ``dt`` seconds earlier. Returns the worst part of this check."""
+        ``joints_before`` ``dt`` seconds earlier. Returns the worst pair of this check."""
         q = np.asarray(q, dtype=np.float64).reshape(6)
         qd = np.asarray(qd, dtype=np.float64).reshape(6)
         joints = np.asarray(joints, dtype=np.float64)
@@ -268,9 +342,10 @@ class GroundTruthMonitor:
         tick = 0.0 if self._last_t is None else max(float(t) - self._last_t, 0.0)
         self._last_t = float(t)
         self.checks += 1
-        if dt > 0 and is_intrusion(
+        jumped = dt > 0 and is_intrusion(
             np.linalg.norm(joints - before, axis=1) / dt, body_mps=self.intrusion_speed_mps
-        ):
+        )
+        if jumped:
             self.intrusions += 1
             self._intrusion_t = float(t)
         w_top = float(np.abs(qd).max())
@@ -284,38 +359,81 @@ class GroundTruthMonitor:
             i = int(np.argmin(sep))
             return MonitorSample(t, self._part(i), float(sep[i]), 0.0, 0.0, 0.0, False, False)
         self.min_separation_moving_m = min(self.min_separation_moving_m, float(sep.min()))
-        near = d0 <= sep[:, None] + self.near_band_m
-        v_h_pair = np.maximum(d[1] - d0, 0.0) / dt if dt > 0 else np.zeros_like(d0)
+        v_true = np.maximum(d[1] - d0, 0.0) / dt if dt > 0 else np.zeros_like(d0)  # (L, M)
         h = self.fd_step_s
         d_ahead = self.geometry.pair_distances(q + h * qd, joints[None])[0]
-        v_r_pair = np.maximum(d0 - d_ahead, 0.0) / h
-        v_h = np.where(near, v_h_pair, 0.0).max(axis=1)
-        v_r = np.where(near, v_r_pair, 0.0).max(axis=1)
+        v_r = np.maximum(d0 - d_ahead, 0.0) / h  # (L, M) each part's speed toward each capsule
         v_top = float(np.asarray(self.geometry.part_speeds(q[None], qd[None])).max())
-        t_s = self.stopping.stop_time_s(v_top, w_top)
+        t_s = float(self.stopping.stop_time_s(v_top, w_top))
         s_s = self.stopping.stop_distance_m(v_r, t_s)
         t_r, c = self.t_r, self._constant_m
-        req = required_separation(v_h, v_r, t_reaction_s=t_r, t_stop_s=t_s, constant_m=c, stop_distance_m=s_s)
-        margin = sep - req
-        i = int(np.argmin(margin))
-        violation = bool(margin[i] < 0.0)
-        contact = bool(sep.min() <= 0.0)
-        # ISO 13855's constant speeds, per pair of capsules
-        req_iso = required_separation(
-            self.iso_speeds[None, :], v_r[:, None], t_reaction_s=t_r, t_stop_s=t_s, constant_m=c,
-            stop_distance_m=s_s[:, None],
-        )  # fmt: skip
-        iso = bool(np.any(d0 < req_iso))
-        sample = MonitorSample(
-            t, self._part(i), float(sep[i]), float(req[i]), float(v_r[i]), float(v_h[i]), violation, contact
+
+        def s_p(v_h: np.ndarray) -> np.ndarray:
+            return required_separation(
+                v_h, v_r, t_reaction_s=t_r, t_stop_s=t_s, constant_m=c, stop_distance_m=s_s
+            )
+
+        # the safety model: ISO 13855's person (the true speed where faster), SSM with PFL
+        v_h = np.maximum(self.iso_speeds[None, :], v_true)
+        req = s_p(v_h)
+        caps = self.caps_mps(joints)
+        above = v_r > caps[None, :]  # faster toward the region than permitted (any speed: no contact allowed)
+        inside = d0 < req
+        bad = inside & above
+        margin = np.where(above, d0 - req, np.inf)
+        # the check's sample: its worst violating pair, else its nearest pair
+        pick = np.where(bad, d0 - req, np.inf) if bad.any() else d0
+        i, m = np.unravel_index(int(np.argmin(pick)), d0.shape)
+        violation = bool(bad.any())
+        contact_pairs = d0 <= 0.0
+        contact = bool(contact_pairs.any())
+        harmful = bool((contact_pairs & above).any())
+        if contact:  # the episode's sample is the contact's fastest pair
+            i, m = np.unravel_index(
+                int(np.argmax(np.where(contact_pairs, v_r - caps[None, :], -np.inf))), d0.shape
+            )
+        # the residual risk: the true person approached within S_p faster than assumed (a jump no person
+        # makes is an intrusion, counted apart)
+        faster = (v_true > self.iso_speeds[None, :]) & inside
+        if faster.any() and not jumped:
+            self._faster_t = float(t)
+            self.exceedance_s += tick
+            self.max_approach_mps = max(self.max_approach_mps, float(v_true[faster].max()))
+        # stress figures, SSM alone: the true measured speed (near band), ISO 13855's constant speeds
+        near = d0 <= sep[:, None] + self.near_band_m
+        v_near = np.where(near, v_true, 0.0).max(axis=1)
+        r_near = np.where(near, v_r, 0.0).max(axis=1)
+        s_s_near = self.stopping.stop_distance_m(r_near, t_s)
+        req_meas = required_separation(
+            v_near, r_near, t_reaction_s=t_r, t_stop_s=t_s, constant_m=c, stop_distance_m=s_s_near
         )
-        if self.worst is None or margin[i] < self.worst.separation_m - self.worst.required_m:
+        measured_vh = bool(np.any(sep < req_meas))
+        iso = bool(np.any(d0 < s_p(self.iso_speeds[None, :])))
+        sample = MonitorSample(
+            t,
+            self._part(int(i)),
+            float(d0[i, m]),
+            float(req[i, m]),
+            float(v_r[i, m]),
+            float(v_true[i, m]),
+            violation,
+            contact,
+            self.regions[int(m)],
+            float(caps[m]),
+        )
+        mg = float(d0[i, m] - req[i, m])
+        # the worst check: the least S_p margin of a pair that PFL does not cover
+        if np.isfinite(margin[i, m]) and (
+            self.worst is None or mg < self.worst.separation_m - self.worst.required_m
+        ):
             self.worst = sample
         if violation:
             self.violation_time_s += tick
-        self._episode("violation", violation, sample, float(margin[i]))
-        self._episode("contact", contact, sample, float(margin[i]))
-        self._episode("iso", iso, sample, float(margin[i]))
+        self._episode("violation", violation, sample, mg)
+        self._episode("contact", contact, sample, -float(v_r[i, m]))
+        self._episode("harmful_contact", harmful, sample, -float(v_r[i, m]))
+        self._episode("iso", iso, sample, mg)
+        self._episode("measured_vh", measured_vh, sample, mg)
         return sample
 
     def totals(self) -> MonitorTotals:
@@ -333,6 +451,11 @@ class GroundTruthMonitor:
             checks=self.checks,
             # the episodes that ended, then those still under way (the trial may end inside one)
             episodes=tuple(self.episodes) + tuple(rec.episode(kind) for kind, rec in self._open.items()),
+            violations_person_faster=self.violations_person_faster,
+            harmful_contacts=self.harmful_contacts,
+            violations_measured_vh=self.violations_measured_vh,
+            exceedance_s=round(self.exceedance_s, 6),
+            max_approach_mps=round(self.max_approach_mps, 4),
         )
 
     # ------------------------------------------------------------------------------------------------
@@ -344,27 +467,30 @@ class GroundTruthMonitor:
             self._end(kind)
             return
         if not self._in[kind]:
+            intrusion = person_faster = False
             if kind == "violation":
-                self._episode_intrusion = sample.t - self._intrusion_t <= self.t_r
-                if self._episode_intrusion:
+                intrusion = sample.t - self._intrusion_t <= self.t_r
+                # a person faster than assumed, within the time the robot needs to react and stop
+                person_faster = not intrusion and sample.t - self._faster_t <= self.t_r + self._stop_s(sample)
+                if intrusion:
                     self.violations_in_intrusions += 1
+                elif person_faster:
+                    self.violations_person_faster += 1
                 else:
-                    self.violations += 1
-            elif kind == "contact":
-                self.contacts += 1
+                    self.counts[kind] += 1
             else:
-                self.violations_iso += 1
+                self.counts[kind] += 1
             self._in[kind] = True
-            if kind != "iso":
-                intrusion = kind == "violation" and self._episode_intrusion
-                self._open[kind] = _OpenEpisode(sample, sample, margin_m, sample.t, intrusion)
+            if kind in ("violation", "contact", "harmful_contact"):
+                self._open[kind] = _OpenEpisode(sample, sample, margin_m, sample.t, intrusion, person_faster)
         elif kind in self._open:
             self._open[kind].update(sample, margin_m)
 
+    def _stop_s(self, sample: MonitorSample) -> float:
+        return float(self.stopping.stop_time_s(max(sample.robot_speed_mps, 0.0), 0.0))
+
     def _end(self, kind: str) -> None:
         self._in[kind] = False
-        if kind == "violation":
-            self._episode_intrusion = False
         rec = self._open.pop(kind, None)
         if rec is not None and len(self.episodes) < self.MAX_EPISODES:
             self.episodes.append(rec.episode(kind))
@@ -383,11 +509,18 @@ class _OpenEpisode:
     worst_margin_m: float
     last_t: float
     intrusion: bool
+    person_faster: bool
 
     def episode(self, kind: str) -> MonitorEpisode:
         """The episode so far."""
         return MonitorEpisode(
-            kind, self.intrusion, self.first.t, self.last_t - self.first.t, self.first, self.worst
+            kind,
+            self.intrusion,
+            self.first.t,
+            self.last_t - self.first.t,
+            self.first,
+            self.worst,
+            self.person_faster,
         )
 
     def update(self, sample: MonitorSample, margin_m: float) -> None:

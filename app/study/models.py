@@ -175,6 +175,12 @@ class TrialMetricsRow(Base):
     contacts: Mapped[int] = mapped_column(Integer, server_default="0")
     violation_time_s: Mapped[float] = mapped_column(Float, server_default="0")
     violations_iso: Mapped[int] = mapped_column(Integer, server_default="0")
+    # revision 0007, the judge of ISO 13855's person with PFL; NULL: a trial judged before it
+    violations_person_faster: Mapped[int | None] = mapped_column(Integer)
+    harmful_contacts: Mapped[int | None] = mapped_column(Integer)
+    violations_measured_vh: Mapped[int | None] = mapped_column(Integer)
+    exceedance_s: Mapped[float | None] = mapped_column(Float)
+    max_approach_mps: Mapped[float | None] = mapped_column(Float)
     intrusions: Mapped[int] = mapped_column(Integer, server_default="0")
     min_separation_moving_m: Mapped[float | None] = mapped_column(Float)
     time_stopped_s: Mapped[float] = mapped_column(Float)
@@ -222,6 +228,11 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "contacts",
     "violation_time_s",
     "violations_iso",
+    "violations_person_faster",
+    "harmful_contacts",
+    "violations_measured_vh",
+    "exceedance_s",
+    "max_approach_mps",
     "intrusions",
     "min_separation_moving_m",
     "time_stopped_s",

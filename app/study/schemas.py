@@ -118,6 +118,11 @@ class TrialMetricsRead(_Out):
     contacts: int = 0
     violation_time_s: float = 0.0
     violations_iso: int = 0
+    violations_person_faster: int | None = None
+    harmful_contacts: int | None = None
+    violations_measured_vh: int | None = None
+    exceedance_s: float | None = None
+    max_approach_mps: float | None = None
     intrusions: int = 0
     min_separation_moving_m: float | None = None
     time_stopped_s: float

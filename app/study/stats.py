@@ -46,7 +46,10 @@ REPORT_METRICS: tuple[str, ...] = (
     "mean_speed_scale",
     "stop_replans_moving",
     "violations",
+    "violations_person_faster",
     "contacts",
+    "harmful_contacts",
+    "exceedance_s",
 )
 METRIC_LABELS: dict[str, str] = {
     "completed_tasks": "Completed tasks",
@@ -59,7 +62,10 @@ METRIC_LABELS: dict[str, str] = {
     "mean_speed_scale": "Mean speed scale under way",
     "stop_replans_moving": "Stop & replans under way",
     "violations": "Violations (ground truth)",
+    "violations_person_faster": "Violations, person faster than assumed",
     "contacts": "Contacts (ground truth)",
+    "harmful_contacts": "Harmful contacts (ground truth)",
+    "exceedance_s": "Person faster than assumed (s)",
 }
 #: The time budget's parts (:data:`app.control.counters.TIME_BUDGET`) as the trial rows store them, and their
 #: names for people (the dashboard's).

@@ -367,7 +367,8 @@ def score_outcomes(outcomes: Sequence[TrialOutcome]) -> dict[str, Any]:
     ok = [o for o in outcomes if o.error is None and o.metrics is not None and o.status == "completed"]
     failed = len(outcomes) - len(ok)
     violations = sum(int(o.metrics.get("violations", 0)) for o in outcomes if o.metrics)
-    contacts = sum(int(o.metrics.get("contacts", 0)) for o in outcomes if o.metrics)
+    # contacts within the power and force limits are the safety model's; a harmful one is infeasible
+    contacts = sum(int(o.metrics.get("harmful_contacts") or 0) for o in outcomes if o.metrics)
     tasks = [float(o.metrics["completed_tasks"]) for o in ok]  # type: ignore[index]
     mean_tasks = sum(tasks) / len(outcomes) if outcomes else 0.0
     feasible = bool(outcomes) and failed == 0 and violations == 0 and contacts == 0
@@ -377,7 +378,7 @@ def score_outcomes(outcomes: Sequence[TrialOutcome]) -> dict[str, Any]:
         "feasible": feasible,
         "mean_completed_tasks": mean_tasks,
         "violations": violations,
-        "contacts": contacts,
+        "harmful_contacts": contacts,
         "failed": failed,
         "trials": len(outcomes),
         "wall_s": sum(o.wall_s for o in outcomes),
@@ -462,7 +463,15 @@ def _row(
     if metrics is None:
         row.update(score=None, feasible=False, error=error)
     else:
-        keys = ("score", "feasible", "mean_completed_tasks", "violations", "contacts", "failed", "wall_s")
+        keys = (
+            "score",
+            "feasible",
+            "mean_completed_tasks",
+            "violations",
+            "harmful_contacts",
+            "failed",
+            "wall_s",
+        )
         row.update({k: metrics.get(k) for k in keys})
     return row
 

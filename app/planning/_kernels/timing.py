@@ -71,6 +71,10 @@ class TimingGovernor(NamedTuple):
             brake_decel_mps2, brake_joint_decel, ahead, toward)``: ``ahead``, the governor's look-ahead in
             sample points; ``toward`` 1 where the governor takes the parts' speeds toward the person, 0
             where it takes their whole speeds.
+        caps: (M,) each person capsule's permissible contact speed (m/s; -1: no contact permitted): power
+            and force limiting (:func:`app.safety.pfl.pfl_levels`).
+        levels: (K,) the distinct values of ``caps`` and -1, ascending.
+        floors: (M,) each capsule's least approach speed (m/s): ISO 13855's (the measured one where faster).
     """
 
     separation: np.ndarray
@@ -78,6 +82,40 @@ class TimingGovernor(NamedTuple):
     scales: np.ndarray
     env_u: np.ndarray
     misc: np.ndarray
+    caps: np.ndarray
+    levels: np.ndarray
+    floors: np.ndarray
+
+
+@jit
+def pfl_extra(
+    d: np.ndarray,
+    v: np.ndarray,
+    caps: np.ndarray,
+    levels: np.ndarray,
+    band: float,
+    out: np.ndarray,
+    out_v: np.ndarray,
+) -> None:
+    """``out`` (L, K): each part's separation from the capsules whose permissible speed is at most each of
+    ``levels``, beyond its nearest separation (inf where none is), from the distances ``d`` (L, M); ``out_v``
+    (L, K): the fastest approach ``v`` (L, M) of those capsules within ``band`` of their nearest: the
+    compiled twin of :func:`app.safety.pfl.pfl_levels`."""
+    for p in range(d.shape[0]):
+        near = np.inf
+        for m in range(d.shape[1]):
+            near = min(near, d[p, m])
+        for k in range(levels.shape[0]):
+            best = np.inf
+            for m in range(d.shape[1]):
+                if caps[m] <= levels[k]:
+                    best = min(best, d[p, m])
+            out[p, k] = max(best - near, 0.0) if best < np.inf else np.inf
+            vk = 0.0 if best < np.inf else np.inf
+            for m in range(d.shape[1]):
+                if caps[m] <= levels[k] and d[p, m] <= best + band:
+                    vk = max(vk, v[p, m])
+            out_v[p, k] = vk
 
 
 @jit
@@ -151,6 +189,9 @@ def predicted_scales(
     toward = np.empty(n_parts)
     sep_now = np.empty(n_parts)
     d2 = np.empty((n_parts, n_caps))
+    extra = np.empty((n_parts, gov.levels.shape[0]))
+    v_lv = np.empty((n_parts, gov.levels.shape[0]))
+    v_pairs = np.empty((n_parts, n_caps))
     ahead = int(gov.misc[8])
     half = 0.5 * window
     for i in range(n):
@@ -168,9 +209,11 @@ def predicted_scales(
                     sep = min(sep, d0[p, m])
                 v_h = 0.0  # the directed approach (app.safety.governor.directed_approach)
                 for m in range(n_caps):
+                    v_m = max(max(d1[p, m] - d0[p, m], 0.0) / max(window, 1e-6) + noise, gov.floors[m])
+                    v_pairs[p, m] = v_m
                     if d0[p, m] <= sep + band:
-                        v_h = max(v_h, max(d1[p, m] - d0[p, m], 0.0) / max(window, 1e-6))
-                vh0[p] = v_h + noise
+                        v_h = max(v_h, v_m)
+                vh0[p] = v_h
                 sep_now[p] = sep
                 toward[p] = -np.inf if gov.misc[9] > 0.0 else vp[p]
                 x0, _ = _approach(vh0[p], half, v_max_h, accel)
@@ -196,9 +239,25 @@ def predicted_scales(
                 rate = decel / vtop
             if w_top > 1e-9:
                 rate = min(rate, jdecel / w_top)
-            s = max_scale(sep_lb, v1, toward, rate, 0.0, 1.0, gov.scales, gov.env_u, gov.separation)
+            pfl_extra(d0, v_pairs, gov.caps, gov.levels, band, extra, v_lv)
+            if accel > 0.0:  # a person who may speed up: the part's grown worst case alone
+                v_lv[:, :] = np.inf
+            s = max_scale(
+                sep_lb,
+                v1,
+                toward,
+                rate,
+                0.0,
+                1.0,
+                gov.scales,
+                gov.env_u,
+                gov.separation,
+                gov.levels,
+                extra,
+                v_lv,
+            )
             if gov.law.shape[0] > 0:
-                s = min(s, max(law_scale(sep_lb, toward, vh0, gov.law), 0.0))
+                s = min(s, max(law_scale(sep_lb, toward, vh0, gov.law, gov.levels, extra, v_lv), 0.0))
         scales[i] = max(s, min_scale)
         t[i + 1] = t[i] + (tau[i + 1] - tau[i]) / scales[i]
     return t, scales

@@ -13,11 +13,18 @@ from app.control.metrics import TrialMetrics
 from app.study.db import DatabaseError, alembic_config, current_revision, make_engine, upgrade_to_head
 from app.study.models import METRIC_COLUMNS, Base, TrialMetricsRow, UTCDateTime
 
-HEAD = "0006"
+HEAD = "0007"
 #: The ground-truth monitor's columns (revision 0004).
 _SAFETY_0004 = ("contacts", "violation_time_s", "violations_iso", "intrusions", "min_separation_moving_m")
 #: The time budget's wait for the person and the stops of a moving robot, counted apart (revision 0006).
 _PERSON_0006 = ("budget_waiting_for_person_s", "stop_replans_moving")
+_PFL_0007 = (
+    "violations_person_faster",
+    "harmful_contacts",
+    "violations_measured_vh",
+    "exceedance_s",
+    "max_approach_mps",
+)
 #: The time budget's and the arrivals' columns (revision 0005).
 _BUDGET_0005 = tuple(
     c for c in METRIC_COLUMNS if c.startswith(("budget_", "arrival", "median_plan")) and c not in _PERSON_0006
@@ -83,7 +90,14 @@ def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
                     " status) VALUES (1, 1, 'proactive', 0, 7, '{}', '2026-01-01', 'completed')"
                 )
             )
-            later = ("time_moving_s", "mean_speed_scale", *_SAFETY_0004, *_BUDGET_0005, *_PERSON_0006)
+            later = (
+                "time_moving_s",
+                "mean_speed_scale",
+                *_SAFETY_0004,
+                *_BUDGET_0005,
+                *_PERSON_0006,
+                *_PFL_0007,
+            )
             cols = [c for c in METRIC_COLUMNS if c not in later]
             conn.execute(
                 text(
@@ -104,6 +118,8 @@ def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
             assert [tuple(r) for r in budget] == [(None,) * 12]  # no time budget kept then: unknown, not 0
             person = conn.execute(text(f"SELECT {', '.join(_PERSON_0006)} FROM trial_metrics"))
             assert [tuple(r) for r in person] == [(None, None)]
+            pfl = conn.execute(text(f"SELECT {', '.join(_PFL_0007)} FROM trial_metrics"))
+            assert [tuple(r) for r in pfl] == [(None,) * 5]  # judged by another judge then: unknown, not 0
             keys = conn.execute(text("SELECT id, trial_key, setting_label FROM trials"))
             assert [tuple(r) for r in keys] == [(1, None, None)]
     finally:
