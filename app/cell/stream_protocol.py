@@ -184,7 +184,8 @@ def _check_units(pts: np.ndarray, units: str) -> None:
     seen = pts[np.all(np.isfinite(pts), axis=1)]
     if len(seen) < 2:
         return
-    span = float(np.max(np.ptp(seen, axis=0)))
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e308 - (-1e308) is inf: refused as well
+        span = float(np.max(np.ptp(seen, axis=0)))
     if span < MIN_SPAN.get(units, 0.0):
         raise FrameRejected(
             "wrong_units",
