@@ -62,7 +62,9 @@ def test_trial_over_rest_runs_the_runtime_and_stores_metrics(sim_client: TestCli
     assert r.status_code == 201, r.text
     trial_id = r.json()["id"]
     again = c.post(
-        "/api/trials", json={"participant_id": p["id"], "method": "reactive", "duration_s": 10.0}, headers=AUTH
+        "/api/trials",
+        json={"participant_id": p["id"], "method": "reactive", "duration_s": 10.0},
+        headers=AUTH,
     )
     assert again.status_code == 409 and f"trial {trial_id}" in again.json()["detail"]
     with c.websocket_connect(f"/api/live?token={TOKEN}") as ws:  # the live view follows the trial
