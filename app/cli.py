@@ -11,7 +11,7 @@ import json
 import pkgutil
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
 
@@ -33,6 +33,32 @@ app = typer.Typer(
 @app.callback()
 def _root() -> None:
     """Proactive human-aware motion planning for a UR5e working beside a person."""
+    _check_environment()
+
+
+def _check_environment() -> None:
+    """Warn about every ``HRC_`` variable that is no setting (naming the nearest one), or stop (exit 2) with
+    ``HRC_STRICT_SETTINGS=true``."""
+    import os
+
+    from app.config import strict_settings, unknown_environment_settings
+
+    try:
+        strict = strict_settings(os.environ)
+    except ValueError as exc:
+        _fail(str(exc))
+    problems = unknown_environment_settings(os.environ)
+    for message in problems:
+        typer.echo(f"{'error' if strict else 'warning'}: {message}", err=True)
+    if problems and strict:
+        raise typer.Exit(2)
+
+
+def _fail(message: str, *, code: int = 2) -> NoReturn:
+    """Print ``error: message`` on one line (never cut, whatever the terminal's width or the length of a
+    path in it) and exit with ``code``: for errors a person can act on, no traceback."""
+    typer.echo("error: " + " ".join(line.strip() for line in message.splitlines()), err=True)
+    raise typer.Exit(code)
 
 
 def _bench_names() -> list[str]:
