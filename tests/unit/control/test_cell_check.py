@@ -241,6 +241,7 @@ def test_cli_names_a_missing_or_unreadable_clip_whatever_the_terminal(
     bad = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(missing)])
     assert bad.exit_code == 2, bad.output
     assert "nobody.npz" in bad.output and "does not exist" in bad.output and "--clip" in bad.output
+    assert str(missing) in bad.output  # one plain line: the whole path, neither cut nor folded at 40 columns
     np.savez(deep / "wrong.npz", something=np.zeros(3))
     wrong = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(deep / "wrong.npz")])
     assert wrong.exit_code == 2 and "wrong.npz" in wrong.output and "Traceback" not in wrong.output
