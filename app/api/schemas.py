@@ -86,6 +86,7 @@ class TrialStart(BaseModel):
     duration_s: float = Field(
         le=MAX_TRIAL_DURATION_S,
         description=f"trial length (s), {MIN_TRIAL_DURATION_S:g} to {MAX_TRIAL_DURATION_S:g}",
+        json_schema_extra={"minimum": MIN_TRIAL_DURATION_S},  # checked below, with a message that says why
     )
     seed: int | None = Field(None, ge=0, le=2**32 - 1, description="default: drawn at random and stored")
     session_id: Id | None = None

@@ -143,8 +143,12 @@ def test_ingest_rejects_bad_messages_without_harming_the_runtime(tmp_path: Path)
             err = ws.receive_json()
             assert err["code"] == "rejected" and "joint_count" in err["detail"]
             ws.send_text("not json at all")
-            assert ws.receive_json()["code"] == "malformed"
+            err = ws.receive_json()
+            assert (err["code"], err["reason"]) == ("rejected", "malformed")
             ws.send_text(json.dumps(good[1]))
+        rejected = c.get("/api/state", headers=AUTH).json()["frames_rejected"]  # each counted by reason
+        assert rejected["total"] == 3
+        assert [rejected["by_reason"][r] for r in ("non_finite", "joint_count", "malformed")] == [1, 1, 1]
         with c.websocket_connect(f"/api/ingest?token={TOKEN}") as ws:  # too fast: 100 at once
             ws.receive_json()
             codes = []
