@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from app.commands import fail, load_workcell_or_fail
 from app.commands.cell import cell_app
 from app.commands.hmp import hmp_app
 
@@ -24,6 +25,9 @@ if TYPE_CHECKING:
 
 app = typer.Typer(
     name="hrc",
+    # errors and help as plain text: a rich panel folds or cuts a message (a long path) to the terminal's
+    # width; a usage error is one "Error: ..." line that a narrow terminal wraps, never truncates
+    rich_markup_mode=None,
     help="Proactive human-aware motion planning for a UR5e working beside a person.",
     no_args_is_help=True,
     add_completion=False,
@@ -33,6 +37,25 @@ app = typer.Typer(
 @app.callback()
 def _root() -> None:
     """Proactive human-aware motion planning for a UR5e working beside a person."""
+    _check_environment()
+
+
+def _check_environment() -> None:
+    """Warn about every ``HRC_`` variable that is no setting (naming the nearest one), or stop (exit 2) with
+    ``HRC_STRICT_SETTINGS=true``."""
+    import os
+
+    from app.config import strict_settings, unknown_environment_settings
+
+    try:
+        strict = strict_settings(os.environ)
+    except ValueError as exc:
+        fail(str(exc))
+    problems = unknown_environment_settings(os.environ)
+    for message in problems:
+        typer.echo(f"{'error' if strict else 'warning'}: {message}", err=True)
+    if problems and strict:
+        raise typer.Exit(2)
 
 
 def _bench_names() -> list[str]:
@@ -66,7 +89,7 @@ app.add_typer(hmp_app, name="hmp")
 
 # --- study records (app.study) --------------------------------------------------------------------------
 
-db_app = typer.Typer(help="Study database: migrations.", no_args_is_help=True)
+db_app = typer.Typer(help="Study database: migrations.", no_args_is_help=True, rich_markup_mode=None)
 app.add_typer(db_app, name="db")
 
 _DbUrl = Annotated[
@@ -98,10 +121,10 @@ def _load_settings(path: Path | None, **given: object) -> Settings:
         overrides = load_settings_file(path) if path is not None else {}
         return Settings(**{**overrides, **{k: v for k, v in given.items() if v is not None}})
     except SettingsFileError as exc:
-        raise typer.BadParameter(str(exc), param_hint="--settings") from exc
+        fail(f"--settings: {exc}")
     except ValidationError as exc:
         msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise typer.BadParameter(msgs) from exc
+        fail(f"invalid settings (HRC_* variables, --settings file, options): {msgs}")
 
 
 def _with_study(url: str | None, run: Callable[[StudyRepository], Any]) -> Any:
@@ -429,11 +452,11 @@ def serve(
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings = _load_settings(settings_file, host=host, port=port, viser_port=viser_port)  # validated
+    load_workcell_or_fail(settings)  # a missing or invalid cell: one line with the file and the field
     try:
         run_server(settings, log_level=log_level, echo=lambda text: typer.echo(text, err=True))
     except TokenError as exc:  # the message says which file and what to do; no traceback needed
-        typer.echo(f"error: {exc}", err=True)
-        raise typer.Exit(2) from exc
+        fail(str(exc))
 
 
 @app.command()

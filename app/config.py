@@ -6,6 +6,7 @@ angles in radians, times in seconds.
 
 from __future__ import annotations
 
+import difflib
 import math
 import tomllib
 from collections.abc import Mapping
@@ -276,6 +277,10 @@ class Settings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="HRC_", env_file=".env", extra="ignore")
 
+    strict_settings: bool = Field(
+        False, description="an unknown HRC_ variable stops the start (default: a warning naming the nearest)"
+    )
+
     # server
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=1, le=65535)
@@ -497,6 +502,46 @@ class Settings(BaseSettings):
 
     def load_workcell(self) -> WorkCell:
         return load_workcell(self.workcell)
+
+
+#: The prefix of the environment variables of :class:`Settings`.
+ENV_PREFIX = "HRC_"
+
+
+def unknown_environment_settings(environ: Mapping[str, str]) -> list[str]:
+    """One message per ``HRC_`` variable in ``environ`` that is no setting (a misspelt one is otherwise
+    ignored without a word), naming the nearest known variable when one is close
+    (``HRC_API_TOKN is not a setting; did you mean HRC_API_TOKEN?``)."""
+    known = [name.upper() for name in Settings.model_fields]
+    out = []
+    for key in sorted(environ):
+        name = key.upper()
+        if not name.startswith(ENV_PREFIX) or name.removeprefix(ENV_PREFIX) in known:
+            continue
+        # compared without the prefix that all share, which would make every name look near
+        near = difflib.get_close_matches(name.removeprefix(ENV_PREFIX), known, n=1, cutoff=0.6)
+        hint = (
+            f"did you mean {ENV_PREFIX}{near[0]}?"
+            if near
+            else "the settings are listed in the README (Settings)"
+        )
+        out.append(f"{key} is not a setting; {hint}")
+    return out
+
+
+def strict_settings(environ: Mapping[str, str]) -> bool:
+    """Whether ``HRC_STRICT_SETTINGS`` in ``environ`` asks to stop on an unknown ``HRC_`` variable.
+
+    Raises:
+        ValueError: the variable is not a boolean (``true``/``false``, ``1``/``0``, ...).
+    """
+    from pydantic import TypeAdapter
+
+    raw = next((v for k, v in environ.items() if k.upper() == f"{ENV_PREFIX}STRICT_SETTINGS"), "false")
+    try:
+        return TypeAdapter(bool).validate_python(raw)
+    except ValidationError:
+        raise ValueError(f"{ENV_PREFIX}STRICT_SETTINGS must be true or false, got {raw!r}") from None
 
 
 class SettingsFileError(ValueError):

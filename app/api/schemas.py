@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from fastapi import Path, Query
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from app.study.schemas import TrialEventRead, TrialRead
 
@@ -22,6 +22,10 @@ LimitQuery = Annotated[int, Query(ge=1, le=1000, description="most rows to retur
 
 #: Longest trial the API starts (s).
 MAX_TRIAL_DURATION_S = 3600.0
+#: Shortest trial the API starts (s): time for one task (the robot fetches a block from the conveyor and
+#: places it at a drop station: about 8 s in the shipped cell with nobody in the way), or the trial measures
+#: nothing.
+MIN_TRIAL_DURATION_S = 10.0
 
 
 class ErrorRead(BaseModel):
@@ -58,6 +62,7 @@ class InfoRead(BaseModel):
     human_source: Literal["sim", "replay", "stream"]
     read_only_open: bool
     methods: list[str]
+    min_trial_duration_s: float
     max_trial_duration_s: float
     live_rate_hz: float
     ingest_max_bytes: int
@@ -69,15 +74,32 @@ class InfoRead(BaseModel):
 
 
 class TrialStart(BaseModel):
-    """Start a trial: the runtime runs ``method`` for ``duration_s`` beside participant ``participant_id``."""
+    """Start a trial: the runtime runs ``method`` for ``duration_s`` beside participant ``participant_id``.
 
-    model_config = ConfigDict(extra="forbid")
+    Strict types: ids and the seed are JSON integers, the duration a JSON number (``true`` or ``"60"`` is a
+    422, not 1 or 60)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     participant_id: Id
     method: Method
-    duration_s: float = Field(gt=0, le=MAX_TRIAL_DURATION_S, description="trial length (s)")
+    duration_s: float = Field(
+        le=MAX_TRIAL_DURATION_S,
+        description=f"trial length (s), {MIN_TRIAL_DURATION_S:g} to {MAX_TRIAL_DURATION_S:g}",
+        json_schema_extra={"minimum": MIN_TRIAL_DURATION_S},  # checked below, with a message that says why
+    )
     seed: int | None = Field(None, ge=0, le=2**32 - 1, description="default: drawn at random and stored")
     session_id: Id | None = None
+
+    @field_validator("duration_s")
+    @classmethod
+    def _long_enough_for_a_task(cls, value: float) -> float:
+        if not value >= MIN_TRIAL_DURATION_S:
+            raise ValueError(
+                f"a trial of {value:g} s is too short to hold one task; start one of at least "
+                f"{MIN_TRIAL_DURATION_S:g} s"
+            )
+        return value
 
 
 class TrialDetail(TrialRead):

@@ -8,6 +8,7 @@ the aborted trial, flushes the events and closes the database.
 from __future__ import annotations
 
 import logging
+import re
 import threading
 from collections.abc import Callable
 from types import FrameType
@@ -20,6 +21,37 @@ logger = logging.getLogger(__name__)
 
 #: Seconds uvicorn waits for open connections at shutdown before closing them.
 GRACEFUL_SHUTDOWN_S = 5.0
+
+#: A secret in a URL's query (``?token=...``, ``&access_token=...``): its value is never logged.
+_SECRET_QUERY = re.compile(r"(?i)([?&](?:token|access_token|api_token)=)[^&#\s\"']*")
+#: The loggers that write request lines: uvicorn's access log and its error log (WebSocket handshakes).
+REDACTED_LOGGERS = ("uvicorn.access", "uvicorn.error", "uvicorn")
+
+
+def redact_secrets(text: str) -> str:
+    """``text`` with the value of every ``token`` query parameter replaced by ``***``."""
+    return _SECRET_QUERY.sub(r"\1***", text)
+
+
+class RedactSecrets(logging.Filter):
+    """Replaces the operator token in logged URLs (``/api/live?token=...``) before any handler sees it."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str):
+            record.msg = redact_secrets(record.msg)
+        if isinstance(record.args, tuple):
+            record.args = tuple(redact_secrets(a) if isinstance(a, str) else a for a in record.args)
+        elif isinstance(record.args, dict):
+            record.args = {k: redact_secrets(v) if isinstance(v, str) else v for k, v in record.args.items()}
+        return True
+
+
+def install_log_redaction() -> None:
+    """Put :class:`RedactSecrets` on the loggers of :data:`REDACTED_LOGGERS` (once each)."""
+    for name in REDACTED_LOGGERS:
+        logger_ = logging.getLogger(name)
+        if not any(isinstance(f, RedactSecrets) for f in logger_.filters):
+            logger_.addFilter(RedactSecrets())
 
 
 def _uvicorn_server_class() -> type:
@@ -91,6 +123,7 @@ def run_server(
         limit_concurrency=512,
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
     )
+    install_log_redaction()  # after uvicorn.Config, which configures its loggers
     server = _uvicorn_server_class()(config, app)
     if settings.host not in ("127.0.0.1", "localhost", "::1"):
         logger.warning(

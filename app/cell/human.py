@@ -259,8 +259,10 @@ class StreamSource:
       (``missing_joints``).
     - Time: a message's ``t`` (the sender's clock) is mapped onto the runtime clock by the smallest observed
       ``t_received - t`` over the last ``offset_window`` messages (the least-delayed message), keeping the
-      sender's frame spacing; a jump of the sender's clock by more than 1 s restarts the estimate. Without
-      ``t`` the receive time is the frame time.
+      sender's frame spacing; a forward jump of the sender's clock by more than 1 s restarts the estimate.
+      A ``t`` before the previous frame's is rejected (``backwards_timestamp``) until the sender's clock
+      has stayed back for ``REBASE_AFTER_S`` (it restarted): then the estimate restarts. Without ``t`` the
+      receive time is the frame time.
 
     Args:
         max_queue: Frames kept (the oldest are dropped first, and counted).
@@ -272,6 +274,12 @@ class StreamSource:
 
     #: Frames are validated on push (see :class:`~app.cell.validation.ValidatedSource`).
     validates_frames = True
+    #: How far (s) the sender's ``t`` may go back before a message is rejected (``backwards_timestamp``);
+    #: a frame that lands before the previous one on the runtime clock is rejected by validation anyway.
+    BACKWARDS_TOLERANCE_S = 0.001
+    #: A sender whose ``t`` stays back this long (s, receive time) restarted its clock: the offset is
+    #: estimated again (the stream was stale meanwhile, and the robot stopped).
+    REBASE_AFTER_S = 1.0
 
     def __init__(
         self,
@@ -291,12 +299,16 @@ class StreamSource:
         self.max_missing_joints = int(max_missing_joints)
         self._frames: deque[HumanFrame] = deque(maxlen=int(max_queue))
         self._offsets: deque[float] = deque(maxlen=int(offset_window))
+        self._last_sender_t: float | None = None
+        self._backwards_since: float | None = None
         self._lock = threading.Lock()
         self.received = 0
         self.dropped = 0
 
     def push(self, message: dict[str, Any] | str | bytes, t_received: float) -> HumanFrame:
-        """Take one message received at ``t_received`` (s, runtime clock); returns the queued frame.
+        """Take one message (a dict, or its JSON text as received) received at ``t_received`` (s, runtime
+        clock); returns the queued frame. Every message is either queued or rejected with a reason and
+        counted, whatever it holds.
 
         Raises:
             FrameRejected: the message is malformed or the frame invalid (the reason is counted).
@@ -308,34 +320,59 @@ class StreamSource:
             try:
                 msg = parse_message(message)
                 joints, conf = to_canonical(msg, T_world_camera=self.T_world_camera)
+                missing = ~np.all(np.isfinite(joints), axis=1)
+                if np.any(missing):
+                    prev = self._frames[-1] if self._frames else None
+                    n_missing = int(missing.sum())
+                    if prev is None or n_missing > self.max_missing_joints:
+                        why = "no previous frame to fill them from" if prev is None else "too many"
+                        names = [JOINTS[i] for i in np.nonzero(missing)[0]]
+                        raise FrameRejected("missing_joints", f"{n_missing} joints not seen ({why}): {names}")
+                    joints = np.where(missing[:, None], prev.joints, joints)
+                    conf = np.where(missing, 0.0, conf)
+                t = self._frame_time(msg.t, float(t_received))
             except FrameRejected as exc:
                 raise self.validator.reject(exc.reason, exc.detail) from None
-            missing = ~np.all(np.isfinite(joints), axis=1)
-            if np.any(missing):
-                prev = self._frames[-1] if self._frames else None
-                n_missing = int(missing.sum())
-                if prev is None or n_missing > self.max_missing_joints:
-                    why = "no previous frame to fill them from" if prev is None else "too many"
-                    names = [JOINTS[i] for i in np.nonzero(missing)[0]]
-                    raise self.validator.reject(
-                        "missing_joints", f"{n_missing} joints not seen ({why}): {names}"
-                    )
-                joints = np.where(missing[:, None], prev.joints, joints)
-                conf = np.where(missing, 0.0, conf)
-            t = self._frame_time(msg.t, float(t_received))
             frame = self.validator.validate(t, joints, conf)
+            if msg.t is not None:
+                self._last_sender_t = msg.t
+            self._backwards_since = None
             if len(self._frames) == self._frames.maxlen:
                 self.dropped += 1
             self._frames.append(frame)
             return frame
 
     def _frame_time(self, t_sender: float | None, t_received: float) -> float:
+        """The frame's time on the runtime clock (see the class docstring).
+
+        Raises:
+            FrameRejected: ``backwards_timestamp``, the sender's ``t`` went back by more than
+                ``BACKWARDS_TOLERANCE_S`` and has not stayed back for ``REBASE_AFTER_S`` yet.
+        """
         if t_sender is None:
             return t_received
-        sample = t_received - t_sender
-        if self._offsets and abs(sample - min(self._offsets)) > 1.0:
-            log.warning("stream: the sender's clock jumped by %.3f s; re-estimating the offset", sample)
+        last = self._last_sender_t
+        if last is not None and t_sender < last - self.BACKWARDS_TOLERANCE_S:
+            since = self._backwards_since
+            if since is None:
+                self._backwards_since = since = t_received
+            if t_received - since < self.REBASE_AFTER_S:
+                raise FrameRejected(
+                    "backwards_timestamp",
+                    f"t={t_sender:.3f} s is {last - t_sender:.3f} s before the previous frame's (the "
+                    f"sender's clock is taken as restarted once it stays back for {self.REBASE_AFTER_S:g} s)",
+                )
+            log.warning(
+                "stream: the sender's clock went back by %.3f s and stayed back; re-estimating the offset",
+                last - t_sender,
+            )
             self._offsets.clear()
+        sample = t_received - t_sender
+        if self._offsets:
+            jump = sample - min(self._offsets)
+            if abs(jump) > 1.0:
+                log.warning("stream: the sender's clock jumped by %.3f s; re-estimating the offset", -jump)
+                self._offsets.clear()
         self._offsets.append(sample)
         return t_sender + min(self._offsets)
 
@@ -359,7 +396,16 @@ class StreamSource:
         with self._lock:
             self._frames.clear()
             self._offsets.clear()
+            self._last_sender_t = None
+            self._backwards_since = None
             self.validator.reset()
+            self.received = 0
+            self.dropped = 0
+
+    def reset_counters(self) -> None:
+        """Zero the counters, keeping the queue, the clock offset and the last timestamps (a new trial)."""
+        with self._lock:
+            self.validator.reset_counters()
             self.received = 0
             self.dropped = 0
 

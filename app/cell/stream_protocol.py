@@ -14,7 +14,11 @@ One message = one skeleton, a JSON object (see ``docs/stream-protocol.md`` for t
 - ``confidence`` (optional): one value per keypoint in [0, 1] (ZED reports 0..100: divide by 100).
 - ``frame`` (optional, default ``"world"``): ``"camera"`` coordinates are mapped by the camera pose of the
   receiving app's settings (``HRC_CAMERA_POSE``).
-- ``units`` (optional, default ``"m"``): ``"m"`` or ``"mm"``.
+- ``units`` (optional, default ``"m"``): ``"m"`` or ``"mm"``; joints that cannot be a person in the units
+  named (metres sent as ``"mm"``) are refused (``wrong_units``).
+
+Every value is checked as sent, never coerced: strings and booleans are not numbers, a confidence outside
+[0, 1] is refused (``bad_confidence``), not clipped.
 
 Pure functions, no I/O, except :func:`send_messages` (an asyncio WebSocket client for the example scripts).
 """
@@ -31,7 +35,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from app.cell.validation import FrameRejected
+from app.cell.validation import FrameRejected, checked_timestamp, is_number, short_repr
 from app.prediction.skeleton import NUM_JOINTS
 
 __all__ = [
@@ -74,57 +78,150 @@ class StreamMessage:
     body_id: int | None = None
 
 
+#: Deepest nesting a message may have (a frame needs 3: object > joints > [x, y, z]; the rest is room for a
+#: tracker's own fields); deeper text is refused unparsed.
+MAX_DEPTH = 16
+#: A skeleton whose seen joints span less than this, read in the units the message names, is not a person
+#: in those units: metres sent as ``"mm"`` (a person of 1.7 "mm"). Read as ``"m"``, more than
+#: ``MAX_SPAN`` (a person 100 m tall) is millimetres sent as metres.
+MIN_SPAN = {"mm": 10.0}
+MAX_SPAN = {"m": 100.0}
+
+
+def _nesting_depth(text: str) -> int:
+    """The deepest nesting of brackets in JSON text (brackets inside strings not counted), stopping once it
+    passes :data:`MAX_DEPTH`: bounded work and no recursion whatever the text."""
+    depth = deepest = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+                if deepest > MAX_DEPTH:
+                    return deepest
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
+def _loads(message: str | bytes) -> Any:
+    """A message's JSON, refused (``malformed``) when it is not UTF-8 JSON or nests deeper than a frame."""
+    try:
+        text = message.decode("utf-8") if isinstance(message, bytes) else message
+    except UnicodeDecodeError:
+        raise FrameRejected("malformed", "messages must be UTF-8 JSON text") from None
+    if _nesting_depth(text) > MAX_DEPTH:
+        raise FrameRejected("malformed", f"the JSON nests deeper than a frame message ({MAX_DEPTH} levels)")
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise FrameRejected("malformed", f"not JSON: {short_repr(str(exc))}") from None
+
+
+def _coordinate(v: Any, i: int) -> float:
+    if not is_number(v):
+        raise FrameRejected("malformed", f"joint {i} has a non-number coordinate {short_repr(v)}")
+    try:
+        x = float(v)
+    except OverflowError:
+        raise FrameRejected(
+            "out_of_range", f"joint {i} has a coordinate too large: {short_repr(v)}"
+        ) from None
+    if not math.isfinite(x):
+        raise FrameRejected("non_finite", f"joint {i} has a NaN/inf coordinate (use null for 'not seen')")
+    return x
+
+
 def _point(p: Any, i: int) -> list[float]:
     if p is None:
         return [math.nan] * 3
     if not isinstance(p, list | tuple) or len(p) != 3:
-        raise FrameRejected("malformed", f"joint {i} must be [x, y, z] or null, got {str(p)[:40]}")
+        raise FrameRejected("malformed", f"joint {i} must be [x, y, z] or null, got {short_repr(p)}")
     if all(v is None for v in p):
         return [math.nan] * 3
-    out = []
-    for v in p:
-        if isinstance(v, bool) or not isinstance(v, int | float):
-            raise FrameRejected("malformed", f"joint {i} has a non-number coordinate {str(v)[:20]}")
-        if not math.isfinite(v):
-            raise FrameRejected("non_finite", f"joint {i} has a NaN/inf coordinate (use null for 'not seen')")
-        out.append(float(v))
-    return out
+    return [_coordinate(v, i) for v in p]
+
+
+def _confidence(c: Any, i: int) -> float:
+    if c is None:
+        return math.nan  # not seen
+    if not is_number(c):
+        raise FrameRejected("malformed", f"confidence {i} must be a number in [0, 1], got {short_repr(c)}")
+    try:
+        x = float(c)
+    except OverflowError:
+        raise FrameRejected("bad_confidence", f"confidence {i} is {short_repr(c)}, not in [0, 1]") from None
+    if not math.isfinite(x):
+        raise FrameRejected("non_finite", f"confidence {i} is {x}")
+    if not 0.0 <= x <= 1.0:
+        raise FrameRejected(
+            "bad_confidence", f"confidence {i} is {x:g}, not in [0, 1] (ZED's 0..100: divide by 100)"
+        )
+    return x
+
+
+def _choice(message: dict[str, Any], key: str, default: str, allowed: Iterable[str]) -> str:
+    value = message.get(key, default)
+    if not isinstance(value, str) or value not in allowed:
+        raise FrameRejected(
+            "unknown_format", f"{key} must be one of {sorted(allowed)}, got {short_repr(value)}"
+        )
+    return value
+
+
+def _check_units(pts: np.ndarray, units: str) -> None:
+    """Refuse joints that cannot be a person in ``units`` (see :data:`MIN_SPAN`)."""
+    seen = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(seen) < 2:
+        return
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e308 - (-1e308) is inf: refused as well
+        span = float(np.max(np.ptp(seen, axis=0)))
+    if span < MIN_SPAN.get(units, 0.0):
+        raise FrameRejected(
+            "wrong_units",
+            f'units "{units}" but the joints span {span:.3g} {units}: they look like metres; send units "m"',
+        )
+    if span > MAX_SPAN.get(units, math.inf):
+        raise FrameRejected(
+            "wrong_units",
+            f'units "{units}" but the joints span {span:.3g} {units}: they look like millimetres; '
+            'send units "mm"',
+        )
 
 
 def parse_message(message: dict[str, Any] | str | bytes) -> StreamMessage:
-    """Parse and check one message (a dict or its JSON text).
+    """Parse and check one message (a dict or its JSON text): every input gives a message or a
+    :class:`FrameRejected` with its reason, never another exception.
 
     Raises:
-        FrameRejected: ``malformed`` (not JSON, wrong types), ``unknown_format`` (format/frame/units),
-            ``joint_count`` (joints do not match the format), ``non_finite`` (NaN/inf values).
+        FrameRejected: ``malformed`` (not JSON, nested too deeply, wrong types), ``unknown_format``
+            (format/frame/units), ``joint_count`` (joints do not match the format), ``non_finite`` (NaN/inf
+            values), ``bad_timestamp``, ``bad_confidence``, ``out_of_range`` (a number too large for a
+            float), ``wrong_units`` (the joints cannot be a person in the units named).
     """
     if isinstance(message, bytes | str):
-        try:
-            message = json.loads(message)
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise FrameRejected("malformed", f"not JSON: {exc}") from None
+        message = _loads(message)
     if not isinstance(message, dict):
         raise FrameRejected("malformed", "a frame message must be a JSON object")
-    if message.get("type", "frame") != "frame":
-        raise FrameRejected("malformed", f"unknown message type {str(message.get('type'))[:30]!r}")
-    fmt = message.get("format", "canonical")
-    if fmt not in FORMATS:
-        raise FrameRejected(
-            "unknown_format", f"format must be one of {sorted(FORMATS)}, got {str(fmt)[:30]!r}"
-        )
-    frame = message.get("frame", "world")
-    if frame not in FRAMES:
-        raise FrameRejected("unknown_format", f"frame must be 'world' or 'camera', got {str(frame)[:30]!r}")
-    units = message.get("units", "m")
-    if units not in UNITS:
-        raise FrameRejected("unknown_format", f"units must be 'm' or 'mm', got {str(units)[:30]!r}")
+    kind = message.get("type", "frame")
+    if kind != "frame":
+        raise FrameRejected("malformed", f"unknown message type {short_repr(kind)}")
+    fmt = _choice(message, "format", "canonical", FORMATS)
+    frame = _choice(message, "frame", "world", FRAMES)
+    units = _choice(message, "units", "m", UNITS)
     t = message.get("t")
     if t is not None:
-        if isinstance(t, bool) or not isinstance(t, int | float):
-            raise FrameRejected("malformed", f"t must be a number of seconds, got {str(t)[:30]!r}")
-        if not math.isfinite(t):
-            raise FrameRejected("non_finite", f"timestamp {t}")
-        t = float(t)
+        t = checked_timestamp(t)
     joints = message.get("joints")
     if not isinstance(joints, list):
         raise FrameRejected("malformed", "joints must be a list of [x, y, z]")
@@ -132,22 +229,25 @@ def parse_message(message: dict[str, Any] | str | bytes) -> StreamMessage:
     if len(joints) != n:
         raise FrameRejected("joint_count", f"format {fmt!r} needs {n} joints, got {len(joints)}")
     pts = np.array([_point(p, i) for i, p in enumerate(joints)], dtype=np.float64)
+    _check_units(pts, units)
     pts *= UNITS[units]
     conf = message.get("confidence")
     conf_arr = None
     if conf is not None:
         if not isinstance(conf, list) or len(conf) != n:
             raise FrameRejected("joint_count", f"confidence must be a list of {n} numbers")
-        try:
-            conf_arr = np.array([math.nan if c is None else float(c) for c in conf], dtype=np.float64)
-        except (TypeError, ValueError):
-            raise FrameRejected("malformed", "confidence values must be numbers") from None
-        if np.any(np.isinf(conf_arr)):
-            raise FrameRejected("non_finite", "confidence has inf")
+        conf_arr = np.array([_confidence(c, i) for i, c in enumerate(conf)], dtype=np.float64)
         conf_arr = np.nan_to_num(conf_arr, nan=0.0)
     body_id = message.get("body_id")
     body_id = int(body_id) if isinstance(body_id, int) and not isinstance(body_id, bool) else None
-    return StreamMessage(t=t, format=fmt, joints=pts, confidence=conf_arr, frame=frame, body_id=body_id)
+    return StreamMessage(
+        t=t,
+        format=fmt,
+        joints=pts,
+        confidence=conf_arr,
+        frame=frame,
+        body_id=body_id,  # type: ignore[arg-type]
+    )
 
 
 def to_canonical(

@@ -1,15 +1,20 @@
 """Frame validation in front of every human source, and the stale-stream watchdog.
 
-A frame is rejected (and counted, by reason) when it has non-finite values, the wrong joint count, a
-timestamp that is not after the previous accepted one (duplicate or backwards), or a joint outside the
-cell volume. :class:`StaleWatchdog` reports when no valid frame came for longer than its timeout (100 ms by
-default), so that the supervisor can stop the robot. :class:`ValidatedSource` puts both in front of any
-:class:`~app.cell.source.HumanSource`.
+A frame is validated once, before anything uses it, and rejected (and counted, by reason) when its
+timestamp, joints or confidences are not numbers (strings and booleans included), when it has non-finite
+values, a timestamp out of range, the wrong joint count, a confidence outside [0, 1], no joint seen with at
+least :data:`~app.prediction.skeleton.MIN_JOINT_CONFIDENCE`, a timestamp that is not after the previous
+accepted one (duplicate or backwards), or a joint outside the cell volume. Nothing is clipped or coerced: a
+value is valid as sent or the frame is rejected. :class:`StaleWatchdog` reports when no valid frame came for
+longer than its timeout (100 ms by default), so that the supervisor can stop the robot.
+:class:`ValidatedSource` puts both in front of any :class:`~app.cell.source.HumanSource`.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
+import reprlib
 import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
@@ -17,33 +22,109 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from app.cell.source import HumanSource
-from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+from app.prediction.skeleton import MIN_JOINT_CONFIDENCE, NUM_JOINTS, HumanFrame
 
 if TYPE_CHECKING:
     from app.config import WorkCell
 
 __all__ = [
+    "MAX_ABS_TIME_S",
     "REJECT_REASONS",
     "CellVolume",
     "FrameRejected",
     "FrameValidator",
     "StaleWatchdog",
     "ValidatedSource",
+    "checked_timestamp",
+    "is_number",
+    "short_repr",
 ]
 
 #: Why a frame can be rejected (the keys of the rejection counters).
 REJECT_REASONS: tuple[str, ...] = (
     "non_finite",  # NaN or inf in the timestamp, joints or confidences
+    "bad_timestamp",  # a timestamp that is not a number of seconds, or beyond MAX_ABS_TIME_S
     "joint_count",  # not (J, 3) joints / (J,) confidences
     "duplicate_timestamp",  # same time as the previous accepted frame
     "backwards_timestamp",  # earlier than the previous accepted frame
     "out_of_range",  # a joint outside the cell volume
     "bad_confidence",  # confidence outside [0, 1]
+    "no_valid_joint",  # no joint seen with at least MIN_JOINT_CONFIDENCE
+    "wrong_units",  # a stream message whose joints cannot be in the units it names (metres sent as "mm")
     "malformed",  # a stream message that cannot be parsed
     "unknown_format",  # a stream message with an unknown joint format or frame
     "missing_joints",  # too many joints not seen (null) in a stream message
     "no_camera_pose",  # a camera-frame message but no camera pose configured
 )
+
+#: The largest timestamp (s) taken, either side of zero: a sender's clock may count from its boot or from
+#: 1970 (1.7e9 s), not from beyond 2286; larger values lose the frame's time to rounding (1e308 - 1e308 = 0).
+MAX_ABS_TIME_S = 1e10
+
+
+def _make_short_repr() -> reprlib.Repr:
+    r = reprlib.Repr()
+    r.maxlevel, r.maxlist, r.maxtuple, r.maxdict, r.maxstring, r.maxother = 3, 4, 4, 4, 30, 30
+    r.maxlong = 30
+    return r
+
+
+#: A short repr of any value for a rejection's detail (nesting, lengths and big integers bounded: a message of
+#: 20,000 nested lists or an integer of 400 digits is shown in a few characters, without recursion).
+short_repr = _make_short_repr().repr
+
+
+def is_number(v: object) -> bool:
+    """A real number of Python or numpy, not a boolean (``True`` is not 1 m, nor a confidence of 1)."""
+    return isinstance(v, numbers.Real) and not isinstance(v, bool | np.bool_)
+
+
+def _numbers(value: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
+    """``value`` as a float array of ``shape``, element by element: numbers only (no strings, booleans,
+    None or nested objects), each within a float.
+
+    Raises:
+        FrameRejected: ``malformed`` (not numbers), ``joint_count`` (another shape), ``out_of_range`` (an
+            integer too large for a float). Not counted: the caller counts.
+    """
+    if isinstance(value, np.ndarray):
+        if value.dtype.kind not in "fiu":
+            raise FrameRejected("malformed", f"{what} must be numbers, got an array of {value.dtype}")
+        if value.shape != shape:
+            raise FrameRejected("joint_count", f"{what} must be {shape}, got {value.shape}")
+        return value.astype(np.float64)
+    out = np.empty(shape, dtype=np.float64)
+    rows = [value] if len(shape) == 1 else value
+    if not isinstance(rows, list | tuple) or (len(shape) == 2 and len(rows) != shape[0]):
+        n = len(rows) if isinstance(rows, list | tuple) else short_repr(rows)
+        raise FrameRejected("joint_count", f"{what} must be {shape} numbers, got {n} rows")
+    flat = out.reshape(len(rows) if len(shape) == 2 else 1, -1)
+    for i, row in enumerate(rows):
+        if not isinstance(row, list | tuple | np.ndarray) or len(row) != flat.shape[1]:
+            raise FrameRejected("joint_count", f"{what} must be {shape}, got {short_repr(row)} at row {i}")
+        for k, v in enumerate(row):
+            if not is_number(v):
+                raise FrameRejected("malformed", f"{what} must be numbers, got {short_repr(v)}")
+            try:
+                flat[i, k] = float(v)
+            except OverflowError:
+                raise FrameRejected("out_of_range", f"{what}: {short_repr(v)} is too large") from None
+    return out
+
+
+def checked_timestamp(t: Any) -> float:
+    """``t`` as seconds, checked (see :data:`MAX_ABS_TIME_S`); raises an uncounted :class:`FrameRejected`."""
+    if not is_number(t):
+        raise FrameRejected("bad_timestamp", f"t must be a number of seconds, got {short_repr(t)}")
+    try:
+        value = float(t)
+    except OverflowError:
+        raise FrameRejected("bad_timestamp", f"t = {short_repr(t)} is beyond {MAX_ABS_TIME_S:g} s") from None
+    if not math.isfinite(value):
+        raise FrameRejected("non_finite", f"timestamp {value}")
+    if abs(value) > MAX_ABS_TIME_S:
+        raise FrameRejected("bad_timestamp", f"t = {value:g} s is beyond {MAX_ABS_TIME_S:g} s")
+    return value
 
 
 class FrameRejected(ValueError):  # noqa: N818 (the contract's name)
@@ -140,41 +221,49 @@ class FrameValidator:
             self._rejected[reason] += 1
         return exc
 
-    def validate(self, t: float, joints: Any, confidence: Any = None) -> HumanFrame:
-        """Check raw arrays and build the frame.
+    def validate(self, t: Any, joints: Any, confidence: Any = None) -> HumanFrame:
+        """Check raw values and build the frame; every input gives a frame or a counted rejection.
 
         Args:
-            t: Timestamp (s, runtime clock).
-            joints: Joint positions, expected (J, 3), metres, world frame.
-            confidence: Per-joint confidence (J,) in [0, 1]; ``None`` means all ones.
+            t: Timestamp (s, runtime clock): a number (not a boolean) within :data:`MAX_ABS_TIME_S`.
+            joints: Joint positions, expected (J, 3) numbers, metres, world frame.
+            confidence: Per-joint confidence (J,) numbers in [0, 1]; ``None`` means all ones.
 
         Raises:
             FrameRejected: with the reason (counted).
         """
         try:
-            t = float(t)
-            j = np.asarray(joints, dtype=np.float64)
-            c = np.ones(self.num_joints) if confidence is None else np.asarray(confidence, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise self.reject("malformed", f"joints/confidence/t are not numbers: {exc}") from None
-        if j.shape != (self.num_joints, 3):
-            raise self.reject("joint_count", f"joints must be ({self.num_joints}, 3), got {j.shape}")
-        if c.shape != (self.num_joints,):
-            raise self.reject("joint_count", f"confidence must be ({self.num_joints},), got {c.shape}")
-        if not math.isfinite(t):
-            raise self.reject("non_finite", f"timestamp {t}")
+            return self._validate(t, joints, confidence)
+        except FrameRejected as exc:
+            with self._lock:
+                self._rejected[exc.reason] += 1
+            raise
+
+    def _validate(self, t: Any, joints: Any, confidence: Any) -> HumanFrame:
+        J = self.num_joints
+        j = _numbers(joints, (J, 3), "joints")
+        c = np.ones(J) if confidence is None else _numbers(confidence, (J,), "confidence")
+        t = checked_timestamp(t)
         if not np.all(np.isfinite(j)):
             bad = np.unique(np.nonzero(~np.isfinite(j))[0]).tolist()
-            raise self.reject("non_finite", f"joints {bad} are NaN or infinite")
+            raise FrameRejected("non_finite", f"joints {bad} are NaN or infinite")
         if not np.all(np.isfinite(c)):
-            raise self.reject("non_finite", "confidence has NaN or inf")
+            raise FrameRejected("non_finite", "confidence has NaN or inf")
         if np.any((c < 0) | (c > 1)):
-            raise self.reject("bad_confidence", f"confidence must be within [0, 1], got {c.min()}..{c.max()}")
+            raise FrameRejected(
+                "bad_confidence", f"confidence must be within [0, 1], got {c.min()}..{c.max()}"
+            )
+        if not np.any(c >= MIN_JOINT_CONFIDENCE):
+            raise FrameRejected(
+                "no_valid_joint",
+                f"no joint is seen with a confidence of {MIN_JOINT_CONFIDENCE} or more (highest "
+                f"{c.max():g}): nothing to track yet",
+            )
         if self.volume is not None:
             inside = self.volume.contains(j)
             if not np.all(inside):
                 k = int(np.argmin(inside))
-                raise self.reject(
+                raise FrameRejected(
                     "out_of_range",
                     f"joint {k} at {np.round(j[k], 3).tolist()} is outside the cell volume "
                     f"{self.volume.lo.tolist()}..{self.volume.hi.tolist()}",
@@ -182,11 +271,11 @@ class FrameValidator:
         with self._lock:
             last = self._last_t
             if last is not None and t == last:
-                self._rejected["duplicate_timestamp"] += 1
                 raise FrameRejected("duplicate_timestamp", f"t={t} equals the previous frame's")
             if last is not None and t < last:
-                self._rejected["backwards_timestamp"] += 1
-                raise FrameRejected("backwards_timestamp", f"t={t} is before the previous frame's {last}")
+                raise FrameRejected(
+                    "backwards_timestamp", f"t={t} is {last - t:.3f} s before the previous frame's"
+                )
             self._last_t = t
             self._accepted += 1
         return HumanFrame(t=t, joints=j, confidence=c)
@@ -216,6 +305,12 @@ class FrameValidator:
             out = {"accepted": self._accepted, "rejected": sum(self._rejected.values())}
             out.update({f"rejected_{k}": v for k, v in self._rejected.items()})
             return out
+
+    def reset_counters(self) -> None:
+        """Zero the counters and keep the last timestamp (a new trial on the same stream)."""
+        with self._lock:
+            self._accepted = 0
+            self._rejected = dict.fromkeys(REJECT_REASONS, 0)
 
     @property
     def last_t(self) -> float | None:
@@ -353,6 +448,16 @@ class ValidatedSource:
         notify = getattr(self.source, "notify_block_placed", None)
         if notify is not None:
             notify(station, t)
+
+    def reset_counters(self) -> None:
+        """Zero the validation counters (also a self-validating source's), keeping the last timestamps: a
+        new trial on the same source counts its own rejections."""
+        if self._prevalidated:
+            reset = getattr(self.source, "reset_counters", None)
+            if reset is not None:
+                reset()
+            return
+        self.validator.reset_counters()
 
     @property
     def counters(self) -> dict[str, int]:

@@ -8,7 +8,9 @@ from typing import Annotated
 
 import typer
 
-cell_app = typer.Typer(help="The cell: robot backends and human sources.", no_args_is_help=True)
+cell_app = typer.Typer(
+    help="The cell: robot backends and human sources.", no_args_is_help=True, rich_markup_mode=None
+)
 
 
 @cell_app.command("demo")
@@ -112,22 +114,22 @@ def check(
 
     from app.cell.human import load_clip, place_clip
     from app.cell.recording import simulated_operator_sequences
-    from app.config import Settings
+    from app.commands import fail, load_settings, load_workcell_or_fail
     from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
     from app.control.layout import DEFAULT_MAX_SHIFT_M, check_layout, suggest_stations
 
-    settings, options = Settings(), EngineOptions()
-    cell = settings.load_workcell()
+    settings, options = load_settings(), EngineOptions()
+    cell = load_workcell_or_fail(settings)
     fps = 1.0 / settings.frame_period_s
     if clips:
         recordings, label = [], ", ".join(str(c) for c in clips)
         for path in clips:
             if not path.is_file():
-                raise typer.BadParameter(f"clip {path} does not exist", param_hint="--clip")
+                fail(f"--clip: clip {path} does not exist")
             try:
                 clip = load_clip(path, fps=fps)
             except ValueError as exc:
-                raise typer.BadParameter(str(exc), param_hint="--clip") from None
+                fail(f"--clip: {exc}")
             recordings.append(place_clip(clip.joints, cell) if place else np.asarray(clip.joints))
     else:
         recordings = simulated_operator_sequences(
@@ -144,7 +146,7 @@ def check(
                 stack, governor, recordings, fps=fps, speed_mps=speed, target_free=target_free
             )
     except ValueError as exc:
-        raise typer.BadParameter(str(exc), param_hint="--clip") from None
+        fail(f"--clip: {exc}")
     if as_json:
         doc = {"cell": cell.name, "person": label, **report.to_json()}
         if suggest:

@@ -20,6 +20,7 @@ hmp_app = typer.Typer(
     help="Human motion prediction: train the Graph-Mixer, evaluate it against the baselines.",
     no_args_is_help=True,
     add_completion=False,
+    rich_markup_mode=None,
 )
 
 

@@ -38,7 +38,7 @@ import numpy as np
 
 from app.cell.clock import Clock, RateLoop, WallClock
 from app.cell.robot import RobotBackend, RobotConnectionError
-from app.cell.validation import ValidatedSource
+from app.cell.validation import REJECT_REASONS, ValidatedSource
 from app.config import Settings, WorkCell
 from app.control.backup import BackupComputer, BackupRequest, PlanOutcome
 from app.control.engine import (
@@ -219,11 +219,24 @@ class PoolPlanJobs:
 
 
 class _LockedSource:
-    """A human source shared by the frame thread (``frame_at``) and the servo thread (``notify``)."""
+    """A human source shared by the frame thread (``frame_at``) and the servo thread (``notify``).
+
+    A source that validates its own frames (the stream source) stays one behind the lock: its frames are not
+    validated twice, and its counters (every rejection of a pushed message) are the ones reported."""
 
     def __init__(self, source: Any) -> None:
         self.source = source
         self._lock = threading.Lock()
+        self.validates_frames = bool(getattr(source, "validates_frames", False))
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return dict(self.source.counters)
+
+    def reset_counters(self) -> None:
+        reset = getattr(self.source, "reset_counters", None)
+        if reset is not None:
+            reset()
 
     def frame_at(self, t: float) -> Any:
         with self._lock:
@@ -475,6 +488,8 @@ class Runtime:
                 raise RuntimeNotReady(f"the robot is lost ({self._fault}); restart the runtime")
             if self._sim_source:
                 self._open_source(seed=seed)
+            elif self._source is not None:
+                self._source.reset_counters()  # the trial counts its own frames and rejections
             assert self._stack is not None and self._robot is not None and self._source is not None
             clock = self.clock
             self._engine = TrialEngine(
@@ -607,8 +622,8 @@ class Runtime:
         self._publish(self._build_snapshot(self.clock.now()))
 
     # -------------------------------------------------------------------------------------------- frames in
-    def ingest(self, message: dict[str, Any] | str) -> None:
-        """Push one tracker message to the stream source.
+    def ingest(self, message: dict[str, Any] | str | bytes) -> None:
+        """Push one tracker message (a dict, or its JSON text as received) to the stream source.
 
         Raises:
             IngestUnavailable: the runtime reads no stream.
@@ -620,6 +635,21 @@ class Runtime:
                 f"this runtime reads the {self.settings.human_source!r} source; set HRC_HUMAN_SOURCE=stream"
             )
         stream.push(message, self.clock.now())
+
+    def frame_counts(self) -> dict[str, Any]:
+        """The frames of the human source since the current trial started (before the first trial: since
+        :meth:`start`) and the servo loop's overruns since :meth:`start`: ``frames_received``,
+        ``frames_rejected`` ``{"total": n, "by_reason": {reason: n, ...}}`` (every reason of
+        :data:`~app.cell.validation.REJECT_REASONS`, zeros included) and ``servo_overruns``."""
+        source = self._source
+        counters = dict(source.counters) if source is not None else {}
+        by_reason = {r: int(counters.get(f"rejected_{r}", 0)) for r in REJECT_REASONS}
+        rejected = int(counters.get("rejected", 0))
+        return {
+            "frames_received": int(counters.get("accepted", 0)) + rejected,
+            "frames_rejected": {"total": rejected, "by_reason": by_reason},
+            "servo_overruns": int(self.stats.servo_overruns),
+        }
 
     # -------------------------------------------------------------------------------------------- loops
     def _frame_loop(self) -> None:

@@ -125,6 +125,11 @@ class ClipFile:
     source: str
 
 
+#: The most a person's joints span in one frame (m, the largest extent along x, y or z): a clip whose median
+#: frame spans more is not in metres (millimetres, most likely).
+MAX_BODY_SPAN_M = 4.0
+
+
 def read_clip_file(path: str | Path, *, fps: float | None = None) -> ClipFile:
     """Read a clip file, the one reader of the formats this project understands:
 
@@ -177,6 +182,12 @@ def read_clip_file(path: str | Path, *, fps: float | None = None) -> ClipFile:
         raise ClipError(f"clip {p} has no frames")
     if not np.all(np.isfinite(joints)):
         raise ClipError(f"clip {p}: positions contain NaN or infinite values")
+    span_m = float(np.median(np.max(np.ptp(joints, axis=1), axis=-1)))
+    if span_m > MAX_BODY_SPAN_M:
+        raise ClipError(
+            f"clip {p}: a frame's joints span {span_m:.4g} (median), more than a person's "
+            f"{MAX_BODY_SPAN_M:g} m: the positions look like millimetres; convert them to metres"
+        )
     if conf is None:
         conf = np.ones(joints.shape[:2])
     elif conf.shape != joints.shape[:2]:

@@ -49,7 +49,7 @@ import numpy as np
 
 from app.prediction.baselines import constant_velocity, zero_velocity
 from app.prediction.forecast import HumanForecast, half_step_grid
-from app.prediction.skeleton import NUM_JOINTS, PARENTS, HumanFrame
+from app.prediction.skeleton import MIN_JOINT_CONFIDENCE, NUM_JOINTS, PARENTS, HumanFrame
 
 if TYPE_CHECKING:
     from app.prediction.arbitration import ForecastArbiter
@@ -203,7 +203,7 @@ class MotionPredictor:
         tracking_margin_m: float = 0.0,
         growth_mps: float = 1.6,
         max_margin_m: float = 1.0,
-        min_confidence: float = 0.3,
+        min_confidence: float = MIN_JOINT_CONFIDENCE,
         max_gap_s: float | None = None,
         max_speed_mps: float = 3.0,
         jit: bool = True,

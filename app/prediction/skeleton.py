@@ -33,6 +33,9 @@ JOINTS: tuple[str, ...] = (
     "r_ankle",
 )
 NUM_JOINTS = len(JOINTS)
+#: A joint seen with a lower confidence is not trusted: the predictor repairs it from the joints it trusts,
+#: and frame validation rejects a frame with no joint at this confidence or above (``no_valid_joint``).
+MIN_JOINT_CONFIDENCE = 0.3
 JOINT_INDEX: dict[str, int] = {name: i for i, name in enumerate(JOINTS)}
 
 _PARENT_NAMES: dict[str, str | None] = {

@@ -23,6 +23,12 @@ class _In(BaseModel):
     model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
 
 
+class _ApiIn(_In):
+    """The bodies of the API's requests: strict types (``age: true`` or ``"30"`` is a 422, not 1 or 30)."""
+
+    model_config = ConfigDict(strict=True)
+
+
 class _Out(BaseModel):
     model_config = ConfigDict(from_attributes=True)
 
@@ -30,7 +36,7 @@ class _Out(BaseModel):
 # --- participants -------------------------------------------------------------------------------------
 
 
-class ParticipantCreate(_In):
+class ParticipantCreate(_ApiIn):
     """A new participant. ``code`` is a pseudonym (letters, digits, ``.``, ``_``, ``-``), unique."""
 
     code: ParticipantCode
@@ -40,7 +46,7 @@ class ParticipantCreate(_In):
     notes: str = Field("", max_length=10_000)
 
 
-class ParticipantUpdate(_In):
+class ParticipantUpdate(_ApiIn):
     """A partial update: only the fields that are set are changed."""
 
     code: ParticipantCode | None = None
@@ -63,12 +69,12 @@ class ParticipantRead(_Out):
 # --- study sessions -----------------------------------------------------------------------------------
 
 
-class StudySessionCreate(_In):
+class StudySessionCreate(_ApiIn):
     name: str = Field(min_length=1, max_length=200)
     notes: str = Field("", max_length=10_000)
 
 
-class StudySessionUpdate(_In):
+class StudySessionUpdate(_ApiIn):
     name: str | None = Field(None, min_length=1, max_length=200)
     notes: str | None = Field(None, max_length=10_000)
 

@@ -141,13 +141,13 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
 
     # --- a short trial, run to its end -----------------------------------------------------------------
     state_before = live_state.inner_text()
-    page.get_by_test_id("trial-duration").fill("4")
+    page.get_by_test_id("trial-duration").fill("10")
     page.get_by_test_id("trial-start").click()
     expect(page.get_by_test_id("view-live")).to_be_visible()
     first = latest_trial(server)
     assert first["method"] == order[0] and first["participant_id"] == participant["id"]
     expect(page.get_by_test_id("trial-pill")).to_contain_text(f"trial #{first['id']}", timeout=UI_TIMEOUT_MS)
-    expect(page.get_by_test_id("trial-time")).to_contain_text("of 4 s", timeout=UI_TIMEOUT_MS)
+    expect(page.get_by_test_id("trial-time")).to_contain_text("of 10 s", timeout=UI_TIMEOUT_MS)
     # where the trial's time goes, live: one row per part of the time budget, their sum the time so far
     expect(page.get_by_test_id("budget-waiting_for_plan")).to_contain_text(" s", timeout=UI_TIMEOUT_MS)
     expect(page.get_by_test_id("budget-waiting_for_person")).to_contain_text(" s", timeout=UI_TIMEOUT_MS)

@@ -56,13 +56,15 @@ def test_trial_over_rest_runs_the_runtime_and_stores_metrics(sim_client: TestCli
     p = c.post("/api/participants", json={"code": "R1"}, headers=AUTH).json()
     r = c.post(
         "/api/trials",
-        json={"participant_id": p["id"], "method": "proactive", "duration_s": 2.0, "seed": 3},
+        json={"participant_id": p["id"], "method": "proactive", "duration_s": 10.0, "seed": 3},
         headers=AUTH,
     )
     assert r.status_code == 201, r.text
     trial_id = r.json()["id"]
     again = c.post(
-        "/api/trials", json={"participant_id": p["id"], "method": "reactive", "duration_s": 2.0}, headers=AUTH
+        "/api/trials",
+        json={"participant_id": p["id"], "method": "reactive", "duration_s": 10.0},
+        headers=AUTH,
     )
     assert again.status_code == 409 and f"trial {trial_id}" in again.json()["detail"]
     with c.websocket_connect(f"/api/live?token={TOKEN}") as ws:  # the live view follows the trial
@@ -141,8 +143,12 @@ def test_ingest_rejects_bad_messages_without_harming_the_runtime(tmp_path: Path)
             err = ws.receive_json()
             assert err["code"] == "rejected" and "joint_count" in err["detail"]
             ws.send_text("not json at all")
-            assert ws.receive_json()["code"] == "malformed"
+            err = ws.receive_json()
+            assert (err["code"], err["reason"]) == ("rejected", "malformed")
             ws.send_text(json.dumps(good[1]))
+        rejected = c.get("/api/state", headers=AUTH).json()["frames_rejected"]  # each counted by reason
+        assert rejected["total"] == 3
+        assert [rejected["by_reason"][r] for r in ("non_finite", "joint_count", "malformed")] == [1, 1, 1]
         with c.websocket_connect(f"/api/ingest?token={TOKEN}") as ws:  # too fast: 100 at once
             ws.receive_json()
             codes = []

@@ -64,3 +64,37 @@ def test_settings_from_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("HRC_ROBOT", "kuka")
     with pytest.raises(ValueError, match="robot"):
         Settings(_env_file=None)
+
+
+def test_unknown_hrc_variables_name_the_nearest_setting() -> None:
+    from app.config import unknown_environment_settings
+
+    env = {
+        "HRC_API_TOKN": "x",
+        "HRC_PORT": "8001",
+        "HRC_QWERTY": "1",
+        "PATH": "/bin",
+        "hrc_deadline_s": "0.1",
+    }
+    assert unknown_environment_settings(env) == [
+        "HRC_API_TOKN is not a setting; did you mean HRC_API_TOKEN?",
+        "HRC_QWERTY is not a setting; the settings are listed in the README (Settings)",
+    ]
+    assert unknown_environment_settings({"HRC_STRICT_SETTINGS": "true"}) == []
+
+
+def test_the_cli_warns_about_a_misspelt_variable_or_stops_when_strict() -> None:
+    from typer.testing import CliRunner
+
+    from app.cli import app as cli_app
+
+    warned = CliRunner().invoke(cli_app, ["bench", "--list"], env={"HRC_API_TOKN": "secret"})
+    assert warned.exit_code == 0, warned.output
+    assert "warning: HRC_API_TOKN is not a setting; did you mean HRC_API_TOKEN?" in warned.output
+    assert "kinematics" in warned.output  # the command ran
+    strict = {"HRC_API_TOKN": "secret", "HRC_STRICT_SETTINGS": "true"}
+    stopped = CliRunner().invoke(cli_app, ["bench", "--list"], env=strict)
+    assert stopped.exit_code == 2 and "error: HRC_API_TOKN" in stopped.output
+    assert "kinematics" not in stopped.output
+    bad = CliRunner().invoke(cli_app, ["bench", "--list"], env={"HRC_STRICT_SETTINGS": "maybe"})
+    assert bad.exit_code == 2 and "HRC_STRICT_SETTINGS must be true or false" in bad.output

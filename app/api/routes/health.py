@@ -8,7 +8,13 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from app.api.deps import AuthDep, ContextDep
-from app.api.schemas import AUTH_RESPONSES, MAX_TRIAL_DURATION_S, HealthRead, InfoRead
+from app.api.schemas import (
+    AUTH_RESPONSES,
+    MAX_TRIAL_DURATION_S,
+    MIN_TRIAL_DURATION_S,
+    HealthRead,
+    InfoRead,
+)
 from app.api.version import app_version
 from app.control.metrics import METHODS
 from app.control.runtime import Runtime
@@ -87,6 +93,7 @@ def info(ctx: ContextDep) -> InfoRead:
         human_source=s.human_source,
         read_only_open=s.read_only_open,
         methods=list(METHODS),
+        min_trial_duration_s=MIN_TRIAL_DURATION_S,
         max_trial_duration_s=MAX_TRIAL_DURATION_S,
         live_rate_hz=limits.live_rate_hz,
         ingest_max_bytes=limits.ingest_max_bytes,

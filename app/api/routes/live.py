@@ -106,10 +106,15 @@ def _message_text(message: dict[str, Any]) -> str | None:
         return None
 
 
-async def _send_error(websocket: WebSocket, code: str, detail: str) -> None:
+async def _send_error(websocket: WebSocket, code: str, detail: str, *, reason: str | None = None) -> None:
+    """``{"type": "error", "code": ..., "detail": ...}``, with the frame's rejection ``reason`` (one of
+    :data:`~app.cell.validation.REJECT_REASONS`) when a frame was rejected."""
     if websocket.application_state == WebSocketState.CONNECTED:
+        msg: dict[str, Any] = {"type": "error", "code": code, "detail": detail}
+        if reason is not None:
+            msg["reason"] = reason
         with contextlib.suppress(WebSocketDisconnect, RuntimeError, OSError):
-            await websocket.send_text(dumps_strict({"type": "error", "code": code, "detail": detail}))
+            await websocket.send_text(dumps_strict(msg))
 
 
 router = APIRouter(tags=["live"])
@@ -231,24 +236,15 @@ async def _ingest_loop(websocket: WebSocket, runtime: Runtime, limits: LiveLimit
                 websocket, "rate_limited", f"more than {limits.ingest_rate_hz:g} messages/s; message dropped"
             )
             continue
-        text = _message_text(message)
-        if text is None:
-            await _send_error(websocket, "malformed", "messages must be UTF-8 JSON text")
-            continue
+        # the text as received: the stream source parses it (one validation, every rejection counted)
+        raw = message.get("text")
+        if raw is None:
+            raw = message.get("bytes") or b""
         try:
-            obj = json.loads(text)
-        except ValueError as exc:
-            await _send_error(websocket, "malformed", f"not JSON: {exc}")
-            continue
-        if not isinstance(obj, dict):
-            await _send_error(websocket, "malformed", "a frame must be a JSON object")
-            continue
-        try:
-            runtime.ingest(obj)
+            runtime.ingest(raw)
         except _INGEST_ERRORS as exc:
-            await _send_error(websocket, _ingest_error_code(exc), str(exc))
-        except (ValueError, TypeError, KeyError) as exc:
-            await _send_error(websocket, "rejected", f"invalid frame: {exc}")
+            reason = exc.reason if isinstance(exc, FrameRejected) else None
+            await _send_error(websocket, _ingest_error_code(exc), str(exc), reason=reason)
         except Exception:
             logger.exception("ingest: the runtime failed on a frame; the frame is dropped")
             await _send_error(websocket, "internal", "the frame could not be processed; it was dropped")

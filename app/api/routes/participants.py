@@ -16,6 +16,7 @@ from app.api.schemas import (
     OffsetQuery,
     ParticipantIdPath,
 )
+from app.study.repository import ConflictError
 from app.study.schemas import ParticipantCreate, ParticipantRead, ParticipantUpdate
 
 router = APIRouter(prefix="/participants", tags=["participants"], responses=AUTH_RESPONSES)
@@ -62,7 +63,14 @@ def delete_participant(
     ] = False,
 ) -> Response:
     """Delete a participant; 409 if they have trials, unless ``with_trials=true``."""
-    repo.delete_participant(participant_id, with_trials=with_trials)
+    try:
+        repo.delete_participant(participant_id, with_trials=with_trials)
+    except ConflictError:  # the repository's message names its Python argument; this names the query
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"participant {participant_id} has trials; to delete them and their records too: "
+            f"DELETE /api/participants/{participant_id}?with_trials=true",
+        ) from None
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 

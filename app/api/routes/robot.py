@@ -52,8 +52,11 @@ def get_robot(runtime: RuntimeDep) -> RobotStatus:
 
 @router.get("/state")
 def get_state(runtime: RuntimeDep) -> dict[str, Any]:
-    """The runtime's latest snapshot: state, counters, planning times, skeleton, forecast, plans (JSON)."""
-    return finite_json(snapshot_json(runtime.snapshot()))
+    """The runtime's latest snapshot: state, counters, planning times, skeleton, forecast, plans (JSON); and
+    the human source's frames, ``frames_received`` and ``frames_rejected`` (``total`` and ``by_reason``),
+    since the current trial started (before the first: since the start), and the servo loop's
+    ``servo_overruns`` since the start."""
+    return finite_json({**snapshot_json(runtime.snapshot()), **runtime.frame_counts()})
 
 
 @router.post("/robot/estop", response_model=RobotStatus)

@@ -3,6 +3,7 @@ double with the ``Runtime`` contract (no threads of its own: tests drive it)."""
 
 from __future__ import annotations
 
+import json
 import queue
 import threading
 from collections.abc import Callable, Iterator
@@ -96,6 +97,8 @@ class FakeRuntime:
         self.trial_args: dict[str, Any] = {}
         self.estopped = False
         self.ingested: list[Any] = []
+        self.rejected: dict[str, int] = {}
+        self.servo_overruns = 0
         self.subscriptions: list[FakeSubscription] = []
         self.trial_listeners: list[Callable[..., None]] = []
         self.event_listeners: list[Callable[..., None]] = []
@@ -176,9 +179,22 @@ class FakeRuntime:
         return sub
 
     def ingest(self, message: Any) -> None:
-        if not isinstance(message, dict) or "joints" not in message:
+        """Like the stream source: the text as received, parsed here; rejections counted by reason."""
+        try:
+            obj = json.loads(message) if isinstance(message, str | bytes) else message
+        except ValueError:
+            obj = None
+        if not isinstance(obj, dict) or "joints" not in obj:
+            self.rejected["malformed"] = self.rejected.get("malformed", 0) + 1
             raise FrameRejected("malformed", "a frame needs 'joints'")
-        self.ingested.append(message)
+        self.ingested.append(obj)
+
+    def frame_counts(self) -> dict[str, Any]:
+        return {
+            "frames_received": len(self.ingested) + sum(self.rejected.values()),
+            "frames_rejected": {"total": sum(self.rejected.values()), "by_reason": dict(self.rejected)},
+            "servo_overruns": self.servo_overruns,
+        }
 
 
 class FakeClock:

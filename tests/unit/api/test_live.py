@@ -180,12 +180,10 @@ def test_ingest_accepts_frames_and_answers_errors(
         ready = ws.receive_json()
         assert ready["type"] == "ready" and ready["max_rate_hz"] == 120.0
         ws.send_text(json.dumps(FRAME))
-        ws.send_text("{not json")
-        assert ws.receive_json()["code"] == "malformed"
-        ws.send_text("[1, 2, 3]")
-        assert ws.receive_json()["code"] == "malformed"
-        ws.send_bytes(b"\xff\xfe")
-        assert ws.receive_json()["code"] == "malformed"
+        for bad in ("{not json", "[1, 2, 3]", b"\xff\xfe"):
+            (ws.send_bytes if isinstance(bad, bytes) else ws.send_text)(bad)
+            err = ws.receive_json()
+            assert (err["code"], err["reason"]) == ("rejected", "malformed")
         ws.send_text(json.dumps({"t": 2.0}))  # the runtime rejects it
         err = ws.receive_json()
         assert err["code"] == "rejected" and "joints" in err["detail"]
@@ -267,3 +265,47 @@ def test_ingest_survives_a_runtime_failure(client: TestClient, settings: Setting
         ws.send_text(json.dumps(FRAME))
         assert ws.receive_json()["code"] == "internal"
     assert len(calls) == 2
+
+
+def test_ingest_answers_hostile_messages_with_a_reason_and_the_state_counts_them(
+    client: TestClient, settings: Settings, runtime: Any
+) -> None:
+    """Deep nesting, huge integers and wrong types reach the stream source's one parser: each gets an error
+    reply with its reason code and a count in ``/api/state``, never a dropped connection."""
+    from app.cell.human import StreamSource
+    from app.cell.validation import REJECT_REASONS
+
+    stream = StreamSource()
+    runtime.ingest = lambda message: stream.push(message, t_received=1.0)
+
+    def frame_counts() -> dict[str, Any]:  # what Runtime.frame_counts makes of its source's counters
+        c = stream.counters
+        return {
+            "frames_received": c["accepted"] + c["rejected"],
+            "frames_rejected": {
+                "total": c["rejected"],
+                "by_reason": {r: c[f"rejected_{r}"] for r in REJECT_REASONS},
+            },
+            "servo_overruns": 0,
+        }
+
+    runtime.frame_counts = frame_counts
+    hostile = [
+        ("[" * 20_000 + "]" * 20_000, "malformed"),  # 40 kB of nested lists
+        ('{"t": 1' + "0" * 400 + ', "joints": []}', "bad_timestamp"),  # an integer of 10^400
+        ('{"format": [1], "joints": []}', "unknown_format"),
+        ('{"joints": [[0, 0, 1]], "confidence": ["0.5"]}', "joint_count"),
+    ]
+    with _ingest(client, settings) as ws:
+        ws.receive_json()
+        for text, reason in hostile:
+            ws.send_text(text)
+            err = ws.receive_json()
+            assert (err["code"], err["reason"]) == ("rejected", reason), err
+        ws.send_text(json.dumps(FRAME))  # the connection is still open and frames still go in
+    assert stream.frame_at(1e9) is not None
+    state = client.get("/api/state", headers={"Authorization": f"Bearer {settings.api_token}"}).json()
+    by_reason = state["frames_rejected"]["by_reason"]
+    assert state["frames_rejected"]["total"] == 4 and state["frames_received"] == 5
+    assert (by_reason["malformed"], by_reason["bad_timestamp"], by_reason["unknown_format"]) == (1, 1, 1)
+    assert state["servo_overruns"] == 0

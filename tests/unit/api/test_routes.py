@@ -7,8 +7,10 @@ import csv
 import io
 from typing import Any
 
+import pytest
 from fastapi.testclient import TestClient
 
+from app.api.schemas import MIN_TRIAL_DURATION_S
 from app.config import Settings
 
 
@@ -19,7 +21,7 @@ def _participant(client: TestClient, auth: dict[str, str], code: str = "P01", **
 
 
 def _start(client: TestClient, auth: dict[str, str], participant_id: int, **extra: Any) -> Any:
-    body = {"participant_id": participant_id, "method": "proactive", "duration_s": 2.0, **extra}
+    body = {"participant_id": participant_id, "method": "proactive", "duration_s": 10.0, **extra}
     return client.post("/api/trials", json=body, headers=auth)
 
 
@@ -135,6 +137,9 @@ def test_participant_with_trials_needs_with_trials(
     runtime.finish_trial("completed")
     r = client.delete(f"/api/participants/{p['id']}", headers=auth)
     assert r.status_code == 409 and "with_trials" in r.json()["detail"]
+    # the message names the query as it is written, once
+    assert f"DELETE /api/participants/{p['id']}?with_trials=true" in r.json()["detail"]
+    assert "with with_trials" not in r.json()["detail"] and "True" not in r.json()["detail"]
     assert client.delete(f"/api/participants/{p['id']}?with_trials=true", headers=auth).status_code == 204
     assert client.get("/api/trials", headers=auth).json() == []
 
@@ -167,13 +172,13 @@ def test_trial_start_runs_the_runtime_and_its_end_is_stored(
 ) -> None:
     p = _participant(client, auth)
     s = client.post("/api/sessions", json={"name": "s"}, headers=auth).json()
-    r = _start(client, auth, p["id"], seed=7, session_id=s["id"], method="reactive", duration_s=3.5)
+    r = _start(client, auth, p["id"], seed=7, session_id=s["id"], method="reactive", duration_s=12.5)
     assert r.status_code == 201, r.text
     trial = r.json()
     assert trial["status"] == "running" and trial["seed"] == 7 and trial["session_id"] == s["id"]
     assert "api_token" not in trial["settings"]
     assert runtime.running_trial_id == trial["id"]
-    assert runtime.trial_args == {"method": "reactive", "duration_s": 3.5, "seed": 7}
+    assert runtime.trial_args == {"method": "reactive", "duration_s": 12.5, "seed": 7}
     runtime.finish_trial("completed", extra_events=2)
     assert client.app.state.hrc.recorder.wait_stored(trial["id"], 10.0)
     got = client.get(f"/api/trials/{trial['id']}", headers=auth).json()
@@ -218,6 +223,50 @@ def test_runtime_refusal_is_409_and_the_trial_is_recorded_aborted(
     assert t["status"] == "aborted" and "not started" in t["abort_reason"]
 
 
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("participant_id", True),  # was participant 1
+        ("participant_id", "1"),
+        ("duration_s", True),  # was a 1-s trial
+        ("duration_s", "60"),
+        ("seed", True),
+        ("seed", 7.0),
+        ("session_id", "1"),
+    ],
+)
+def test_trial_start_takes_strict_types(
+    client: TestClient, auth: dict[str, str], runtime: Any, field: str, value: Any
+) -> None:
+    p = _participant(client, auth)
+    body = {"participant_id": p["id"], "method": "proactive", "duration_s": 60.0, field: value}
+    r = client.post("/api/trials", json=body, headers=auth)
+    assert r.status_code == 422, r.json()
+    assert f"body.{field}" in r.json()["detail"]
+    assert runtime.running_trial_id is None
+
+
+def test_a_trial_too_short_for_one_task_is_refused(
+    client: TestClient, auth: dict[str, str], runtime: Any
+) -> None:
+    p = _participant(client, auth)
+    for short in (1e-300, 0.5, 9.99):
+        r = _start(client, auth, p["id"], duration_s=short)
+        assert r.status_code == 422 and "too short to hold one task" in r.json()["detail"], short
+    assert runtime.running_trial_id is None
+    assert client.get("/api/info", headers=auth).json()["min_trial_duration_s"] == MIN_TRIAL_DURATION_S
+    assert _start(client, auth, p["id"], duration_s=MIN_TRIAL_DURATION_S).status_code == 201
+
+
+@pytest.mark.parametrize("body", [{"age": True}, {"age": "30"}, {"age": 30.0}, {"code": 12}])
+def test_participant_bodies_take_strict_types(client: TestClient, auth: dict[str, str], body: dict) -> None:
+    created = client.post("/api/participants", json={"code": "P77", **body}, headers=auth)
+    assert created.status_code == 422, created.json()
+    p = _participant(client, auth, "P78")
+    patched = client.patch(f"/api/participants/{p['id']}", json=body, headers=auth)
+    assert patched.status_code == 422, patched.json()
+
+
 def test_trial_start_validation_and_404(client: TestClient, auth: dict[str, str]) -> None:
     p = _participant(client, auth)
     assert _start(client, auth, 999).status_code == 404
@@ -231,7 +280,7 @@ def test_trial_start_validation_and_404(client: TestClient, auth: dict[str, str]
         {"participant_id": 0},
         {"extra": 1},
     ):
-        body = {"participant_id": p["id"], "method": "proactive", "duration_s": 2.0, **bad}
+        body = {"participant_id": p["id"], "method": "proactive", "duration_s": 10.0, **bad}
         r = client.post("/api/trials", json=body, headers=auth)
         assert r.status_code == 422, bad
         assert r.json()["detail"].startswith("invalid request: body.")

@@ -350,7 +350,7 @@ def test_stream_accepts_canonical_messages_and_maps_sender_time() -> None:
         (lambda m: {**m, "confidence": [1.0] * 3}, "joint_count"),
         (lambda m: json.dumps(m).replace(str(m["joints"][3][0]), "NaN", 1), "non_finite"),
         (lambda m: json.dumps(m).replace(str(m["joints"][3][0]), "Infinity", 1), "non_finite"),
-        (lambda m: {**m, "t": "yesterday"}, "malformed"),
+        (lambda m: {**m, "t": "yesterday"}, "bad_timestamp"),
         (lambda m: {**m, "joints": [[9.0, 0.0, 0.0]] * NUM_JOINTS}, "out_of_range"),
         (lambda m: {**m, "frame": "camera"}, "no_camera_pose"),
         (lambda m: {**m, "joints": [None] * NUM_JOINTS}, "missing_joints"),
@@ -412,9 +412,11 @@ def test_stream_converts_zed_bodies_in_the_camera_frame() -> None:
     np.testing.assert_allclose(frame.joints[~missing], expected[~missing], atol=2e-4)
     assert np.all(frame.confidence[missing] == 0.0)
     assert np.all(frame.confidence[~missing] > 0.39)
-    # millimetres are scaled
-    parsed = parse_message(make_message(np.ones((38, 3)) * 1000.0, format="zed38", units="mm"))
-    np.testing.assert_allclose(parsed.joints, 1.0)
+    # millimetres are scaled (a body 1.7 m tall, in mm)
+    body_mm = np.full((38, 3), 1000.0)
+    body_mm[:, 2] = np.linspace(0.0, 1700.0, 38)
+    parsed = parse_message(make_message(body_mm, format="zed38", units="mm"))
+    np.testing.assert_allclose(parsed.joints, body_mm / 1000.0, atol=1e-6)
 
 
 def test_stream_queue_is_bounded_and_drops_the_oldest() -> None:
@@ -506,3 +508,60 @@ def test_a_validated_stream_is_not_checked_twice() -> None:
     assert not wrapped.is_stale(0.1) and wrapped.is_stale(0.2)
     counters = wrapped.counters
     assert counters["accepted"] == 1 and counters["rejected_out_of_range"] == 1 and counters["received"] == 2
+
+
+def _nested(depth: int) -> str:
+    return "[" * depth + "]" * depth
+
+
+@pytest.mark.parametrize(
+    ("mutate", "reason"),
+    [
+        (lambda m: {**m, "confidence": [5.0] * NUM_JOINTS}, "bad_confidence"),
+        (lambda m: {**m, "confidence": [93] * NUM_JOINTS}, "bad_confidence"),  # ZED's 0..100, not divided
+        (lambda m: {**m, "confidence": [-3] * NUM_JOINTS}, "bad_confidence"),
+        (lambda m: {**m, "confidence": ["0.5"] * NUM_JOINTS}, "malformed"),
+        (lambda m: {**m, "confidence": [True] * NUM_JOINTS}, "malformed"),
+        (lambda m: {**m, "confidence": [0.1] * NUM_JOINTS}, "no_valid_joint"),
+        (lambda m: {**m, "t": True}, "bad_timestamp"),
+        (lambda m: {**m, "t": 1e308}, "bad_timestamp"),
+        (lambda m: {**m, "t": 10**400}, "bad_timestamp"),
+        (lambda m: json.dumps(m).replace('"t": 1.0', '"t": 1' + "0" * 400), "bad_timestamp"),
+        (lambda m: {**m, "joints": [[10**400, 0, 0], *m["joints"][1:]]}, "out_of_range"),
+        (lambda m: {**m, "confidence": [10**400] * NUM_JOINTS}, "bad_confidence"),
+        (lambda m: {**m, "format": [1]}, "unknown_format"),
+        (lambda m: {**m, "frame": {"a": 1}}, "unknown_format"),
+        (lambda m: {**m, "units": "mm"}, "wrong_units"),  # metres sent as millimetres
+        (lambda m: {**m, "joints": [[1000 * v for v in p] for p in m["joints"]]}, "wrong_units"),  # mm as m
+        (lambda m: {**m, "joints": [[True, 0.0, 1.0]] * NUM_JOINTS}, "malformed"),
+        (lambda m: _nested(20_000), "malformed"),  # 40 kB of nested lists: refused before parsing
+        (lambda m: '{"joints": ' + _nested(5_000) + "}", "malformed"),
+        (lambda m: {**m, "type": ["frame"]}, "malformed"),
+    ],
+)
+def test_stream_checks_every_value_as_sent_and_counts_the_rejection(mutate: object, reason: str) -> None:
+    src = StreamSource(validator=FrameValidator.for_workcell(CELL))
+    msg = make_message(_canonical_pose(), t=1.0)
+    with pytest.raises(FrameRejected) as info:
+        src.push(mutate(msg), t_received=1.0)  # type: ignore[operator]
+    assert info.value.reason == reason, info.value
+    counters = src.counters
+    assert (counters["rejected"], counters[f"rejected_{reason}"], counters["received"]) == (1, 1, 1)
+    assert src.push(msg, t_received=1.0).t == 1.0  # the stream goes on
+
+
+def test_stream_rejects_a_sender_clock_that_goes_back_until_it_stays_back() -> None:
+    src = StreamSource(validator=FrameValidator.for_workcell(CELL))
+    pose = _canonical_pose()
+    src.push(make_message(pose, t=100.0), t_received=10.0)
+    src.push(make_message(pose, t=100.1), t_received=10.1)
+    for k, back_s in enumerate((1.5, 10.0, 1000.0)):  # not a "clock jump" to re-estimate: rejected
+        with pytest.raises(FrameRejected) as info:
+            src.push(make_message(pose, t=100.1 - back_s), t_received=10.2 + 0.1 * k)
+        assert info.value.reason == "backwards_timestamp" and "before the previous" in info.value.detail
+    assert src.counters["rejected_backwards_timestamp"] == 3
+    assert src.frame_at(1e9).t == pytest.approx(10.1)
+    # a sender whose clock restarted (it stays back for REBASE_AFTER_S): the offset is estimated again
+    frame = src.push(make_message(pose, t=5.0), t_received=10.2 + src.REBASE_AFTER_S)
+    assert frame.t == pytest.approx(10.2 + src.REBASE_AFTER_S)
+    assert src.push(make_message(pose, t=5.1), t_received=11.3).t == pytest.approx(frame.t + 0.1)

@@ -200,3 +200,51 @@ def test_validated_source_passes_only_valid_new_frames() -> None:
     assert src.is_stale(clock.now() + 0.2)
     src.notify_block_placed("A", 1.0)
     assert src.source.notified == [("A", 1.0)]
+
+
+@pytest.mark.parametrize(
+    ("t", "joints", "confidence", "reason"),
+    [
+        (1.0, None, [5.0] * NUM_JOINTS, "bad_confidence"),  # not clipped to 1
+        (1.0, None, [-3.0] * NUM_JOINTS, "bad_confidence"),
+        (1.0, None, ["0.5"] * NUM_JOINTS, "malformed"),  # a string is not a number
+        (1.0, None, [True] * NUM_JOINTS, "malformed"),  # nor is a boolean
+        (1.0, "strings", None, "malformed"),
+        (1.0, "booleans", None, "malformed"),
+        (1.0, "huge_int", None, "out_of_range"),
+        (1.0, None, np.full(NUM_JOINTS, 0.1), "no_valid_joint"),  # nothing seen well enough to track
+        (True, None, None, "bad_timestamp"),
+        ("1.0", None, None, "bad_timestamp"),
+        (1e308, None, None, "bad_timestamp"),
+        (10**400, None, None, "bad_timestamp"),  # float() would raise OverflowError
+        (-math.inf, None, None, "non_finite"),
+    ],
+)
+def test_values_are_checked_as_sent_never_coerced(
+    validator: FrameValidator, t: object, joints: object, confidence: object, reason: str
+) -> None:
+    j = _pose()
+    if joints == "strings":
+        j = [[str(v) for v in row] for row in j.tolist()]
+    elif joints == "booleans":
+        j = [[True, False, True]] * NUM_JOINTS
+    elif joints == "huge_int":
+        j = j.tolist()
+        j[3][0] = 10**400
+    with pytest.raises(FrameRejected) as info:
+        validator.validate(t, j, confidence)
+    assert info.value.reason == reason
+    assert validator.counters[f"rejected_{reason}"] == 1 and validator.counters["rejected"] == 1
+    # a list of plain numbers and a confidence on the threshold are fine
+    frame = validator.validate(2, _pose().tolist(), [0.3] + [0.0] * (NUM_JOINTS - 1))
+    assert frame.t == 2.0 and validator.counters["accepted"] == 1
+
+
+def test_reset_counters_keeps_the_last_timestamp(validator: FrameValidator) -> None:
+    validator.validate(1.0, _pose())
+    with pytest.raises(FrameRejected):
+        validator.validate(1.0, _pose())
+    validator.reset_counters()
+    assert validator.counters["rejected"] == 0 and validator.counters["accepted"] == 0
+    with pytest.raises(FrameRejected, match="backwards"):  # a new trial on the same stream: still ordered
+        validator.validate(0.5, _pose())

@@ -173,7 +173,7 @@ def test_check_refuses_recordings_it_cannot_measure(stack: PlanningStack, model)
         check_layout(stack, model, [lost], fps=30.0)
 
 
-def test_cli_checks_the_shipped_cell_and_names_a_missing_clip(tmp_path: Path) -> None:
+def test_cli_checks_the_shipped_cell(tmp_path: Path) -> None:
     res = CliRunner().invoke(
         cli_app, ["cell", "check", "--participants", "1", "--duration", "8", "--json"], catch_exceptions=False
     )
@@ -227,9 +227,21 @@ def test_cli_checks_the_shipped_cell_and_names_a_missing_clip(tmp_path: Path) ->
     placed = json.loads(CliRunner().invoke(cli_app, [*args, "--place"]).output.strip().splitlines()[-1])
     assert away["poses"]["B"]["separation_m"]["p50"] > 8.0
     assert placed["poses"]["B"]["separation_m"]["p50"] < 1.0
-    missing = tmp_path / "nobody.npz"
+
+
+def test_cli_names_a_missing_or_unreadable_clip_whatever_the_terminal(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One plain error line with the whole path: a narrow terminal (COLUMNS=40) and a checkout 150
+    characters deep neither cut nor fold it."""
+    monkeypatch.setenv("COLUMNS", "40")
+    deep = tmp_path / ("d" * max(150 - len(str(tmp_path)), 1))
+    deep.mkdir()
+    missing = deep / "nobody.npz"
     bad = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(missing)])
-    assert bad.exit_code == 2 and "nobody.npz" in bad.output and "does not exist" in bad.output
-    np.savez(tmp_path / "wrong.npz", something=np.zeros(3))
-    wrong = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(tmp_path / "wrong.npz")])
-    assert wrong.exit_code == 2 and "wrong.npz" in wrong.output
+    assert bad.exit_code == 2, bad.output
+    assert "nobody.npz" in bad.output and "does not exist" in bad.output and "--clip" in bad.output
+    assert str(missing) in bad.output  # one plain line: the whole path, neither cut nor folded at 40 columns
+    np.savez(deep / "wrong.npz", something=np.zeros(3))
+    wrong = CliRunner().invoke(cli_app, ["cell", "check", "--clip", str(deep / "wrong.npz")])
+    assert wrong.exit_code == 2 and "wrong.npz" in wrong.output and "Traceback" not in wrong.output

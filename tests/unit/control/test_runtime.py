@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from app.cell.human import StreamSource
+from app.cell.stream_protocol import make_message
 from app.cell.tracker import TrackerModel
-from app.cell.validation import FrameRejected
+from app.cell.validation import FrameRejected, FrameValidator
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions, PlanningStack, Snapshot
 from app.control.metrics import TrialMetrics
@@ -226,6 +227,65 @@ def test_ingest_feeds_a_stream_source(stack: PlanningStack) -> None:
         assert stream.frame_at(1e9) is not None
         with pytest.raises(FrameRejected):
             rt.ingest({"format": "canonical", "t": 2.0, "joints": [[0.0, 0.0]] * 3})
+
+
+def _wait_for_frame_ticks(sub: Subscription, n: int) -> None:
+    """Let the frame thread take ``n`` ticks (bounded wait)."""
+    for _ in range(n):
+        assert sub.get(5.0) is not None
+
+
+def test_a_stream_trial_survives_a_first_frame_without_a_confident_joint(stack: PlanningStack) -> None:
+    """A tracker sends low-confidence frames when a person enters its view: the first one of a proactive
+    trial is rejected by validation (``no_valid_joint``, counted), never handed to the predictor, and the
+    trial goes on with the frames that follow."""
+    ended = _Ended()
+    cell = load_workcell()
+    stream = StreamSource(validator=FrameValidator.for_workcell(cell))
+    rt = Runtime(Settings(human_source="stream", planner_workers=1), stack=stack, source=stream)
+    rt.add_trial_listener(ended.on_trial)
+    op = cell.operator
+    pose = np.zeros((NUM_JOINTS, 3))
+    pose[:, :2] = op.center_xy
+    pose[:, 2] = op.floor_z + np.linspace(0.1, 1.7, NUM_JOINTS)
+    with rt:
+        sub = rt.subscribe(maxsize=1)
+        rt.start_trial(trial_id=1, method="proactive", duration_s=60.0, seed=1)
+        with pytest.raises(FrameRejected) as info:
+            rt.ingest(json.dumps(make_message(pose, t=0.0, confidence=np.full(NUM_JOINTS, 0.1))))
+        assert info.value.reason == "no_valid_joint"
+        _wait_for_frame_ticks(sub, 3)
+        for k in range(1, 10):
+            rt.ingest(make_message(pose + 0.001 * k, t=k / 30))
+            _wait_for_frame_ticks(sub, 1)
+        assert rt.running_trial_id == 1, ended.calls and ended.calls[0][2][-1].payload
+        counts = rt.frame_counts()
+        assert counts["frames_rejected"]["total"] == 1
+        assert counts["frames_rejected"]["by_reason"]["no_valid_joint"] == 1
+        assert counts["frames_received"] == 10 and counts["servo_overruns"] >= 0
+        rt.stop_trial(reason="operator")
+        assert ended.done.wait(10.0)
+        sub.close()
+    _, metrics, events, _ = ended.calls[0]
+    assert events[-1].payload == {"status": "aborted", "reason": "operator"}
+    assert (metrics.frames_received, metrics.frames_rejected) == (10, 1)
+
+
+def test_a_trial_counts_its_own_rejected_frames(stack: PlanningStack) -> None:
+    stream = StreamSource()
+    rt = Runtime(Settings(human_source="stream", planner_workers=1), stack=stack, source=stream)
+    with rt:
+        for bad in ("{", '{"format": [1], "joints": []}'):
+            with pytest.raises(FrameRejected):
+                rt.ingest(bad)
+        assert rt.frame_counts()["frames_rejected"]["by_reason"]["malformed"] == 1
+        assert rt.frame_counts()["frames_rejected"]["by_reason"]["unknown_format"] == 1
+        rt.start_trial(trial_id=1, method="reactive", duration_s=60.0, seed=1)
+        assert rt.frame_counts()["frames_rejected"]["total"] == 0  # the trial counts its own
+        with pytest.raises(FrameRejected):
+            rt.ingest('{"joints": [], "t": true}')
+        assert rt.frame_counts()["frames_rejected"]["by_reason"]["bad_timestamp"] == 1
+        rt.stop_trial()
 
 
 def test_headless_trial_is_reproducible_with_fixed_compute_times(stack: PlanningStack) -> None:

@@ -146,6 +146,19 @@ def test_one_reader_for_every_clip_file(tmp_path: Path) -> None:
         load_clip(tmp_path / "back.npz")
 
 
+def test_a_clip_in_millimetres_is_refused_by_the_one_reader(tmp_path: Path) -> None:
+    from app.cell.human import load_clip as load_replay
+    from app.prediction.data import read_clip_file
+
+    pos = _synthetic(2, frames=30)
+    np.savez(tmp_path / "mm.npz", positions=pos * 1000.0, fps=30.0, joint_names=np.array(JOINTS))
+    for loader in (load_clip, load_replay, read_clip_file):
+        with pytest.raises(ClipError, match=r"mm\.npz.*millimetres"):
+            loader(tmp_path / "mm.npz")
+    np.savez(tmp_path / "m.npz", positions=pos, fps=30.0, joint_names=np.array(JOINTS))
+    assert read_clip_file(tmp_path / "m.npz").joints.shape == pos.shape
+
+
 def test_clip_dir_splits(clip_dir: Path) -> None:
     assert [c.name for c in load_clip_dir(clip_dir, split="test")] == ["walk_10", "walk_11"]
     assert len(load_clip_dir(clip_dir)) == 8
