@@ -118,8 +118,11 @@ def test_the_objective_is_mean_tasks_when_safe_and_a_penalty_otherwise() -> None
     assert score_outcomes([_outcome(4), _outcome(2)])["score"] == 3.0
     violated = score_outcomes([_outcome(9, violations=2), _outcome(9)])
     assert not violated["feasible"] and violated["score"] == -2 * INFEASIBLE_PENALTY
-    touched = score_outcomes([_outcome(9, contacts=1), _outcome(9)])
+    touched = score_outcomes([_outcome(9, harmful_contacts=1, contacts=1), _outcome(9)])
     assert not touched["feasible"] and touched["score"] == -INFEASIBLE_PENALTY
+    # a contact within the power and force limits is the safety model's, not a fault of the sample
+    permitted = score_outcomes([_outcome(9, harmful_contacts=0, contacts=2), _outcome(9)])
+    assert permitted["feasible"] and permitted["score"] == 9.0
     broken = score_outcomes([_outcome(9), TrialOutcome(1, None, error="boom")])
     assert not broken["feasible"] and broken["failed"] == 1 and broken["score"] == -INFEASIBLE_PENALTY
 
