@@ -98,10 +98,10 @@ class CellGeometry:
         d = self.pair_distances(q, poses)  # (2, L, M)
         return directed_approach(d[0], d[1], dt_s, band_m=band_m)
 
-    def human_static_gaps(self, joints: np.ndarray) -> np.ndarray:
-        """(M,) each of the person's capsules' gap (m) to the static scene
+    def human_static_gaps(self, joints: np.ndarray, capsules: np.ndarray | None = None) -> np.ndarray:
+        """(M,) each of the person's capsules' gap (m) to the static scene, inf but for ``capsules``
         (:meth:`app.planning.collision.CollisionModel.human_static_gaps`)."""
-        return self.collision.human_static_gaps(joints)
+        return self.collision.human_static_gaps(joints, capsules)
 
     def path_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """(K, L) surface distance (m) of each part of the robot at each of ``q`` (K, 6) to the person at

@@ -1132,7 +1132,7 @@ class Supervisor:
         band = self.config.near_band_m
         if self.pfl is None:
             return PFLLevels(*pfl_levels(d_pairs, np.full(d_pairs.shape[1], -1.0), v, band_m=band))
-        gaps = self.geometry.human_static_gaps(joints) if self.pfl.enabled else None
+        gaps = self.geometry.human_static_gaps(joints, self.pfl.pinnable_index) if self.pfl.enabled else None
         return self.pfl.levels(d_pairs, v, gaps, band_m=band)
 
     def _older_frame(self, t: float) -> HumanFrame | None:

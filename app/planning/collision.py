@@ -719,23 +719,30 @@ class CollisionModel:
         b_box = np.einsum("pij,bpj->bpi", R, b) + t
         return a_box, b_box, np.broadcast_to(self._box_half[bi], a_box.shape)
 
-    def human_static_gaps(self, joints: np.ndarray) -> np.ndarray:
-        """(M,) the surface gap (m) of each of the person's capsules at ``joints`` (J, 3) to the nearest
-        static box (table, conveyor, obstacles): where a hand lies on the table, 0 or less. The power and
-        force limiting uses it to find the regions that a part could pin against the scene."""
+    def human_static_gaps(self, joints: np.ndarray, capsules: np.ndarray | None = None) -> np.ndarray:
+        """(M,) how high (m) each of the person's capsules at ``joints`` (J, 3) lies above the top face of a
+        static box under it (table, conveyor, obstacles; surface to surface, inf where no box is under it):
+        a hand resting on the table, 0 or less. ``capsules``: the indices to compute (the others are inf;
+        default all). The power and force limiting uses it to find the regions that a part coming down
+        could pin against the scene. The capsule's ends and middle are the points checked (its lowest point
+        over a face is one of its ends; the middle covers a capsule that spans a face's edge)."""
         joints = np.asarray(joints, dtype=np.float64).reshape(1, -1, 3)
         a, b, r = self.human_capsules(joints)
-        a, b = a[0], b[0]  # (M, 3)
-        n_box = self._T_box_world.shape[0]
-        if n_box == 0:
-            return np.full(a.shape[0], np.inf)
-        R = self._T_box_world[:, :3, :3]  # (NB, 3, 3)
-        t = self._T_box_world[:, :3, 3]
-        a_box = np.einsum("nij,mj->nmi", R, a) + t[:, None]
-        b_box = np.einsum("nij,mj->nmi", R, b) + t[:, None]
-        half = np.broadcast_to(self._box_half[:, None], a_box.shape)
-        sd = segment_box_distance(a_box.reshape(-1, 3), b_box.reshape(-1, 3), half.reshape(-1, 3))
-        return sd.reshape(n_box, -1).min(axis=0) - r
+        out = np.full(a.shape[1], np.inf)
+        idx = np.arange(a.shape[1]) if capsules is None else np.asarray(capsules, dtype=np.int64)
+        if self._T_box_world.shape[0] == 0 or idx.size == 0:
+            return out
+        a, b, r = a[0, idx], b[0, idx], r[idx]  # (K, 3), (K,)
+        pts = np.stack([a, 0.5 * (a + b), b], axis=1)  # (K, 3, 3)
+        local = (
+            np.einsum("nij,kpj->nkpi", self._T_box_world[:, :3, :3], pts)
+            + self._T_box_world[:, None, None, :3, 3]
+        )
+        half = self._box_half[:, None, None, :]  # (NB, 1, 1, 3)
+        over = np.all(np.abs(local[..., :2]) <= half[..., :2] + r[None, :, None, None], axis=-1)
+        height = np.where(over, local[..., 2] - half[..., 2] - r[None, :, None], np.inf)  # (NB, K, 3)
+        out[idx] = height.min(axis=(0, 2))
+        return out
 
     def static_distances(self, q: np.ndarray) -> np.ndarray:
         """Signed distance of every robot capsule to every static box (exact for every pair).

@@ -83,7 +83,7 @@ class BodyGeometry(Protocol):
 
     def part_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray: ...
 
-    def human_static_gaps(self, joints: np.ndarray) -> np.ndarray: ...
+    def human_static_gaps(self, joints: np.ndarray, capsules: np.ndarray | None = None) -> np.ndarray: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -321,7 +321,7 @@ class GroundTruthMonitor:
         where a hand or forearm lies on the scene; -1 where no contact is permitted (or PFL is off)."""
         if not self._use_pins:
             return self.pfl.caps_mps(None)
-        gaps = np.asarray(self.geometry.human_static_gaps(joints), dtype=np.float64)
+        gaps = np.asarray(self.geometry.human_static_gaps(joints, self.pfl.pinnable_index), dtype=np.float64)
         return self.pfl.caps_mps(pinned_capsules(gaps, self._pinnable, pin_gap_m=self.pfl.pin_gap_m))
 
     def check(

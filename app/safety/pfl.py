@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -194,12 +195,12 @@ class PFLModel:
     def for_capsules(cls, capsules: Sequence[str], **kwargs: object) -> PFLModel:
         return cls(tuple(capsules), **kwargs)  # type: ignore[arg-type]
 
-    @property
+    @cached_property
     def regions(self) -> tuple[str, ...]:
         """Each capsule's body region."""
         return tuple(capsule_region(c) for c in self.capsules)
 
-    @property
+    @cached_property
     def iso_speeds_mps(self) -> np.ndarray:
         """(M,) ISO 13855's approach speed of each capsule (m/s)."""
         return np.array([BODY_REGIONS[r].iso13855_mps for r in self.regions])
@@ -221,20 +222,25 @@ class PFLModel:
         # no contact permitted: -1, below any speed (a part at rest included)
         return np.where(out > 0.0, out, -1.0)
 
-    @property
+    @cached_property
     def transient_mps(self) -> np.ndarray:
         """(M,) each capsule's permissible transient-contact speed (m/s); -1 where no contact is permitted."""
         return self._speeds(False)
 
-    @property
+    @cached_property
     def quasi_static_mps(self) -> np.ndarray:
         """(M,) each capsule's permissible quasi-static speed (m/s); -1 where no contact is permitted."""
         return self._speeds(True)
 
-    @property
+    @cached_property
     def pinnable(self) -> np.ndarray:
         """(M,) bool: the capsules that can be pinned against the scene (hands, forearms)."""
         return np.array([r in PINNABLE for r in self.regions])
+
+    @cached_property
+    def pinnable_index(self) -> np.ndarray:
+        """The indices of :attr:`pinnable`'s capsules."""
+        return np.flatnonzero(self.pinnable)
 
     def levels(
         self,

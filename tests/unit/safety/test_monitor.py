@@ -57,7 +57,7 @@ class _Pinned:
     def part_speeds(self, q, qd):
         return self.g.part_speeds(q, qd)
 
-    def human_static_gaps(self, joints):
+    def human_static_gaps(self, joints, capsules=None):
         return np.zeros(len(HUMAN_CAPSULES))
 
 
