@@ -30,7 +30,7 @@ from fastapi.responses import JSONResponse, RedirectResponse
 from app.api.auth import ensure_api_token
 from app.api.deps import ApiContext
 from app.api.live import LiveHub, LiveLimits
-from app.api.recorder import TrialRecorder
+from app.api.recorder import Checkpoint, TrialRecorder
 from app.api.version import app_version
 from app.config import Settings
 from app.control.metrics import TrialMetrics
@@ -126,6 +126,24 @@ def _frames_getter(runtime: Runtime) -> Callable[[TrialMetrics], RecordedFrames 
     return frames_of
 
 
+def _checkpoint_getter(runtime: Runtime) -> Callable[[int, int], Checkpoint | None] | None:
+    """``checkpoint_of(trial_id, first_frame)`` for the recorder, from the runtime's ``checkpoint`` (None
+    for a runtime without one)."""
+    take = getattr(runtime, "checkpoint", None)
+    if take is None:
+        return None
+
+    def checkpoint_of(trial_id: int, first_frame: int) -> Checkpoint | None:
+        ck = take(trial_id, first_frame=first_frame)
+        if ck is None:
+            return None
+        from app.study.runner import frames_from_result
+
+        return Checkpoint(ck.metrics, frames_from_result(ck.frames), ck.first_frame)
+
+    return checkpoint_of
+
+
 def _start_scene(settings: Settings, runtime: Runtime) -> CellScene | None:
     """Start the viser 3D view when the UI package provides it; None (logged) when it cannot start."""
     try:
@@ -194,7 +212,9 @@ def create_app(
         view = None
         try:
             rt = runtime if runtime is not None else _make_runtime(settings)
-            recorder = TrialRecorder(repository, frames_of=_frames_getter(rt))
+            recorder = TrialRecorder(
+                repository, frames_of=_frames_getter(rt), checkpoint_of=_checkpoint_getter(rt)
+            )
             recorder.start()
             rt.add_event_listener(recorder.on_event)
             rt.add_trial_listener(recorder.on_trial_end)

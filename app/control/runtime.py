@@ -65,12 +65,34 @@ __all__ = [
     "Snapshot",
     "Subscription",
     "TrialAlreadyRunning",
+    "TrialCheckpoint",
     "TrialFrames",
     "TrialResult",
     "run_headless_trial",
 ]
 
 TrialListener = Callable[[int, TrialMetrics, list[TrialEvent], str], None]
+
+
+@dataclass(frozen=True, slots=True)
+class TrialCheckpoint:
+    """What a running trial has so far, for a checkpoint in the study database.
+
+    Attributes:
+        trial_id: The running trial.
+        elapsed_s: Trial time of the checkpoint (s since the trial started).
+        metrics: The trial's metrics so far (``duration_s`` is ``elapsed_s``, about).
+        frames: The recorded frames from index ``first_frame`` on, or None (none recorded since).
+        first_frame: Index of the first frame in ``frames`` among all the trial's recorded frames.
+    """
+
+    trial_id: int
+    elapsed_s: float
+    metrics: TrialMetrics
+    frames: TrialFrames | None
+    first_frame: int
+
+
 EventListener = Callable[[int | None, TrialEvent], None]
 
 
@@ -509,6 +531,24 @@ class Runtime:
             )
             self._trial_id = trial_id
         log.info("trial %d started (%s, %.0f s, seed %d)", trial_id, method, duration_s, seed)
+
+    def checkpoint(self, trial_id: int, *, first_frame: int = 0) -> TrialCheckpoint | None:
+        """The running trial's metrics so far and its recorded frames from ``first_frame`` on; None when
+        ``trial_id`` is not the running trial. Called by the trial recorder's thread (it reads the engine
+        the frame and servo threads update, as the E-stop does): a read that races an update and fails is
+        logged and answered None (the next checkpoint comes a moment later)."""
+        with self._lock:
+            engine = self._engine
+            if engine is None or not engine.running or self._trial_id != trial_id:
+                return None
+        try:
+            elapsed = engine.elapsed(self.clock.now())
+            metrics = engine.metrics()
+            frames = engine.frames(first_frame)
+        except (RuntimeError, ValueError, IndexError) as exc:
+            log.debug("trial %d: checkpoint skipped (%s)", trial_id, exc)
+            return None
+        return TrialCheckpoint(trial_id, float(elapsed), metrics, frames, int(first_frame))
 
     def stop_trial(self, reason: str = "operator") -> None:
         """End the running trial now (``aborted`` with ``reason``); no-op without one."""
