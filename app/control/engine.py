@@ -625,6 +625,9 @@ class TrialEngine:
         self.duration_s = float(duration_s)
         self.seed = int(seed)
         self.t0 = float(t0)
+        expect = getattr(source, "expect_frames_from", None)
+        if expect is not None:  # not stale before the first frame can have arrived (the tracker's latency)
+            expect(self.t0)
         self.options = options or EngineOptions()
         self.on_event = on_event
         self.events: list[TrialEvent] = []

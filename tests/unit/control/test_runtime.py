@@ -189,6 +189,22 @@ def test_live_trial_runs_to_its_end_and_reports(stack: PlanningStack) -> None:
     assert rt.running_trial_id is None
 
 
+def test_a_simulated_trial_is_not_stale_before_its_first_frame(stack: PlanningStack) -> None:
+    """The simulated tracker delivers its first frame after its latency: the stale check counts from the
+    trial's start (plus the timeout), so no ``stale_stream`` at t = 0."""
+    ended = _Ended()
+    rt = Runtime(_settings(), stack=stack, options=EngineOptions(record_frames=False))
+    rt.add_trial_listener(ended.on_trial)
+    with rt:
+        rt.start_trial(trial_id=1, method="reactive", duration_s=1.0, seed=3)
+        assert ended.done.wait(30.0), "the trial listener was not called"
+    _, metrics, events, status = ended.calls[0]
+    assert status == "completed" and metrics.frames_received > 0
+    timeout = _settings().stale_timeout_s
+    early = [(e.t, e.kind) for e in events if e.kind in ("stale_stream", "stream_resumed") and e.t < timeout]
+    assert early == []
+
+
 def test_stop_trial_and_estop_abort_and_reset_is_needed(stack: PlanningStack) -> None:
     ended = _Ended()
     rt = Runtime(_settings(), stack=stack)
