@@ -144,10 +144,28 @@ def _checkpoint_getter(runtime: Runtime) -> Callable[[int, int], Checkpoint | No
     return checkpoint_of
 
 
-def _start_scene(settings: Settings, runtime: Runtime) -> CellScene | None:
-    """Start the viser 3D view when the UI package provides it; None (logged) when it cannot start."""
+class ViewerPortInUse(RuntimeError):  # noqa: N818 (reads as the condition it reports)
+    """The 3D view's port (``HRC_VISER_PORT``) is held by another program: the server does not start."""
+
+
+def viewer_port_message(host: str, port: int) -> str:
+    """The one line that says the 3D view's port is taken and what to do."""
+    return (
+        f"the 3D view's port {port} on {host} is in use by another program: stop it, or set HRC_VISER_PORT "
+        "(hrc serve --viser-port) to a free port"
+    )
+
+
+def _start_scene(settings: Settings, runtime: Runtime, token: str) -> CellScene | None:
+    """Start the viser 3D view when the UI package provides it (viewers need the operator token); None
+    (logged) when it cannot start.
+
+    Raises:
+        ViewerPortInUse: another program holds ``HRC_VISER_PORT``.
+    """
     try:
         from app.ui.scene import CellScene
+        from app.ui.viser_server import PortInUse
     except ImportError as exc:
         logger.info("no 3D view: app.ui.scene is not available (%s)", exc)
         return None
@@ -156,10 +174,13 @@ def _start_scene(settings: Settings, runtime: Runtime) -> CellScene | None:
             runtime,
             settings.load_workcell(),
             port=settings.viser_port,
-            host=settings.host,  # the 3D view is reachable where the API is
+            host=settings.host,  # the 3D view is reachable where the API is, with the same token
             roadmap=getattr(runtime, "roadmap", None),
+            token=token,
         )
         scene.start()
+    except PortInUse as exc:
+        raise ViewerPortInUse(viewer_port_message(exc.host, exc.port)) from exc
     except Exception:
         logger.exception(
             "the 3D view (viser) could not start on port %d; continuing without it", settings.viser_port
@@ -223,7 +244,7 @@ def create_app(
             rt.start()
             hub.start(asyncio.get_running_loop())
             if scene:
-                view = _start_scene(settings, rt)
+                view = _start_scene(settings, rt, token.value)
             app.state.hrc = ApiContext(
                 settings=settings,
                 token=token.value,
