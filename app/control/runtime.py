@@ -50,7 +50,14 @@ from app.control.engine import (
     TrialResult,
     make_validated_source,
 )
-from app.control.headless import make_predictor, run_headless_trial
+from app.control.headless import (
+    PredictorInfo,
+    PredictorUnavailable,
+    fallback_message,
+    make_predictor,
+    predictor_info,
+    run_headless_trial,
+)
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
 from app.control.supervisor import SupervisorConfig
 from app.prediction.forecast import HumanForecast
@@ -356,6 +363,8 @@ class Runtime:
         self._tcp_cache: dict[int, np.ndarray] = {}
         self._last_frame: Any | None = None
         self.last_result: TrialResult | None = None
+        #: The proactive method's predictor as it runs (after :meth:`start`).
+        self.predictor_info: PredictorInfo | None = None
         n = 4096
         self.stats = _LoopStats(deque(maxlen=n), deque(maxlen=n), deque(maxlen=n), deque(maxlen=16 * n))
 
@@ -370,22 +379,31 @@ class Runtime:
         return self._robot
 
     def start(self) -> None:
-        """Build what the cell needs (planning stack, robot, source, predictor) and start the threads."""
+        """Build what the cell needs (planning stack, robot, source, predictor) and start the threads.
+
+        Raises:
+            PredictorUnavailable: the predictor's weights cannot be used and ``HRC_HMP_FALLBACK`` is off.
+        """
         with self._lock:
             if self._started:
                 return
             if self._stack is None:
                 t_r = self.settings.reaction_time_s(1.0 / self.servo_rate_hz)
                 self._stack = PlanningStack.for_cell(self.cell, t_reaction_s=t_r)
+            if self._predictor is None:  # before the robot: a predictor that cannot run stops the start
+                predictor = make_predictor(
+                    "proactive", self.settings, tracking_margin_m=self.options.tracking_margin_m
+                )
+                reason = getattr(predictor, "fallback_reason", None)
+                if reason is not None and not self.settings.hmp_fallback:
+                    raise PredictorUnavailable(fallback_message(reason))
+                self._predictor = predictor
+            self.predictor_info = predictor_info(self._predictor)
             if self._robot is None:
                 from app.cell.backends import make_robot
 
                 self._robot = make_robot(self.settings, self.clock, q0=np.asarray(self.cell.robot.home_q))
             self._open_source(seed=0)
-            if self._predictor is None:
-                self._predictor = make_predictor(
-                    "proactive", self.settings, tracking_margin_m=self.options.tracking_margin_m
-                )
             if not _warm_up_compiled(
                 self.settings, self.cell, self._stack, self._predictor, servo_rate_hz=self.servo_rate_hz
             ):

@@ -205,6 +205,23 @@ def test_a_simulated_trial_is_not_stale_before_its_first_frame(stack: PlanningSt
     assert early == []
 
 
+def test_corrupt_predictor_weights_stop_the_start_unless_the_fallback_is_asked_for(
+    stack: PlanningStack, tmp_path: Path
+) -> None:
+    from app.control.headless import PredictorUnavailable, make_predictor, predictor_info
+
+    weights = tmp_path / "corrupt.pt"
+    weights.write_bytes(b"\x00garbage" * 100)
+    settings = _settings().model_copy(update={"hmp_weights": weights})
+    rt = Runtime(settings, stack=stack)
+    with pytest.raises(PredictorUnavailable, match=r"corrupt\.pt.*HRC_HMP_FALLBACK"):
+        rt.start()
+    assert rt.robot is None and rt.running_trial_id is None  # nothing was started
+    fallback = predictor_info(make_predictor("proactive", settings.model_copy(update={"hmp_fallback": True})))
+    assert fallback.kind == "constant_velocity" and "corrupt.pt" in (fallback.fallback_reason or "")
+    assert fallback.weights == str(weights) and fallback.weights_sha256 is not None
+
+
 def test_stop_trial_and_estop_abort_and_reset_is_needed(stack: PlanningStack) -> None:
     ended = _Ended()
     rt = Runtime(_settings(), stack=stack)
