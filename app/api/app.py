@@ -289,7 +289,55 @@ def create_app(
     _install_error_handlers(app)
     _include_routes(app)
     _mount_ui(app)
+    _document_errors_as_json(app)
     return app
+
+
+#: Errors every operation may answer beside its own, documented in the OpenAPI schema.
+COMMON_ERRORS: dict[str, str] = {
+    "503": "the server is starting or stopping, or the study database is unreachable; retry",
+}
+#: The error of an operation with a request body whose bytes are not JSON text (FastAPI's own reply).
+BAD_BODY_ERROR = "the request body cannot be parsed (not JSON text)"
+
+
+def _document_errors_as_json(app: FastAPI) -> None:
+    """Make the OpenAPI schema say what errors really are: every error response (4xx, 5xx) is JSON, also on
+    routes whose success is CSV, Markdown or PNG (FastAPI documents their errors in the route's own media
+    type); an operation with a body may answer 400 (unparseable body); every operation may answer 503."""
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = build()
+        error_ref = {"$ref": "#/components/schemas/ErrorRead"}
+        for operations in schema.get("paths", {}).values():
+            for op in operations.values():
+                responses = op.setdefault("responses", {})
+                for code, response in responses.items():
+                    if code[:1] in ("4", "5") and "content" in response:
+                        found = [c["schema"] for c in response["content"].values() if "schema" in c]
+                        response["content"] = {
+                            "application/json": {"schema": found[0] if found else error_ref}
+                        }
+                if "requestBody" in op:
+                    responses.setdefault(
+                        "400",
+                        {
+                            "description": BAD_BODY_ERROR,
+                            "content": {"application/json": {"schema": error_ref}},
+                        },
+                    )
+                for code, description in COMMON_ERRORS.items():
+                    responses.setdefault(
+                        code,
+                        {"description": description, "content": {"application/json": {"schema": error_ref}}},
+                    )
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 def _include_routes(app: FastAPI) -> None:
