@@ -453,9 +453,36 @@ def serve(
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings = _load_settings(settings_file, host=host, port=port, viser_port=viser_port)  # validated
     load_workcell_or_fail(settings)  # a missing or invalid cell: one line with the file and the field
+    _viewer_port_or_fail(settings)
+    _predictor_or_fail(settings)
     try:
         run_server(settings, log_level=log_level, echo=lambda text: typer.echo(text, err=True))
     except TokenError as exc:  # the message says which file and what to do; no traceback needed
+        fail(str(exc))
+
+
+def _viewer_port_or_fail(settings: Any) -> None:
+    """Stop with one line when another program holds the 3D view's port (before anything starts)."""
+    from app.api.app import viewer_port_message
+
+    try:
+        from app.ui.viser_server import PortInUse, check_port_free
+    except ImportError:  # no 3D view in this installation
+        return
+    try:
+        check_port_free(settings.host, settings.viser_port)
+    except PortInUse as exc:
+        fail(viewer_port_message(exc.host, exc.port))
+
+
+def _predictor_or_fail(settings: Any) -> None:
+    """Stop with one line naming the file when the predictor's weights cannot be loaded (unless
+    ``HRC_HMP_FALLBACK`` asks for constant velocity instead)."""
+    from app.control.headless import PredictorUnavailable, check_predictor_weights
+
+    try:
+        check_predictor_weights(settings)
+    except PredictorUnavailable as exc:
         fail(str(exc))
 
 

@@ -301,6 +301,11 @@ class Settings(BaseSettings):
         description="Graph-Mixer weights (hrc hmp train); default: tuned to the simulated operator for the "
         "sim source, the shipped CMU-trained ones otherwise",
     )
+    hmp_fallback: bool = Field(
+        False,
+        description="weights that cannot be used (corrupt, of another model) run the constant-velocity "
+        "forecast instead of stopping the start",
+    )
     hmp_quantiles: Path | None = Field(
         None,
         description="forecast error quantiles (hrc hmp calibrate) for the margins; default: the ones that go "

@@ -30,7 +30,7 @@ from fastapi.responses import JSONResponse, RedirectResponse
 from app.api.auth import ensure_api_token
 from app.api.deps import ApiContext
 from app.api.live import LiveHub, LiveLimits
-from app.api.recorder import TrialRecorder
+from app.api.recorder import Checkpoint, TrialRecorder
 from app.api.version import app_version
 from app.config import Settings
 from app.control.metrics import TrialMetrics
@@ -126,10 +126,46 @@ def _frames_getter(runtime: Runtime) -> Callable[[TrialMetrics], RecordedFrames 
     return frames_of
 
 
-def _start_scene(settings: Settings, runtime: Runtime) -> CellScene | None:
-    """Start the viser 3D view when the UI package provides it; None (logged) when it cannot start."""
+def _checkpoint_getter(runtime: Runtime) -> Callable[[int, int], Checkpoint | None] | None:
+    """``checkpoint_of(trial_id, first_frame)`` for the recorder, from the runtime's ``checkpoint`` (None
+    for a runtime without one)."""
+    take = getattr(runtime, "checkpoint", None)
+    if take is None:
+        return None
+
+    def checkpoint_of(trial_id: int, first_frame: int) -> Checkpoint | None:
+        ck = take(trial_id, first_frame=first_frame)
+        if ck is None:
+            return None
+        from app.study.runner import frames_from_result
+
+        return Checkpoint(ck.metrics, frames_from_result(ck.frames), ck.first_frame)
+
+    return checkpoint_of
+
+
+class ViewerPortInUse(RuntimeError):  # noqa: N818 (reads as the condition it reports)
+    """The 3D view's port (``HRC_VISER_PORT``) is held by another program: the server does not start."""
+
+
+def viewer_port_message(host: str, port: int) -> str:
+    """The one line that says the 3D view's port is taken and what to do."""
+    return (
+        f"the 3D view's port {port} on {host} is in use by another program: stop it, or set HRC_VISER_PORT "
+        "(hrc serve --viser-port) to a free port"
+    )
+
+
+def _start_scene(settings: Settings, runtime: Runtime, token: str) -> CellScene | None:
+    """Start the viser 3D view when the UI package provides it (viewers need the operator token); None
+    (logged) when it cannot start.
+
+    Raises:
+        ViewerPortInUse: another program holds ``HRC_VISER_PORT``.
+    """
     try:
         from app.ui.scene import CellScene
+        from app.ui.viser_server import PortInUse
     except ImportError as exc:
         logger.info("no 3D view: app.ui.scene is not available (%s)", exc)
         return None
@@ -138,10 +174,13 @@ def _start_scene(settings: Settings, runtime: Runtime) -> CellScene | None:
             runtime,
             settings.load_workcell(),
             port=settings.viser_port,
-            host=settings.host,  # the 3D view is reachable where the API is
+            host=settings.host,  # the 3D view is reachable where the API is, with the same token
             roadmap=getattr(runtime, "roadmap", None),
+            token=token,
         )
         scene.start()
+    except PortInUse as exc:
+        raise ViewerPortInUse(viewer_port_message(exc.host, exc.port)) from exc
     except Exception:
         logger.exception(
             "the 3D view (viser) could not start on port %d; continuing without it", settings.viser_port
@@ -194,7 +233,9 @@ def create_app(
         view = None
         try:
             rt = runtime if runtime is not None else _make_runtime(settings)
-            recorder = TrialRecorder(repository, frames_of=_frames_getter(rt))
+            recorder = TrialRecorder(
+                repository, frames_of=_frames_getter(rt), checkpoint_of=_checkpoint_getter(rt)
+            )
             recorder.start()
             rt.add_event_listener(recorder.on_event)
             rt.add_trial_listener(recorder.on_trial_end)
@@ -203,7 +244,7 @@ def create_app(
             rt.start()
             hub.start(asyncio.get_running_loop())
             if scene:
-                view = _start_scene(settings, rt)
+                view = _start_scene(settings, rt, token.value)
             app.state.hrc = ApiContext(
                 settings=settings,
                 token=token.value,
@@ -248,7 +289,55 @@ def create_app(
     _install_error_handlers(app)
     _include_routes(app)
     _mount_ui(app)
+    _document_errors_as_json(app)
     return app
+
+
+#: Errors every operation may answer beside its own, documented in the OpenAPI schema.
+COMMON_ERRORS: dict[str, str] = {
+    "503": "the server is starting or stopping, or the study database is unreachable; retry",
+}
+#: The error of an operation with a request body whose bytes are not JSON text (FastAPI's own reply).
+BAD_BODY_ERROR = "the request body cannot be parsed (not JSON text)"
+
+
+def _document_errors_as_json(app: FastAPI) -> None:
+    """Make the OpenAPI schema say what errors really are: every error response (4xx, 5xx) is JSON, also on
+    routes whose success is CSV, Markdown or PNG (FastAPI documents their errors in the route's own media
+    type); an operation with a body may answer 400 (unparseable body); every operation may answer 503."""
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = build()
+        error_ref = {"$ref": "#/components/schemas/ErrorRead"}
+        for operations in schema.get("paths", {}).values():
+            for op in operations.values():
+                responses = op.setdefault("responses", {})
+                for code, response in responses.items():
+                    if code[:1] in ("4", "5") and "content" in response:
+                        found = [c["schema"] for c in response["content"].values() if "schema" in c]
+                        response["content"] = {
+                            "application/json": {"schema": found[0] if found else error_ref}
+                        }
+                if "requestBody" in op:
+                    responses.setdefault(
+                        "400",
+                        {
+                            "description": BAD_BODY_ERROR,
+                            "content": {"application/json": {"schema": error_ref}},
+                        },
+                    )
+                for code, description in COMMON_ERRORS.items():
+                    responses.setdefault(
+                        code,
+                        {"description": description, "content": {"application/json": {"schema": error_ref}}},
+                    )
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 def _include_routes(app: FastAPI) -> None:

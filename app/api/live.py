@@ -166,6 +166,7 @@ class LiveHub:
         self._subscription: Subscription | None = None
         self.published = 0
         self.latest_text: str | None = None
+        self._latest_t = -math.inf  # runtime time of the snapshot in latest_text
         self.ingest_clients = 0
 
     # ---- lifecycle (called from the lifespan) -------------------------------------------------------
@@ -210,17 +211,23 @@ class LiveHub:
     def client_count(self) -> int:
         return len(self._clients)
 
-    def _fanout(self, text: str) -> None:
+    def _fanout(self, text: str, t: float = -math.inf) -> None:
         self.latest_text = text
+        self._latest_t = t
         self.published += 1
         for q in self._clients:
             q.put(text)
 
     def current_text(self) -> str:
-        """The newest snapshot as JSON text (serialised now when nothing was broadcast yet)."""
-        if self.latest_text is not None:
-            return self.latest_text
-        return dumps_strict(snapshot_json(self._runtime.snapshot()))
+        """The newest snapshot as JSON text, for a new client's first message: the broadcast text when it
+        is at most one live period older than the runtime's newest snapshot, else that snapshot serialised
+        now (nothing is broadcast while no client listens, so the broadcast text may be old)."""
+        snap = self._runtime.snapshot()
+        text = self.latest_text
+        t = _snapshot_t(snap)
+        if text is not None and t - self._latest_t <= 1.0 / self.limits.live_rate_hz:
+            return text
+        return dumps_strict(snapshot_json(snap))
 
     # ---- broadcaster thread -------------------------------------------------------------------------
     def _newest(self, first: Any) -> Any:
@@ -249,11 +256,12 @@ class LiveHub:
                 next_t = max(next_t + period_s, now)
                 if self._n_clients == 0:
                     continue  # nobody listens: do not serialise
-                text = dumps_strict(snapshot_json(self._newest(snap)))
+                newest = self._newest(snap)
+                text = dumps_strict(snapshot_json(newest))
                 loop = self._loop
                 if loop is None or loop.is_closed():
                     break
-                loop.call_soon_threadsafe(self._fanout, text)
+                loop.call_soon_threadsafe(self._fanout, text, _snapshot_t(newest))
             except RuntimeError as exc:  # the loop closed under us during shutdown
                 if self._stop.is_set():
                     break
@@ -261,6 +269,15 @@ class LiveHub:
             except Exception:
                 logger.exception("live broadcaster: a snapshot could not be published; continuing")
                 self._stop.wait(period_s)
+
+
+def _snapshot_t(snapshot: Any) -> float:
+    """A snapshot's runtime time (s); ``inf`` when it has none (never older than a cached text)."""
+    try:
+        t = float(snapshot.t)
+    except (AttributeError, TypeError, ValueError):
+        return math.inf
+    return t if math.isfinite(t) else math.inf
 
 
 # ---------------------------------------------------------------------------------------------------------

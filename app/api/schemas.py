@@ -53,6 +53,18 @@ class HealthRead(BaseModel):
     database: Literal["ok", "error"]
 
 
+class PredictorRead(BaseModel):
+    """The proactive method's motion predictor as it runs (``app.control.headless.PredictorInfo``)."""
+
+    kind: str = Field(description="what forecasts: graphmixer, or constant_velocity when the weights failed")
+    weights: str | None = Field(description="the network's weights file")
+    weights_sha256: str | None = Field(description="SHA-256 of the weights file's bytes")
+    arbitrated: bool = Field(description="arbitrated online with the baselines (HRC_FORECAST_ARBITRATION)")
+    fallback_reason: str | None = Field(
+        None, description="why constant velocity runs instead of the network (HRC_HMP_FALLBACK=true)"
+    )
+
+
 class InfoRead(BaseModel):
     """What a client needs to know about this server (no secrets)."""
 
@@ -70,6 +82,9 @@ class InfoRead(BaseModel):
     deadline_s: float = Field(description="D, the backup-plan deadline (the planning chart's red line)")
     anticipate_fetch: bool = Field(
         description="the proactive forecast expects the person to fetch each block the robot places"
+    )
+    predictor: PredictorRead | None = Field(
+        None, description="the proactive method's predictor as it runs (null: the runtime does not say)"
     )
 
 

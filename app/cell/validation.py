@@ -352,6 +352,14 @@ class StaleWatchdog:
         """Seconds since the last valid frame (``inf`` before the first)."""
         return math.inf if self._last is None else max(0.0, now - self._last)
 
+    def expect_from(self, t: float) -> None:
+        """Frames are expected from ``t`` on (a trial starts): a watchdog that has seen no frame yet counts
+        the timeout from ``t`` (the first frame of a tracker arrives after its latency), not as stale at
+        once. One that has seen frames keeps counting from the last."""
+        if self._last is None:
+            self._last = float(t)
+            self._stale_reported = False
+
     def is_stale(self, now: float) -> bool:
         """True when no valid frame arrived within ``timeout_s`` before ``now``."""
         return self.age(now) > self.timeout_s + 1e-9  # tolerance for float time arithmetic
@@ -442,6 +450,11 @@ class ValidatedSource:
 
     def is_stale(self, now: float) -> bool:
         return self.watchdog.is_stale(now)
+
+    def expect_frames_from(self, t: float) -> None:
+        """A trial starts at ``t``: before its first frame the stream is stale only after the watchdog's
+        timeout (:meth:`StaleWatchdog.expect_from`)."""
+        self.watchdog.expect_from(t)
 
     def notify_block_placed(self, station: str, t: float) -> None:
         """Forwarded to the inner source (the simulated operator reacts to it; others ignore it)."""

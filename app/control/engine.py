@@ -625,6 +625,9 @@ class TrialEngine:
         self.duration_s = float(duration_s)
         self.seed = int(seed)
         self.t0 = float(t0)
+        expect = getattr(source, "expect_frames_from", None)
+        if expect is not None:  # not stale before the first frame can have arrived (the tracker's latency)
+            expect(self.t0)
         self.options = options or EngineOptions()
         self.on_event = on_event
         self.events: list[TrialEvent] = []
@@ -1038,13 +1041,18 @@ class TrialEngine:
             "median_plan_s": round(float(np.median(arrivals[:, 0])), 4),
         }
 
-    def frames(self) -> TrialFrames | None:
-        if not self.options.record_frames or not self._frames_t:
+    def frames(self, start: int = 0) -> TrialFrames | None:
+        """The recorded frames from index ``start`` on (None when none are recorded there). Safe to call
+        from another thread while the frame thread records: it takes the frames all three lists hold."""
+        if not self.options.record_frames:
+            return None
+        n = min(len(self._frames_t), len(self._frames_q), len(self._frames_sk))
+        if n <= start:
             return None
         return TrialFrames(
-            t=np.asarray(self._frames_t, dtype=np.float64),
-            q=np.stack(self._frames_q),
-            skeleton=np.stack(self._frames_sk),
+            t=np.asarray(self._frames_t[start:n], dtype=np.float64),
+            q=np.stack(self._frames_q[start:n]),
+            skeleton=np.stack(self._frames_sk[start:n]),
         )
 
     def counters(self) -> dict[str, Any]:

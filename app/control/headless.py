@@ -11,9 +11,11 @@ seed apart from those measured times (pass ``fixed_compute_s`` to fix them too, 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -91,6 +93,82 @@ def make_predictor(method: Method, settings: Settings, *, tracking_margin_m: flo
         arbitrate=settings.forecast_arbitration,
         coverage=settings.forecast_coverage,
     )
+
+
+class PredictorUnavailable(RuntimeError):  # noqa: N818 (reads as the condition it reports)
+    """The motion predictor's weights cannot be used and the settings do not ask for the fallback."""
+
+
+@dataclass(frozen=True, slots=True)
+class PredictorInfo:
+    """The proactive method's predictor as it runs (``/api/info``, each proactive trial's settings).
+
+    Attributes:
+        kind: What forecasts: ``"graphmixer"``, or ``"constant_velocity"`` when the network's weights
+            could not be used (``fallback_reason`` says why), or the class name of another predictor.
+        weights: The network's weights file (None: no file is involved).
+        weights_sha256: The SHA-256 of that file's bytes (None when it cannot be read).
+        arbitrated: The forecast is arbitrated online with the baselines (``HRC_FORECAST_ARBITRATION``).
+        fallback_reason: Why constant velocity runs instead of the network (None: it runs what was asked).
+    """
+
+    kind: str
+    weights: str | None
+    weights_sha256: str | None
+    arbitrated: bool
+    fallback_reason: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def file_sha256(path: str | Path) -> str | None:
+    """The SHA-256 (hex) of a file's bytes, None when it cannot be read."""
+    digest = hashlib.sha256()
+    try:
+        with Path(path).open("rb") as fp:
+            for block in iter(lambda: fp.read(1 << 20), b""):
+                digest.update(block)
+    except OSError:
+        return None
+    return digest.hexdigest()
+
+
+def predictor_info(predictor: Any) -> PredictorInfo:
+    """What ``predictor`` (a :class:`~app.prediction.predictor.MotionPredictor` or another) runs."""
+    weights = getattr(predictor, "weights_path", None)
+    return PredictorInfo(
+        kind=str(getattr(predictor, "effective_kind", type(predictor).__name__)),
+        weights=None if weights is None else str(weights),
+        weights_sha256=None if weights is None else file_sha256(weights),
+        arbitrated=getattr(predictor, "arbiter", None) is not None,
+        fallback_reason=getattr(predictor, "fallback_reason", None),
+    )
+
+
+def fallback_message(reason: str) -> str:
+    """The one line that says the predictor's weights cannot be used and what to do."""
+    return (
+        f"the motion predictor cannot run: {reason}; fix or replace the weights file (HRC_HMP_WEIGHTS), or "
+        "set HRC_HMP_FALLBACK=true to run the constant-velocity forecast instead"
+    )
+
+
+def check_predictor_weights(settings: Settings) -> None:
+    """Load the proactive predictor's weights (the runtime's start reuses the loaded network).
+
+    Raises:
+        PredictorUnavailable: they cannot be loaded and ``settings.hmp_fallback`` is off.
+    """
+    if settings.hmp_fallback:
+        return
+    from app.prediction.predictor import WeightsError, load_graphmixer
+
+    weights, _ = forecast_model(settings)
+    try:
+        load_graphmixer(weights)
+    except WeightsError as exc:
+        raise PredictorUnavailable(fallback_message(str(exc))) from exc
 
 
 def make_operator(

@@ -50,7 +50,14 @@ from app.control.engine import (
     TrialResult,
     make_validated_source,
 )
-from app.control.headless import make_predictor, run_headless_trial
+from app.control.headless import (
+    PredictorInfo,
+    PredictorUnavailable,
+    fallback_message,
+    make_predictor,
+    predictor_info,
+    run_headless_trial,
+)
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
 from app.control.supervisor import SupervisorConfig
 from app.prediction.forecast import HumanForecast
@@ -65,12 +72,34 @@ __all__ = [
     "Snapshot",
     "Subscription",
     "TrialAlreadyRunning",
+    "TrialCheckpoint",
     "TrialFrames",
     "TrialResult",
     "run_headless_trial",
 ]
 
 TrialListener = Callable[[int, TrialMetrics, list[TrialEvent], str], None]
+
+
+@dataclass(frozen=True, slots=True)
+class TrialCheckpoint:
+    """What a running trial has so far, for a checkpoint in the study database.
+
+    Attributes:
+        trial_id: The running trial.
+        elapsed_s: Trial time of the checkpoint (s since the trial started).
+        metrics: The trial's metrics so far (``duration_s`` is ``elapsed_s``, about).
+        frames: The recorded frames from index ``first_frame`` on, or None (none recorded since).
+        first_frame: Index of the first frame in ``frames`` among all the trial's recorded frames.
+    """
+
+    trial_id: int
+    elapsed_s: float
+    metrics: TrialMetrics
+    frames: TrialFrames | None
+    first_frame: int
+
+
 EventListener = Callable[[int | None, TrialEvent], None]
 
 
@@ -334,6 +363,8 @@ class Runtime:
         self._tcp_cache: dict[int, np.ndarray] = {}
         self._last_frame: Any | None = None
         self.last_result: TrialResult | None = None
+        #: The proactive method's predictor as it runs (after :meth:`start`).
+        self.predictor_info: PredictorInfo | None = None
         n = 4096
         self.stats = _LoopStats(deque(maxlen=n), deque(maxlen=n), deque(maxlen=n), deque(maxlen=16 * n))
 
@@ -348,22 +379,31 @@ class Runtime:
         return self._robot
 
     def start(self) -> None:
-        """Build what the cell needs (planning stack, robot, source, predictor) and start the threads."""
+        """Build what the cell needs (planning stack, robot, source, predictor) and start the threads.
+
+        Raises:
+            PredictorUnavailable: the predictor's weights cannot be used and ``HRC_HMP_FALLBACK`` is off.
+        """
         with self._lock:
             if self._started:
                 return
             if self._stack is None:
                 t_r = self.settings.reaction_time_s(1.0 / self.servo_rate_hz)
                 self._stack = PlanningStack.for_cell(self.cell, t_reaction_s=t_r)
+            if self._predictor is None:  # before the robot: a predictor that cannot run stops the start
+                predictor = make_predictor(
+                    "proactive", self.settings, tracking_margin_m=self.options.tracking_margin_m
+                )
+                reason = getattr(predictor, "fallback_reason", None)
+                if reason is not None and not self.settings.hmp_fallback:
+                    raise PredictorUnavailable(fallback_message(reason))
+                self._predictor = predictor
+            self.predictor_info = predictor_info(self._predictor)
             if self._robot is None:
                 from app.cell.backends import make_robot
 
                 self._robot = make_robot(self.settings, self.clock, q0=np.asarray(self.cell.robot.home_q))
             self._open_source(seed=0)
-            if self._predictor is None:
-                self._predictor = make_predictor(
-                    "proactive", self.settings, tracking_margin_m=self.options.tracking_margin_m
-                )
             if not _warm_up_compiled(
                 self.settings, self.cell, self._stack, self._predictor, servo_rate_hz=self.servo_rate_hz
             ):
@@ -509,6 +549,24 @@ class Runtime:
             )
             self._trial_id = trial_id
         log.info("trial %d started (%s, %.0f s, seed %d)", trial_id, method, duration_s, seed)
+
+    def checkpoint(self, trial_id: int, *, first_frame: int = 0) -> TrialCheckpoint | None:
+        """The running trial's metrics so far and its recorded frames from ``first_frame`` on; None when
+        ``trial_id`` is not the running trial. Called by the trial recorder's thread (it reads the engine
+        the frame and servo threads update, as the E-stop does): a read that races an update and fails is
+        logged and answered None (the next checkpoint comes a moment later)."""
+        with self._lock:
+            engine = self._engine
+            if engine is None or not engine.running or self._trial_id != trial_id:
+                return None
+        try:
+            elapsed = engine.elapsed(self.clock.now())
+            metrics = engine.metrics()
+            frames = engine.frames(first_frame)
+        except (RuntimeError, ValueError, IndexError) as exc:
+            log.debug("trial %d: checkpoint skipped (%s)", trial_id, exc)
+            return None
+        return TrialCheckpoint(trial_id, float(elapsed), metrics, frames, int(first_frame))
 
     def stop_trial(self, reason: str = "operator") -> None:
         """End the running trial now (``aborted`` with ``reason``); no-op without one."""

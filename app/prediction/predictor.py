@@ -123,7 +123,11 @@ def load_graphmixer(path: str | Path | None = None) -> LoadedModel:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt files
-        raise WeightsError(f"cannot read Graph-Mixer weights {path}: {exc}") from exc
+        # torch's messages run to many lines (and suggest loading untrusted pickles): the cause in brief
+        raise WeightsError(
+            f"cannot read Graph-Mixer weights {path}: the file is corrupt or not a torch checkpoint "
+            f"({type(exc).__name__})"
+        ) from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise WeightsError(f"{path} is not a Graph-Mixer checkpoint of format {CHECKPOINT_FORMAT!r}")
     try:
@@ -245,13 +249,18 @@ class MotionPredictor:
         self._fast = None
         self.model_meta: dict = {}
         self.effective_kind: str = kind
+        #: Why the predictor runs constant velocity instead of the network it was asked for (None: it runs
+        #: what was asked).
+        self.fallback_reason: str | None = None
         weights_path = Path(weights) if weights is not None else DEFAULT_WEIGHTS
+        self.weights_path: Path | None = weights_path if kind == "graphmixer" else None
         if kind == "graphmixer":
             try:
                 loaded = load_graphmixer(weights_path)
             except WeightsError as exc:
                 log.warning("%s; falling back to the constant-velocity predictor", exc)
                 self.effective_kind = "constant_velocity"
+                self.fallback_reason = str(exc)
             else:
                 cfg = loaded.model.cfg
                 if cfg.t_in != history or cfg.horizon != horizon or abs(cfg.fps - self.fps) > 1e-6:
@@ -267,6 +276,10 @@ class MotionPredictor:
                         self.fps,
                     )
                     self.effective_kind = "constant_velocity"
+                    self.fallback_reason = (
+                        f"Graph-Mixer weights {weights_path} are for {cfg.t_in} frames in, {cfg.horizon} out "
+                        f"at {cfg.fps:.1f} Hz, not {history}/{horizon} at {self.fps:.1f} Hz"
+                    )
                 else:
                     self.model = loaded.model
                     self.model_meta = loaded.meta

@@ -61,7 +61,10 @@ from app.study.schemas import (
 
 log = logging.getLogger(__name__)
 
-INTERRUPTED_REASON = "interrupted: the process that ran the trial ended before the trial finished"
+INTERRUPTED_REASON = (
+    "interrupted: the process that ran the trial ended before the trial finished (killed or crashed); "
+    "its metrics, recorded motion and events end at its last checkpoint (ended_at)"
+)
 #: Settings fields never stored in a trial's settings snapshot.
 SECRET_SETTINGS: frozenset[str] = frozenset({"api_token"})
 DEFAULT_CHUNK_FRAMES = 300  # 10 s at 30 Hz per recorded_frames row
@@ -200,6 +203,8 @@ def _participant_read(p: Participant) -> ParticipantRead:
 
 
 def _trial_read(t: Trial) -> TrialRead:
+    # While a trial runs, its row holds the last checkpoint (metrics so far, ended_at = when): not shown.
+    running = t.status == "running"
     return TrialRead(
         id=t.id,
         participant_id=t.participant_id,
@@ -211,10 +216,10 @@ def _trial_read(t: Trial) -> TrialRead:
         duration_s=t.duration_s,
         settings=t.settings or {},
         started_at=t.started_at,
-        ended_at=t.ended_at,
+        ended_at=None if running else t.ended_at,
         status=t.status,  # type: ignore[arg-type]
         abort_reason=t.abort_reason,
-        metrics=TrialMetricsRead.model_validate(t.metrics) if t.metrics is not None else None,
+        metrics=TrialMetricsRead.model_validate(t.metrics) if t.metrics is not None and not running else None,
     )
 
 
@@ -476,12 +481,10 @@ class StudyRepository:
             if t.status != "running":
                 raise TrialStateError(f"trial {trial_id} is {t.status}, not running; it cannot be finished")
             if metrics is not None:
-                m_method = metrics.get("method") if isinstance(metrics, Mapping) else metrics.method
-                if m_method is not None and m_method != t.method:
-                    raise ValueError(f"metrics of a {m_method} trial given for {t.method} trial {trial_id}")
-                s.add(TrialMetricsRow(trial_id=t.id, **_metrics_values(metrics)))
+                self._replace_metrics(s, t, metrics)
             self._insert_events(s, trial_id, events)
-            if frames is not None:
+            if frames is not None:  # the whole recording replaces the checkpoints' chunks
+                s.execute(delete(RecordedFrame).where(RecordedFrame.trial_id == trial_id))
                 self._insert_frames(s, trial_id, frames, DEFAULT_CHUNK_FRAMES)
             t.status = status
             if started_at is not None:
@@ -490,6 +493,42 @@ class StudyRepository:
             t.abort_reason = reason if status == "aborted" else None
             s.commit()
             return self._trial_read_by_id(s, trial_id)
+
+    def checkpoint_trial(
+        self,
+        trial_id: int,
+        *,
+        metrics: TrialMetrics | Mapping[str, Any],
+        frames: RecordedFrames | None = None,
+        at: datetime | None = None,
+    ) -> None:
+        """Store a running trial's progress, in one transaction: its metrics so far (replacing the last
+        checkpoint's), its recorded frames since the last checkpoint (appended as new chunks) and the time
+        of the checkpoint in ``ended_at`` (``at``, default now; the API shows neither while the trial runs).
+        After a crash, :meth:`abort_interrupted_trials` keeps all three: the trial ends at its last
+        checkpoint.
+
+        Raises:
+            NotFoundError: no such trial.
+            TrialStateError: the trial is not running (it ended meanwhile: nothing is written).
+            ValueError: ``metrics`` belong to the other method, or are incomplete.
+        """
+        with self._sessions() as s:
+            t = self._trial(s, trial_id)
+            if t.status != "running":
+                raise TrialStateError(f"trial {trial_id} is {t.status}, not running; no checkpoint")
+            self._replace_metrics(s, t, metrics)
+            if frames is not None and len(frames):
+                last = s.scalar(
+                    select(func.max(RecordedFrame.chunk_index)).where(RecordedFrame.trial_id == trial_id)
+                )
+                rows = _frame_chunks(frames, trial_id, DEFAULT_CHUNK_FRAMES)
+                first = 0 if last is None else int(last) + 1
+                for k, row in enumerate(rows):
+                    row["chunk_index"] = first + k
+                s.execute(insert(RecordedFrame), rows)
+            t.ended_at = at or utcnow()
+            s.commit()
 
     def store_keyed_trial(
         self,
@@ -600,15 +639,15 @@ class StudyRepository:
 
     def abort_interrupted_trials(self, *, reason: str = INTERRUPTED_REASON) -> list[int]:
         """Mark every trial still ``running`` as ``aborted`` (call once at start-up, before any trial runs:
-        a running trial in the database then belongs to a process that was killed). Returns their ids."""
+        a running trial in the database then belongs to a process that was killed). A trial keeps what its
+        last checkpoint stored (metrics, frames, events) and ends when that checkpoint was taken; one that
+        never reached a checkpoint ends now. Returns their ids."""
         with self._sessions() as s:
             ids = list(s.scalars(select(Trial.id).where(Trial.status == "running").order_by(Trial.id)))
             if ids:
-                s.execute(
-                    update(Trial)
-                    .where(Trial.id.in_(ids), Trial.status == "running")
-                    .values(status="aborted", abort_reason=reason, ended_at=utcnow())
-                )
+                running = (Trial.id.in_(ids), Trial.status == "running")
+                s.execute(update(Trial).where(*running, Trial.ended_at.is_(None)).values(ended_at=utcnow()))
+                s.execute(update(Trial).where(*running).values(status="aborted", abort_reason=reason))
                 s.commit()
                 log.warning("marked %d interrupted trials as aborted: %s", len(ids), ids)
             return ids
@@ -724,6 +763,8 @@ class StudyRepository:
             q = q.where(Trial.session_id == session_id)
         if status is not None:
             q = q.where(Trial.status == status)
+        else:  # a running trial's metrics are its last checkpoint's, not a result
+            q = q.where(Trial.status != "running")
         out = []
         with self._sessions() as s:
             for t, code, m in s.execute(q):
@@ -765,6 +806,15 @@ class StudyRepository:
     @classmethod
     def _trial(cls, s: Session, trial_id: int) -> Trial:
         return cls._get(s, Trial, trial_id, "trial")
+
+    @staticmethod
+    def _replace_metrics(s: Session, t: Trial, metrics: TrialMetrics | Mapping[str, Any]) -> None:
+        m_method = metrics.get("method") if isinstance(metrics, Mapping) else metrics.method
+        if m_method is not None and m_method != t.method:
+            raise ValueError(f"metrics of a {m_method} trial given for {t.method} trial {t.id}")
+        values = _metrics_values(metrics)
+        s.execute(delete(TrialMetricsRow).where(TrialMetricsRow.trial_id == t.id))
+        s.execute(insert(TrialMetricsRow), [{"trial_id": t.id, **values}])
 
     def _trial_read_by_id(self, s: Session, trial_id: int) -> TrialRead:
         q = (

@@ -22,6 +22,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -138,6 +139,30 @@ def _ghost_indices(horizon: int, count: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(1, horizon - 1, count)).astype(np.int64))
 
 
+#: The group frame of each optional layer's nodes.
+LAYER_GROUPS: dict[str, str] = {
+    "roadmap": "/roadmap",
+    "ghosts": "/forecast",
+    "plans": "/plans",
+    "separation": "/safety",
+}
+#: The GUI label of each optional layer.
+LAYER_LABELS: dict[str, str] = {
+    "roadmap": "Roadmap nodes",
+    "ghosts": "Forecast ghosts",
+    "plans": "Plans (TCP paths)",
+    "separation": "Protective separation",
+}
+
+
+@dataclass(frozen=True)
+class ClientLayers:
+    """One viewer's layer toggles (GUI checkboxes) and its client-scoped group frames, by layer."""
+
+    toggles: Mapping[str, Any]
+    groups: Mapping[str, Any]
+
+
 class CellView:
     """The scene graph of one work cell inside a viser server, updated in place from snapshots.
 
@@ -169,6 +194,8 @@ class CellView:
         self._n_ghosts = int(ghosts)
         self._handles: dict[str, Any] = {}
         self._show = {"roadmap": False, "ghosts": True, "plans": True, "separation": True}
+        self._clients: dict[int, ClientLayers] = {}
+        self._clients_lock = threading.Lock()
         self._has = {"ghosts": False, "plan": False, "backup": False, "separation": False}
         self.applied = 0
         self._last_text = ""
@@ -297,6 +324,11 @@ class CellView:
         )
 
     def _build_dynamic(self, scene: Any, roadmap_nodes: np.ndarray | None) -> None:
+        # Each optional layer's nodes live under one group frame: a node shows whether it has something to
+        # show; the group, whether the layer is on (the server's default here, each client's own choice in
+        # a client-scoped variant of the group, see _add_client).
+        for key, group in LAYER_GROUPS.items():
+            self._handles[f"layer_{key}"] = scene.add_frame(group, show_axes=False, visible=self._show[key])
         cyl_v, cyl_f = unit_cylinder(segments=18)
         sph_v, sph_f = unit_sphere(rings=8, sectors=14)
         L = self._n_links
@@ -398,31 +430,54 @@ class CellView:
                 point_size=0.012,
                 point_shape="circle",
                 precision="float32",
-                visible=self._show["roadmap"],
+                visible=True,
             )
 
     def _build_gui(self, server: Any) -> None:
         gui = server.gui
         gui.configure_theme(control_width="small", show_share_button=False, brand_color=(41, 98, 255))
-        h = self._handles
-        h["gui_status"] = gui.add_markdown("**State:** IDLE")
-        with gui.add_folder("Layers"):
-            toggles = [
-                ("roadmap", "Roadmap nodes", "roadmap" in h),
-                ("ghosts", "Forecast ghosts", True),
-                ("plans", "Plans (TCP paths)", True),
-                ("separation", "Protective separation", True),
-            ]
-            for key, label, enabled in toggles:
-                box = gui.add_checkbox(label, initial_value=self._show[key], disabled=not enabled)
-                box.on_update(self._make_toggle(key, box))
-                h[f"gui_toggle_{key}"] = box
+        self._handles["gui_status"] = gui.add_markdown("**State:** IDLE")
+        # The layer toggles are each viewer's own: built per client as it connects (a server without
+        # clients, such as a client handle drawn into, has no toggles)
+        on_connect = getattr(server, "on_client_connect", None)
+        on_disconnect = getattr(server, "on_client_disconnect", None)
+        if on_connect is not None and on_disconnect is not None:
+            on_connect(self._add_client)
+            on_disconnect(self._remove_client)
 
-    def _make_toggle(self, key: str, box: Any) -> Callable[[Any], None]:
+    def _add_client(self, client: Any) -> None:
+        """One viewer's layer toggles: a GUI folder of its own and a client-scoped variant of each layer's
+        group frame (viser shows a client's variant of a node instead of the server's to that client only),
+        so its choices change its view and no one else's."""
+        groups = {
+            key: client.scene.add_frame(group, show_axes=False, visible=self._show[key])
+            for key, group in LAYER_GROUPS.items()
+        }
+        toggles: dict[str, Any] = {}
+        with client.gui.add_folder("Layers"):
+            for key, label in LAYER_LABELS.items():
+                enabled = key != "roadmap" or "roadmap" in self._handles
+                box = client.gui.add_checkbox(label, initial_value=self._show[key], disabled=not enabled)
+                box.on_update(self._make_toggle(box, groups[key]))
+                toggles[key] = box
+        with self._clients_lock:
+            self._clients[int(client.client_id)] = ClientLayers(toggles=toggles, groups=groups)
+
+    def _remove_client(self, client: Any) -> None:
+        with self._clients_lock:
+            self._clients.pop(int(client.client_id), None)
+
+    @staticmethod
+    def _make_toggle(box: Any, group: Any) -> Callable[[Any], None]:
         def _on_update(_event: Any) -> None:
-            self.set_layer(key, bool(box.value))
+            group.visible = bool(box.value)
 
         return _on_update
+
+    def client_layers(self, client_id: int) -> ClientLayers | None:
+        """A connected viewer's layer toggles and group frames (None for an unknown client)."""
+        with self._clients_lock:
+            return self._clients.get(int(client_id))
 
     # ------------------------------------------------------------------ updates
 
@@ -432,20 +487,13 @@ class CellView:
         return MappingProxyType(self._handles)
 
     def set_layer(self, key: str, visible: bool) -> None:
-        """Show or hide an optional layer: ``"roadmap"``, ``"ghosts"``, ``"plans"`` or ``"separation"``."""
+        """Show or hide an optional layer (``"roadmap"``, ``"ghosts"``, ``"plans"`` or ``"separation"``) by
+        default: for viewers that connect later, and in the server's own scene. A connected viewer keeps
+        its own choice (its GUI toggles)."""
         if key not in self._show:
             raise ValueError(f"unknown layer {key!r}; expected one of {sorted(self._show)}")
         self._show[key] = visible
-        h = self._handles
-        if key == "roadmap" and "roadmap" in h:
-            h["roadmap"].visible = visible
-        elif key == "ghosts":
-            h["forecast_ghosts"].visible = visible and self._has["ghosts"]
-        elif key == "plans":
-            h["plan"].visible = visible and self._has["plan"]
-            h["backup"].visible = visible and self._has["backup"]
-        elif key == "separation":
-            h["separation"].visible = visible and self._has["separation"]
+        self._handles[f"layer_{key}"].visible = visible
 
     def _set_robot(self, q: np.ndarray, color: RGB) -> np.ndarray:
         a, b, _r = self._robot_capsules(np.asarray(q, dtype=np.float64).reshape(1, 6))
@@ -510,7 +558,7 @@ class CellView:
         ghosts.batched_scales = full_scale
         ghosts.batched_opacities = full_opac
         self._has["ghosts"] = True
-        ghosts.visible = self._show["ghosts"]
+        ghosts.visible = True
 
     def _set_path(self, key: str, path: np.ndarray | None) -> None:
         handle = self._handles[key]
@@ -520,7 +568,7 @@ class CellView:
             return
         handle.points = _path_segments(path)
         self._has[key] = True
-        handle.visible = self._show["plans"]
+        handle.visible = True
 
     def apply(self, snap: Any) -> None:
         """Update every dynamic element from one snapshot (in place; no handle is created or removed).
@@ -570,7 +618,7 @@ class CellView:
                 else:
                     sphere.color = COLOR_OK
                 self._has["separation"] = True
-                sphere.visible = self._show["separation"]
+                sphere.visible = True
             else:
                 self._has["separation"] = False
                 sphere.visible = False
@@ -613,9 +661,11 @@ class CellScene:
     Args:
         runtime: The runtime (anything with ``snapshot()`` and ``subscribe(maxsize)``).
         cell: The work cell to draw.
-        port: TCP port of the viser server (0 picks a free one; viser moves to the next free port when
-            the port is taken: read :attr:`port` after :meth:`start`).
+        port: TCP port of the viser server (0 picks a free one: read :attr:`port` after :meth:`start`; a
+            port another program holds is an error, :class:`~app.ui.viser_server.PortInUse`).
         host: Interface to bind (default loopback).
+        token: The operator token every viewer's socket must carry (None: open; see
+            :mod:`app.ui.viser_server`).
         roadmap: A planner ``Roadmap`` (its ``nodes (N, 3)`` are drawn, toggled in the GUI); default: the
             runtime's ``roadmap`` attribute when it has one.
         rate_hz: Highest update rate of the view (snapshots in between are skipped).
@@ -634,12 +684,13 @@ class CellScene:
         rate_hz: float = 30.0,
         robot_capsules: RobotCapsulesFn | None = None,
         ghosts: int = 6,
+        token: str | None = None,
     ) -> None:
         if not 0 < rate_hz <= 120:
             raise ValueError(f"rate_hz must be in (0, 120], got {rate_hz}")
         self._runtime = runtime
         self._cell = cell
-        self._srv = ViserServerThread(host=host, port=port, name="hrc-scene")
+        self._srv = ViserServerThread(host=host, port=port, name="hrc-scene", token=token)
         self._roadmap = roadmap
         self._period_s = 1.0 / rate_hz
         self._robot_capsules = robot_capsules

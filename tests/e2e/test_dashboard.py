@@ -17,6 +17,7 @@ import shutil
 import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import numpy as np
 import pytest
@@ -255,7 +256,9 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
 def test_3d_view_shows_the_cell(page: Any, hrc_server: Any, artifacts_dir: Path) -> None:
     """The viser page on its own: the scene tree holds the cell, the robot, the person and the layers."""
     info = hrc_server.api("GET", "/api/info").json()
-    page.goto(f"http://127.0.0.1:{info['viser_port']}/")
+    port = info["viser_port"]
+    socket_url = quote(f"ws://127.0.0.1:{port}/?token={hrc_server.token}", safe="")
+    page.goto(f"http://127.0.0.1:{port}/?websocket={socket_url}")  # viewers need the operator token
     wait_for_3d_view(page, page)
     expect(page.get_by_text("State:").first).to_be_visible()
     expect(page.get_by_text("Forecast ghosts").first).to_be_visible()

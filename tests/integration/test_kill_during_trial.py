@@ -1,16 +1,28 @@
 """Data integrity with a real kill: a process that is writing a trial's events is SIGKILLed; the database
-still opens, the trial is marked aborted at the next start, and every event up to the last flush is kept."""
+still opens, the trial is marked aborted at the next start, and every event up to the last flush is kept.
+
+And the whole server: ``hrc serve`` on SQLite runs a simulated trial started over the API, is SIGKILLed at a
+random moment a few seconds in and started again; the trial is aborted (interrupted) and keeps its metrics,
+recorded motion and events up to its last checkpoint, at most 1 s before the kill, and ends then."""
 
 from __future__ import annotations
 
+import json
 import os
+import random
 import select
 import signal
+import socket
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
+from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 from sqlalchemy import text
 
 from app.study.db import make_engine
@@ -108,3 +120,130 @@ def test_sigkill_during_trial_keeps_flushed_events_and_aborts_the_trial(db_url: 
         assert [e.payload["i"] for e in events] == list(range(len(events)))  # a gap-free prefix
     finally:
         repo.close()
+
+
+# ---- the whole server, killed mid-trial ------------------------------------------------------------------
+
+TOKEN = "kill-token-0123456789abcdef"
+#: Longest wait for ``hrc serve`` to answer /api/health (it builds the planning stack and warms up).
+SERVE_TIMEOUT_S = 90.0
+#: The most a checkpoint may lag the kill (the issue's bound; checkpoints come every 0.5 s).
+MAX_LOSS_S = 1.0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _call(port: int, method: str, path: str, body: dict[str, Any] | None = None) -> tuple[int, Any]:
+    req = urllib.request.Request(
+        f"http://127.0.0.1:{port}{path}",
+        method=method,
+        data=None if body is None else json.dumps(body).encode(),
+        headers={"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json"},
+    )
+    try:
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return r.status, json.loads(r.read() or b"null")
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode(errors="replace")
+
+
+def _serve(env: dict[str, str], log: Path) -> subprocess.Popen[bytes]:
+    with log.open("ab") as out:
+        return subprocess.Popen(
+            [sys.executable, "-m", "app.cli", "serve", "--log-level", "warning"],
+            cwd=REPO_ROOT,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
+
+
+def _wait_healthy(proc: subprocess.Popen[bytes], port: int, log: Path) -> None:
+    deadline = time.monotonic() + SERVE_TIMEOUT_S
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, f"hrc serve exited ({proc.returncode}):\n{log.read_text()[-3000:]}"
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/health", timeout=2) as r:
+                if r.status == 200:
+                    return
+        except (OSError, urllib.error.URLError):
+            pass
+        time.sleep(0.25)
+    raise AssertionError(f"hrc serve did not answer within {SERVE_TIMEOUT_S} s:\n{log.read_text()[-3000:]}")
+
+
+def _stop(proc: subprocess.Popen[bytes], sig: int = signal.SIGTERM) -> None:
+    if proc.poll() is None:
+        proc.send_signal(sig)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout=30)
+
+
+def test_sigkill_of_the_server_mid_trial_keeps_the_trial_up_to_its_last_checkpoint(tmp_path: Path) -> None:
+    port = _free_port()
+    db_url = f"sqlite:///{(tmp_path / 'study.db').as_posix()}"
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(REPO_ROOT),
+        "HRC_DATA_DIR": str(tmp_path),
+        "HRC_DATABASE_URL": db_url,
+        "HRC_API_TOKEN": TOKEN,
+        "HRC_PORT": str(port),
+        "HRC_VISER_PORT": str(_free_port()),
+        "HRC_ROBOT": "sim",
+        "HRC_HUMAN_SOURCE": "sim",
+    }
+    log = tmp_path / "serve.log"
+    kill_after_s = random.Random().uniform(3.0, 7.0)  # a random moment of the trial (the log says which)
+    print(f"kill -9 at {kill_after_s:.2f} s into the trial")
+    proc = _serve(env, log)
+    try:
+        _wait_healthy(proc, port, log)
+        code, p = _call(port, "POST", "/api/participants", {"code": "K1"})
+        assert code == 201, p
+        code, trial = _call(
+            port, "POST", "/api/trials", {"participant_id": p["id"], "method": "proactive", "duration_s": 60}
+        )
+        assert code == 201, trial
+        started = time.monotonic()  # after the runtime started the trial: a lower bound of its time
+        time.sleep(kill_after_s)
+        elapsed_at_kill = time.monotonic() - started
+        killed_at = datetime.now(UTC)
+        proc.send_signal(signal.SIGKILL)
+        assert proc.wait(timeout=30) == -signal.SIGKILL
+    finally:
+        _stop(proc, signal.SIGKILL)
+
+    proc = _serve(env, log)  # the next start marks the trial aborted
+    try:
+        _wait_healthy(proc, port, log)
+        code, got = _call(port, "GET", f"/api/trials/{trial['id']}")
+        assert code == 200, got
+    finally:
+        _stop(proc)
+
+    assert got["status"] == "aborted" and "interrupted" in got["abort_reason"], got
+    ended_at = datetime.fromisoformat(got["ended_at"])
+    lag_s = (killed_at - ended_at).total_seconds()
+    assert -0.05 <= lag_s <= MAX_LOSS_S, f"ended_at {ended_at} is {lag_s:.2f} s before the kill"
+    m = got["metrics"]
+    assert m is not None and m["frames_received"] > 0, got
+    assert m["duration_s"] >= elapsed_at_kill - MAX_LOSS_S, (m["duration_s"], elapsed_at_kill)
+    kinds = [e["kind"] for e in got["events"]]
+    assert kinds and kinds[0] == "trial_started", kinds
+
+    repo = open_repository(db_url, upgrade=False)
+    try:
+        frames = repo.load_frames(trial["id"])
+    finally:
+        repo.close()
+    assert frames is not None and frames.q.shape == (len(frames), 6), "no recorded motion"
+    assert np.all(np.diff(frames.t) > 0) and frames.t[0] < 0.5  # one gap-free recording from the start
+    assert frames.t[-1] >= elapsed_at_kill - MAX_LOSS_S, (frames.t[-1], elapsed_at_kill)

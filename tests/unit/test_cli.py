@@ -61,6 +61,65 @@ def test_serve_with_an_invalid_setting_names_it_in_one_line(
     assert "hmp_weights" in line and "weights.pt" in line and str(missing) in line
 
 
+def test_serve_with_a_taken_viewer_port_names_the_port_and_the_setting_in_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another program holds HRC_VISER_PORT: hrc serve stops before it starts anything (viser used to move
+    to the next port with only an INFO line)."""
+    import socket
+
+    from app.api import server as server_mod
+
+    monkeypatch.setenv("COLUMNS", "40")
+    started: list[object] = []
+    monkeypatch.setattr(server_mod, "run_server", lambda *a, **k: started.append(a))
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        env = {"HRC_VISER_PORT": str(port), "HRC_DATA_DIR": str(tmp_path / "var"), "HRC_HOST": "127.0.0.1"}
+        res = CliRunner().invoke(cli_app, ["serve"], env=env)
+    assert res.exit_code == 2 and "Traceback" not in res.output, res.output
+    (line,) = _errors(res.output)
+    assert len(res.output.strip().splitlines()) == 1, res.output
+    assert f"port {port} on 127.0.0.1 is in use" in line and "HRC_VISER_PORT" in line
+    assert started == []
+
+
+def test_serve_with_corrupt_predictor_weights_names_the_file_in_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Corrupt weights stop hrc serve (they used to start it on constant velocity with a warning), unless
+    HRC_HMP_FALLBACK asks for the fallback."""
+    from app.api import server as server_mod
+
+    monkeypatch.setenv("COLUMNS", "40")
+    started: list[object] = []
+    monkeypatch.setattr(server_mod, "run_server", lambda *a, **k: started.append(a))
+    weights = deep_dir(tmp_path) / "corrupt.pt"
+    weights.write_bytes(b"not a checkpoint" * 64)
+    import socket
+
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        viser_port = free.getsockname()[1]
+    env = {
+        "HRC_HMP_WEIGHTS": str(weights),
+        "HRC_DATA_DIR": str(tmp_path / "var"),
+        "HRC_HOST": "127.0.0.1",
+        "HRC_VISER_PORT": str(viser_port),
+    }
+    res = CliRunner().invoke(cli_app, ["serve"], env=env)
+    assert res.exit_code == 2 and "Traceback" not in res.output, res.output
+    (line,) = _errors(res.output)
+    assert len(res.output.strip().splitlines()) == 1, res.output
+    assert str(weights) in line and "HRC_HMP_WEIGHTS" in line and "HRC_HMP_FALLBACK" in line
+    assert started == []
+    res = CliRunner().invoke(cli_app, ["serve"], env={**env, "HRC_HMP_FALLBACK": "true"})
+    assert res.exit_code == 0, res.output
+    assert len(started) == 1
+
+
 def test_cell_check_with_a_bad_work_cell_says_which_file_and_field(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -14,6 +14,7 @@ from app.api.schemas import (
     MIN_TRIAL_DURATION_S,
     HealthRead,
     InfoRead,
+    PredictorRead,
 )
 from app.api.version import app_version
 from app.control.metrics import METHODS
@@ -83,7 +84,8 @@ def health(request: Request) -> HealthRead | JSONResponse:
 
 @router.get("/info", response_model=InfoRead, dependencies=[AuthDep], responses=AUTH_RESPONSES)
 def info(ctx: ContextDep) -> InfoRead:
-    """Server facts for clients: the viser port of the 3D view, the cell's configuration, the limits."""
+    """Server facts for clients: the viser port of the 3D view, the cell's configuration, the limits, the
+    predictor that runs (its weights file and their SHA-256)."""
     s = ctx.settings
     limits = ctx.hub.limits
     return InfoRead(
@@ -100,4 +102,10 @@ def info(ctx: ContextDep) -> InfoRead:
         ingest_rate_hz=limits.ingest_rate_hz,
         deadline_s=s.deadline_s,
         anticipate_fetch=s.anticipate_fetch,
+        predictor=_predictor(ctx.runtime),
     )
+
+
+def _predictor(runtime: Runtime) -> PredictorRead | None:
+    info = getattr(runtime, "predictor_info", None)
+    return None if info is None else PredictorRead(**info.to_json())

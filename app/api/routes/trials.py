@@ -42,8 +42,10 @@ MAX_EVENTS = 10_000
 OptionalId = Annotated[int | None, Query(ge=1, le=MAX_ID)]
 
 
-def _settings_snapshot(settings: Settings) -> dict[str, Any]:
-    """The settings a trial runs with, without secrets (token; a database password in the URL)."""
+def _settings_snapshot(settings: Settings, runtime: Any = None, method: str | None = None) -> dict[str, Any]:
+    """The settings a trial runs with, without secrets (token; a database password in the URL), and under
+    ``predictor`` the predictor a proactive trial runs (kind, weights file, their SHA-256; null for a
+    reactive trial, which holds the current pose)."""
     from sqlalchemy.engine import make_url
 
     from app.study.repository import settings_snapshot
@@ -51,6 +53,11 @@ def _settings_snapshot(settings: Settings) -> dict[str, Any]:
     snap = settings_snapshot(settings)
     if snap.get("database_url"):
         snap["database_url"] = make_url(snap["database_url"]).render_as_string(hide_password=True)
+    info = getattr(runtime, "predictor_info", None)
+    if method == "proactive" and info is not None:
+        snap["predictor"] = info.to_json()
+    elif method is not None:
+        snap["predictor"] = None
     return snap
 
 
@@ -104,7 +111,7 @@ def start_trial(body: TrialStart, ctx: ContextDep) -> TrialRead:
             session_id=body.session_id,
             seed=seed,
             duration_s=body.duration_s,
-            settings=_settings_snapshot(ctx.settings),
+            settings=_settings_snapshot(ctx.settings, runtime, body.method),
         )
         ctx.recorder.begin(trial.id)
         try:

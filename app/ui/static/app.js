@@ -170,7 +170,10 @@
       $("viser-empty").hidden = false;
       return;
     }
-    const url = `${location.protocol}//${viserHost(location.hostname)}:${port}/`;
+    // The 3D view's socket needs the operator token: viser's client connects to the URL in ?websocket=.
+    const host = `${viserHost(location.hostname)}:${port}`;
+    const socket = `${location.protocol === "https:" ? "wss:" : "ws:"}//${host}/?token=${encodeURIComponent(state.token || "")}`;
+    const url = `${location.protocol}//${host}/?websocket=${encodeURIComponent(socket)}`;
     if (frame.getAttribute("src") !== url) frame.setAttribute("src", url);
     $("viser-link").href = url;
   }

@@ -72,8 +72,8 @@ def test_scene_is_started_with_the_settings_and_stopped(
     made: list[Any] = []
 
     class FakeScene:
-        def __init__(self, rt: Any, cell: Any, *, port: int, host: str, roadmap: Any) -> None:
-            self.args = (rt, cell, port, host, roadmap)
+        def __init__(self, rt: Any, cell: Any, *, port: int, host: str, roadmap: Any, token: str) -> None:
+            self.args = (rt, cell, port, host, roadmap, token)
             self.started = self.stopped = False
             made.append(self)
 
@@ -85,7 +85,7 @@ def test_scene_is_started_with_the_settings_and_stopped(
 
         @property
         def port(self) -> int:
-            return 18085  # where it really bound (viser moves on when the requested port is taken)
+            return 18085  # where it really bound
 
     monkeypatch.setitem(sys.modules, "app.ui.scene", types.SimpleNamespace(CellScene=FakeScene))
     app = create_app(settings.model_copy(update={"viser_port": 18080}), runtime=runtime, scene=True)
@@ -93,6 +93,7 @@ def test_scene_is_started_with_the_settings_and_stopped(
         (scene,) = made
         assert scene.started and scene.args[0] is runtime
         assert scene.args[2:4] == (18080, settings.host)
+        assert scene.args[5] == settings.api_token  # viewers need the operator token
         info = c.get("/api/info", headers={"Authorization": f"Bearer {settings.api_token}"}).json()
         assert info["viser_port"] == 18085  # clients are told the bound port
     assert scene.stopped

@@ -96,6 +96,34 @@ def test_hub_never_lets_a_client_hold_more_than_its_queue(runtime: Any) -> None:
     assert sub_size <= LiveLimits().subscription_size
 
 
+def test_a_new_clients_first_snapshot_is_fresh(runtime: Any) -> None:
+    """Nothing is broadcast while no client listens: a client who connects 10 s after the last one left gets
+    the runtime's newest snapshot, not the text broadcast then; a text of the newest snapshot is reused."""
+
+    async def scenario() -> tuple[dict[str, Any], dict[str, Any]]:
+        hub = LiveHub(runtime, limits=LiveLimits(live_rate_hz=30.0))
+        hub.start(asyncio.get_running_loop())
+        try:
+            q = hub.register()  # an earlier client
+            assert q is not None
+            runtime.publish(replace(runtime.snapshot(), t=1.0, state="nominal"))
+            for _ in range(200):
+                await asyncio.sleep(0.01)
+                if hub.latest_text is not None and json.loads(hub.latest_text)["t"] == 1.0:
+                    break
+            reused = json.loads(hub.current_text())
+            hub.unregister(q)  # it leaves; 10 s later, nobody listening, the runtime moved on
+            runtime.publish(replace(runtime.snapshot(), t=11.0, state="idle"))
+            await asyncio.sleep(0.1)
+            return reused, json.loads(hub.current_text())
+        finally:
+            hub.stop()
+
+    reused, first = asyncio.run(scenario())
+    assert reused["t"] == 1.0 and reused["state"] == "nominal"
+    assert first["t"] == 11.0 and first["state"] == "idle"
+
+
 # ---- /api/live ----------------------------------------------------------------------------------------
 
 

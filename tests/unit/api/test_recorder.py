@@ -3,6 +3,7 @@ end reason stored, a failing database never raising into the runtime's listener.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -83,3 +84,86 @@ def test_end_reason() -> None:
         == "duration"
     )
     assert end_reason([TrialEvent(1.0, "task_completed", {})]) is None
+
+
+def test_a_running_trial_is_checkpointed_then_ends_with_its_whole_recording(repo: Any) -> None:
+    """Checkpoints append the frames recorded since the last one and replace the metrics; the API shows
+    neither while the trial runs; the end stores the whole recording once; an interrupted trial keeps the
+    last checkpoint and ends when it was taken."""
+    import threading
+
+    from app.api.recorder import Checkpoint
+    from app.study.repository import RecordedFrames
+
+    n_frames = [0]
+    asked: list[int] = []
+    took = threading.Event()
+
+    def recording(first: int, n: int) -> RecordedFrames:
+        t = np.arange(first, n) / 30
+        return RecordedFrames(t=t, q=np.full((t.size, 6), 0.5), skeleton=np.ones((t.size, 19, 3)))
+
+    def checkpoint_of(trial_id: int, first_frame: int) -> Checkpoint | None:
+        asked.append(first_frame)
+        n_frames[0] += 7  # the runtime recorded 7 frames since
+        took.set()
+        m = TrialMetrics(method="reactive", duration_s=n_frames[0] / 30, completed_tasks=len(asked))
+        return Checkpoint(m, recording(first_frame, n_frames[0]), first_frame)
+
+    rec = TrialRecorder(repo, checkpoint_of=checkpoint_of, checkpoint_period_s=0.01)
+    tid = _trial(repo)
+    rec.begin(tid)
+    rec.on_event(tid, TrialEvent(0.0, "trial_started", {}))
+    rec.start()
+    for _ in range(3):
+        took.clear()
+        assert took.wait(10.0)
+    deadline = time.monotonic() + 10.0
+    while rec.checkpoints < 3 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    rec_frames = repo.load_frames(tid)
+    running = repo.get_trial(tid)
+    assert running.status == "running" and running.metrics is None and running.ended_at is None
+    assert rec_frames is not None and np.all(np.diff(rec_frames.t) > 0)  # appended, no duplicates
+    assert asked[:3] == [0, 7, 14]
+    assert [e.kind for e in repo.list_events(tid)] == ["trial_started"]  # flushed with the checkpoint
+
+    metrics = TrialMetrics(method="reactive", duration_s=2.0, completed_tasks=9)
+    whole = recording(0, 60)
+    rec._frames_of = lambda m: whole if m is metrics else None
+    rec.on_trial_end(tid, metrics, [], "completed")
+    assert rec.wait_stored(tid, 10.0)
+    rec.close()
+    done = repo.get_trial(tid)
+    assert done.status == "completed" and done.metrics.completed_tasks == 9
+    stored = repo.load_frames(tid)
+    assert stored is not None and len(stored) == 60 and np.array_equal(stored.t, whole.t)
+
+
+def test_an_interrupted_trial_ends_at_its_last_checkpoint(repo: Any) -> None:
+    from datetime import UTC, datetime, timedelta
+
+    from app.study.repository import RecordedFrames
+
+    tid = _trial(repo)
+    at = datetime.now(UTC) - timedelta(minutes=5)
+    t = np.arange(10) / 30
+    for k in range(2):
+        m = TrialMetrics(method="reactive", duration_s=(k + 1) * 0.3, completed_tasks=k)
+        frames = RecordedFrames(t=t[5 * k : 5 * k + 5], q=np.zeros((5, 6)), skeleton=None)
+        repo.checkpoint_trial(tid, metrics=m, frames=frames, at=at + timedelta(seconds=k))
+    never = _trial_of_other(repo)
+    assert repo.abort_interrupted_trials() == [tid, never]
+    got = repo.get_trial(tid)
+    assert got.status == "aborted" and "interrupted" in (got.abort_reason or "")
+    assert got.ended_at == at + timedelta(seconds=1) and got.metrics.completed_tasks == 1
+    assert np.array_equal(repo.load_frames(tid).t, t)
+    other = repo.get_trial(never)
+    assert other.metrics is None and other.ended_at is not None and other.ended_at > at + timedelta(minutes=4)
+
+
+def _trial_of_other(repo: Any) -> int:
+    from app.study.schemas import ParticipantCreate
+
+    p = repo.create_participant(ParticipantCreate(code="X2"))
+    return repo.create_trial(participant_id=p.id, method="proactive").id

@@ -63,6 +63,29 @@ def test_interrupted_trials_are_aborted_at_start(
 # ---- health and info ----------------------------------------------------------------------------------
 
 
+def test_info_and_the_trial_record_name_the_predictor_that_runs(
+    make_client: Any, settings: Settings, auth: dict[str, str], runtime: Any
+) -> None:
+    from app.control.headless import make_predictor, predictor_info
+    from app.prediction.predictor import DEFAULT_WEIGHTS
+
+    runtime.predictor_info = predictor_info(make_predictor("proactive", settings))  # as Runtime.start sets it
+    client = make_client(settings)
+    got = client.get("/api/info", headers=auth).json()["predictor"]
+    import hashlib
+
+    digest = hashlib.sha256(DEFAULT_WEIGHTS.read_bytes()).hexdigest()
+    assert got["kind"] == "graphmixer" and got["fallback_reason"] is None
+    assert got["weights"] == str(DEFAULT_WEIGHTS) and got["weights_sha256"] == digest
+    p = client.post("/api/participants", json={"code": "P1"}, headers=auth).json()
+    body = {"participant_id": p["id"], "method": "proactive", "duration_s": 60}
+    trial = client.post("/api/trials", json=body, headers=auth).json()
+    assert trial["settings"]["predictor"] == got  # the trial record says which predictor ran
+    runtime.finish_trial()
+    reactive = client.post("/api/trials", json={**body, "method": "reactive"}, headers=auth).json()
+    assert reactive["settings"]["predictor"] is None  # the reactive method holds the current pose
+
+
 def test_health_and_info(client: TestClient, auth: dict[str, str], settings: Settings) -> None:
     h = client.get("/api/health").json()
     assert h == {"status": "ok", "version": h["version"], "runtime": "running", "database": "ok"}

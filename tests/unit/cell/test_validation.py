@@ -160,6 +160,18 @@ def test_stale_watchdog_reports_after_100_ms_and_recovers() -> None:
         StaleWatchdog(0.0)
 
 
+def test_stale_watchdog_expecting_frames_counts_from_the_start() -> None:
+    dog = StaleWatchdog(0.35)
+    dog.expect_from(10.0)  # a trial starts; the first frame comes after the tracker's latency
+    assert not dog.is_stale(10.0) and not dog.is_stale(10.35)
+    assert dog.poll(10.1) is None
+    assert dog.is_stale(10.36) and dog.poll(10.36) == "stale"  # no frame at all: stale after the timeout
+    seen = StaleWatchdog(0.35)
+    seen.feed(1.0)
+    seen.expect_from(10.0)  # frames came and stopped long ago: still stale
+    assert seen.is_stale(10.0)
+
+
 class _ListSource:
     """A source that returns prepared frames by time (some of them bad)."""
 

@@ -189,6 +189,39 @@ def test_live_trial_runs_to_its_end_and_reports(stack: PlanningStack) -> None:
     assert rt.running_trial_id is None
 
 
+def test_a_simulated_trial_is_not_stale_before_its_first_frame(stack: PlanningStack) -> None:
+    """The simulated tracker delivers its first frame after its latency: the stale check counts from the
+    trial's start (plus the timeout), so no ``stale_stream`` at t = 0."""
+    ended = _Ended()
+    rt = Runtime(_settings(), stack=stack, options=EngineOptions(record_frames=False))
+    rt.add_trial_listener(ended.on_trial)
+    with rt:
+        rt.start_trial(trial_id=1, method="reactive", duration_s=1.0, seed=3)
+        assert ended.done.wait(30.0), "the trial listener was not called"
+    _, metrics, events, status = ended.calls[0]
+    assert status == "completed" and metrics.frames_received > 0
+    timeout = _settings().stale_timeout_s
+    early = [(e.t, e.kind) for e in events if e.kind in ("stale_stream", "stream_resumed") and e.t < timeout]
+    assert early == []
+
+
+def test_corrupt_predictor_weights_stop_the_start_unless_the_fallback_is_asked_for(
+    stack: PlanningStack, tmp_path: Path
+) -> None:
+    from app.control.headless import PredictorUnavailable, make_predictor, predictor_info
+
+    weights = tmp_path / "corrupt.pt"
+    weights.write_bytes(b"\x00garbage" * 100)
+    settings = _settings().model_copy(update={"hmp_weights": weights})
+    rt = Runtime(settings, stack=stack)
+    with pytest.raises(PredictorUnavailable, match=r"corrupt\.pt.*HRC_HMP_FALLBACK"):
+        rt.start()
+    assert rt.robot is None and rt.running_trial_id is None  # nothing was started
+    fallback = predictor_info(make_predictor("proactive", settings.model_copy(update={"hmp_fallback": True})))
+    assert fallback.kind == "constant_velocity" and "corrupt.pt" in (fallback.fallback_reason or "")
+    assert fallback.weights == str(weights) and fallback.weights_sha256 is not None
+
+
 def test_stop_trial_and_estop_abort_and_reset_is_needed(stack: PlanningStack) -> None:
     ended = _Ended()
     rt = Runtime(_settings(), stack=stack)

@@ -185,21 +185,24 @@ def test_invalid_arrays_are_hidden_not_drawn(server: Any, cell: Any) -> None:
 
 
 def test_layer_toggles(server: Any, cell: Any) -> None:
+    """A layer's group frame says whether it is on (by default); a node, whether it has something to show."""
     nodes = np.random.default_rng(1).uniform(size=(20, 3))
     view = CellView(server, cell, robot_capsules=fake_capsules, roadmap_nodes=nodes)
     h = view.handles
-    assert not h["roadmap"].visible  # off by default
+    assert not h["layer_roadmap"].visible  # off by default
     view.set_layer("roadmap", True)
-    assert h["roadmap"].visible
+    assert h["layer_roadmap"].visible
     plan = np.linspace([0.3, -0.5, 0.2], [0.6, 0.3, 0.1], 5)
     view.apply(FakeSnapshot(t=0.0, plan_tcp=plan))
-    assert h["plan"].visible
+    assert h["plan"].visible and h["layer_plans"].visible
     view.set_layer("plans", False)
-    assert not h["plan"].visible
+    assert not h["layer_plans"].visible
     view.apply(FakeSnapshot(t=0.1, plan_tcp=plan))
-    assert not h["plan"].visible  # stays hidden while the layer is off
+    assert not h["layer_plans"].visible  # stays hidden while the layer is off
     view.set_layer("plans", True)
-    assert h["plan"].visible
+    assert h["layer_plans"].visible and h["plan"].visible
+    layers = {"/roadmap/nodes", "/plans/executing", "/forecast/ghosts", "/safety/separation"}
+    assert layers <= node_names(server)
     with pytest.raises(ValueError, match="unknown layer"):
         view.set_layer("nope", True)
 
@@ -414,6 +417,71 @@ def test_roadmap_nodes_default_to_the_runtimes_roadmap(cell: Any) -> None:
     with CellScene(rt, cell, port=0, robot_capsules=fake_capsules) as scene:
         points = scene.view.handles["roadmap"]
         assert points.points.shape == (30, 3)
-        assert not points.visible  # toggled on from the GUI
-        scene.view.handles["gui_toggle_roadmap"].value = True
-        wait_for(lambda: points.visible, "the roadmap toggle to show the nodes")
+        assert not scene.view.handles["layer_roadmap"].visible  # toggled on from a viewer's GUI
+
+
+# ---------------------------------------------------------------------------------------------- viewers
+
+TOKEN = "scene-token-0123456789abcdef"
+
+
+def _connect_viewer(port: int) -> Any:
+    """A viewer as viser's browser client connects: its WebSocket (with the token), then its camera (viser
+    counts a client as connected from its first camera message)."""
+    import msgspec
+    from viser import _messages
+    from websockets.sync.client import connect
+
+    ws = connect(
+        f"ws://127.0.0.1:{port}/?token={TOKEN}",
+        subprotocols=[f"viser-v{viser.__version__}"],
+        open_timeout=10,
+        close_timeout=5,
+        max_size=None,
+    )
+    camera = _messages.ViewerCameraMessage(
+        wxyz=(1.0, 0.0, 0.0, 0.0),
+        position=(2.0, -2.0, 1.5),
+        fov=1.0,
+        near=0.01,
+        far=100.0,
+        image_height=480,
+        image_width=640,
+        look_at=(0.0, 0.0, 0.0),
+        up_direction=(0.0, 0.0, 1.0),
+    )
+    ws.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+    return ws
+
+
+def test_layer_toggles_are_each_viewers_own(cell: Any) -> None:
+    """Two viewers: each has its own layer toggles; one switching a layer on changes its own group frame
+    (a client-scoped variant) and neither the other's nor the server's."""
+
+    class Roadmap:
+        nodes = np.random.default_rng(3).uniform(-0.5, 0.5, (10, 3))
+
+    rt = FakeRuntime()
+    with CellScene(rt, cell, port=0, robot_capsules=fake_capsules, roadmap=Roadmap(), token=TOKEN) as scene:
+        a, b = _connect_viewer(scene.port), _connect_viewer(scene.port)
+        try:
+            wait_for(lambda: len(scene.server.get_clients()) == 2, "both viewers to connect")
+            ids = sorted(scene.server.get_clients())
+            wait_for(lambda: all(scene.view.client_layers(i) is not None for i in ids), "their toggles")
+            mine, theirs = (scene.view.client_layers(i) for i in ids)
+            assert mine is not None and theirs is not None and mine.toggles is not theirs.toggles
+            assert not mine.groups["roadmap"].visible and not theirs.groups["roadmap"].visible
+            mine.toggles["roadmap"].value = True  # as the viewer's checkbox does
+            wait_for(lambda: mine.groups["roadmap"].visible, "the viewer's roadmap to show")
+            mine.toggles["plans"].value = False
+            wait_for(lambda: not mine.groups["plans"].visible, "the viewer's plans to hide")
+            assert not theirs.groups["roadmap"].visible and theirs.groups["plans"].visible
+            assert not theirs.toggles["roadmap"].value and theirs.toggles["plans"].value
+            h = scene.view.handles
+            assert not h["layer_roadmap"].visible and h["layer_plans"].visible  # the server's default
+            assert "gui_toggle_roadmap" not in h  # no toggle shared by every viewer
+        finally:
+            a.close()
+            b.close()
+        wait_for(lambda: not scene.server.get_clients(), "the viewers to leave")
+        wait_for(lambda: scene.view.client_layers(ids[0]) is None, "their toggles to go")
