@@ -1,4 +1,4 @@
-.PHONY: setup run test
+.PHONY: setup run test docs
 
 setup:
 	scripts/setup.sh
@@ -8,3 +8,6 @@ run: setup
 
 test:
 	scripts/test.sh
+
+docs: setup
+	NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict

@@ -282,20 +282,35 @@ class Settings(BaseSettings):
     )
 
     # server
-    host: str = "127.0.0.1"
-    port: int = Field(8000, ge=1, le=65535)
-    viser_port: int = Field(8080, ge=1, le=65535)
-    api_token: str | None = None
+    host: str = Field("127.0.0.1", description="where the API and the operator page listen")
+    port: int = Field(8000, ge=1, le=65535, description="the API's and the operator page's port")
+    viser_port: int = Field(
+        8080,
+        ge=1,
+        le=65535,
+        description="the viser 3D view's port; a viewer's socket needs the operator token (the dashboard "
+        "passes it); a port another program holds stops the start",
+    )
+    api_token: str | None = Field(
+        None,
+        description="operator token (bearer); default: generated, stored in data_dir/api_token, printed "
+        "at the first start",
+    )
     read_only_open: bool = Field(False, description="open the read-only routes without a token")
-    data_dir: Path = Path("var")
+    data_dir: Path = Field(Path("var"), description="database file, token, roadmap cache, recordings")
     database_url: str | None = Field(None, description="SQLAlchemy URL; default: SQLite in data_dir")
 
     # cell
     workcell: Path | None = Field(None, description="work-cell TOML; default: the shipped cell")
-    robot: Literal["sim", "rtde"] = "sim"
-    robot_host: str = "192.168.1.10"
-    human_source: Literal["sim", "replay", "stream"] = "sim"
-    replay_clip: Path | None = None
+    robot: Literal["sim", "rtde"] = Field(
+        "sim", description="the robot: 'sim' (simulated UR5e) or 'rtde' (a real one)"
+    )
+    robot_host: str = Field("192.168.1.10", description="the real robot's address (RTDE, TCP 30004)")
+    human_source: Literal["sim", "replay", "stream"] = Field(
+        "sim",
+        description="'sim' (simulated operator), 'replay' (replay_clip), 'stream' (frames on /api/ingest)",
+    )
+    replay_clip: Path | None = Field(None, description="clip file for human_source = 'replay'")
     hmp_weights: Path | None = Field(
         None,
         description="Graph-Mixer weights (hrc hmp train); default: tuned to the simulated operator for the "
@@ -321,7 +336,11 @@ class Settings(BaseSettings):
     planner_workers: int = Field(
         32, ge=1, le=64, description="states the batched planner search checks per step (1: sequential A*)"
     )
-    method: Literal["proactive", "reactive"] = "proactive"
+    method: Literal["proactive", "reactive"] = Field(
+        "proactive",
+        description="default method ('reactive': the paper's baseline, the forecast held at the current "
+        "pose)",
+    )
     anticipate_fetch: bool = Field(
         True,
         description="proactive method: the forecast expects the person to fetch the block the robot has just "

@@ -6,6 +6,9 @@ scripts/setup.sh
 scripts/system-deps.sh
 .venv/bin/ruff check .
 .venv/bin/ruff format --check .
+# the documentation site: the settings page generated from the code, every page built with warnings as errors
+.venv/bin/python scripts/settings_doc.py --check
+NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --quiet
 set +e
 .venv/bin/python -m pytest "$@"
 rc=$?
