@@ -300,7 +300,7 @@ def part_modes(
         if mode == "pfl" and regions is not None:
             region = regions.at(i, float(levels[_level(min(limit + step, 1.0) * vp, levels)]))
         limit = 0.0 if held else limit
-        out.append(PartMode(mode, region, held_from, separation, required, limit, scale * vp))
+        out.append(PartMode(mode, region, held_from, separation, float(required), limit, scale * vp))
     return tuple(out)
 
 
