@@ -19,6 +19,7 @@ Example::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -113,7 +114,7 @@ def state_style(state: str, *, estopped: bool = False, stale: bool = False) -> t
     if estopped:
         return "E-STOP", COLOR_DANGER
     if stale:
-        return f"{text} (STREAM STALE)", COLOR_DANGER
+        return f"{text} · STREAM STALE", COLOR_DANGER
     if any(k in low for k in ("stop", "fault", "error", "emergency")):
         return text, COLOR_DANGER
     if any(k in low for k in ("avoid", "replan", "slow", "hold", "wait")):
@@ -613,8 +614,11 @@ def _fmt_m(v: Any) -> str:
 
 
 def _speed_text(snap: Any) -> str:
+    """The speed scale in per cent, rounded as the page rounds it (``Math.round``: halves up)."""
     speed = getattr(snap, "speed_scale", None)
-    return "–" if speed is None or not np.isfinite(speed) else f"{100.0 * float(speed):.0f}%"
+    if speed is None or not np.isfinite(speed):
+        return "–"
+    return f"{math.floor(100.0 * float(speed) + 0.5)}%"
 
 
 def headline(snap: Any, text: str) -> str:

@@ -284,7 +284,7 @@
     $("live-method").textContent = s.method ? `method: ${s.method}` : "–";
     const speed = Number(s.speed_scale);
     $("speed-meter").value = Number.isFinite(speed) ? speed : 0;
-    $("speed-scale").textContent = Number.isFinite(speed) ? `${Math.round(speed * 100)}%` : "–";
+    $("speed-scale").textContent = Number.isFinite(speed) ? `${Math.floor(speed * 100 + 0.5)}%` : "–";
     big.dataset.t = Number.isFinite(Number(s.t)) ? Number(s.t).toFixed(3) : "";
     renderModes(s);
     const p = s.p_world_tcp;
