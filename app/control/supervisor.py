@@ -55,7 +55,8 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any, Literal
 
 import numpy as np
@@ -1105,20 +1106,16 @@ class Supervisor:
             return self.counters.budget_copy()
 
     def status(self) -> SupervisorStatus:
-        """An immutable read-out (for snapshots)."""
+        """An immutable read-out (for snapshots; what limits each part is worked out after the lock)."""
         with self._lock:
-            active = self._active
-            pend = self._pending
+            active, pend, modes_now = self._active, self._pending, self._part_modes()
             backup = pend.outcome.traj if pend is not None and pend.outcome is not None else None
-            modes = self._part_modes()
-            held = modes[binding_part(modes)]
-            return SupervisorStatus(
+            st = SupervisorStatus(
                 t=self._t,
                 state=self._effective_state(),
                 scale=self._s,
-                separation_m=held.separation_m,
-                required_separation_m=held.required_m,
-                modes=modes,
+                separation_m=math.inf,  # the limiting part's, below
+                required_separation_m=math.nan,
                 q=self._q_cmd.copy(),
                 plan=None if active.kind == "hold" else active.traj,
                 plan_tau=self._tau,
@@ -1126,6 +1123,9 @@ class Supervisor:
                 stale=self._stale,
                 estopped=self._estop,
             )
+        modes = modes_now()
+        held = modes[binding_part(modes)]
+        return replace(st, separation_m=held.separation_m, required_separation_m=held.required_m, modes=modes)
 
     def _pfl_levels(
         self, d_pairs: np.ndarray, v_pairs: np.ndarray, joints: np.ndarray
@@ -1140,19 +1140,19 @@ class Supervisor:
             caps = self.pfl.capsule_speeds_mps(gaps, d_pairs.shape[1])
         return PFLLevels(*pfl_levels(d_pairs, caps, v, band_m=self.config.near_band_m)), caps
 
-    def _part_modes(self) -> tuple[PartMode, ...]:
+    def _part_modes(self) -> Callable[[], tuple[PartMode, ...]]:
         """What limits each part now (:func:`app.safety.modes.part_modes`, at the snapshot rate, from the
-        governor's inputs; it changes none of them). Caller holds the lock."""
-        cfg, prof = self.config, self._active.profile
+        governor's inputs, copied: call it after the lock; it changes none of them). Caller holds the lock."""
+        cfg, prof, pairs, pfl = self.config, self._active.profile, self._pairs, self.pfl
         vmax = prof.window_at(self._tau)
         rate = brake_rate(float(vmax.max()), prof.joint_window_at(self._tau), cfg.brake_decel_mps2,
                           cfg.brake_joint_decel)  # fmt: skip
-        pairs, pfl = self._pairs, self.pfl
-        regions = None if pairs is None or pfl is None else RegionMap(*pairs, pfl.regions)
-        return part_modes(
-            self._parts, self._robot_motion(vmax, 0.0, rate, 1.0), self._governor, scale=self._s,
-            dt_h=self._t - self._v_h_t if math.isfinite(self._v_h_t) else math.nan, rate=rate,
-            regions=regions, held=self._estop or self._fault or self._stale or self._brake is not None,
+        robot = self._robot_motion(vmax, 0.0, rate, 1.0)
+        return partial(
+            part_modes, self._parts, robot._replace(closed_m=robot.closed_m.copy()), self._governor,
+            scale=self._s, dt_h=self._t - self._v_h_t if math.isfinite(self._v_h_t) else math.nan, rate=rate,
+            regions=None if pairs is None or pfl is None else RegionMap(*pairs, pfl.regions),
+            held=self._estop or self._fault or self._stale or self._brake is not None,
         )  # fmt: skip
 
     def _older_frame(self, t: float) -> HumanFrame | None:
