@@ -627,7 +627,8 @@ def headline(snap: Any, text: str) -> str:
     :func:`state_style`, the mode and speed from the same snapshot's ``mode`` and ``speed_scale``."""
     mode = getattr(snap, "mode", None)
     head = text if mode is None else f"{text} · {mode_text(mode)}"
-    return f"{head} · speed {_speed_text(snap)}"
+    speed = _speed_text(snap)
+    return head if speed == "–" else f"{head} · speed {speed}"  # a replay has no speed
 
 
 def _status_markdown(snap: Any, text: str, separation: Any, required: Any) -> str:
