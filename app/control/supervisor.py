@@ -1109,7 +1109,6 @@ class Supervisor:
         """An immutable read-out (for snapshots; what limits each part is worked out after the lock)."""
         with self._lock:
             active, pend, modes_now = self._active, self._pending, self._part_modes()
-            backup = pend.outcome.traj if pend is not None and pend.outcome is not None else None
             st = SupervisorStatus(
                 t=self._t,
                 state=self._effective_state(),
@@ -1119,7 +1118,7 @@ class Supervisor:
                 q=self._q_cmd.copy(),
                 plan=None if active.kind == "hold" else active.traj,
                 plan_tau=self._tau,
-                backup=backup,
+                backup=pend.outcome.traj if pend is not None and pend.outcome is not None else None,
                 stale=self._stale,
                 estopped=self._estop,
             )
@@ -1144,6 +1143,8 @@ class Supervisor:
         """What limits each part now (:func:`app.safety.modes.part_modes`, at the snapshot rate, from the
         governor's inputs, copied: call it after the lock; it changes none of them). Caller holds the lock."""
         cfg, prof, pairs, pfl = self.config, self._active.profile, self._pairs, self.pfl
+        held = self._estop or self._fault or self._stale or self._brake is not None  # the robot is held
+        held = held or (self._state == "stopped" and self._s <= _UNDER_WAY_SCALE)  # ... after a stop
         vmax = prof.window_at(self._tau)
         rate = brake_rate(float(vmax.max()), prof.joint_window_at(self._tau), cfg.brake_decel_mps2,
                           cfg.brake_joint_decel)  # fmt: skip
@@ -1151,8 +1152,7 @@ class Supervisor:
         return partial(
             part_modes, self._parts, robot._replace(closed_m=robot.closed_m.copy()), self._governor,
             scale=self._s, dt_h=self._t - self._v_h_t if math.isfinite(self._v_h_t) else math.nan, rate=rate,
-            regions=None if pairs is None or pfl is None else RegionMap(*pairs, pfl.regions),
-            held=self._estop or self._fault or self._stale or self._brake is not None,
+            regions=None if pairs is None or pfl is None else RegionMap(*pairs, pfl.regions), held=held,
         )  # fmt: skip
 
     def _older_frame(self, t: float) -> HumanFrame | None:
