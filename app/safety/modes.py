@@ -97,9 +97,12 @@ class RegionMap:
         (those it keeps ``S_p`` from at that level), None when there is none."""
         return self._nearest(part, np.asarray(self.caps_mps) <= upto_mps + 1e-12)
 
-    def at(self, part: int, level_mps: float) -> str | None:
-        """The region of the nearest capsule to ``part`` whose permissible speed is ``level_mps``."""
-        return self._nearest(part, np.abs(np.asarray(self.caps_mps) - level_mps) <= 1e-9)
+    def between(self, part: int, above_mps: float, upto_mps: float) -> str | None:
+        """The region of the nearest capsule to ``part`` whose permissible speed is above ``above_mps`` and
+        at most ``upto_mps`` (those a part speeding up from one level to the other starts to keep ``S_p``
+        from)."""
+        caps = np.asarray(self.caps_mps)
+        return self._nearest(part, (caps > above_mps + 1e-12) & (caps <= upto_mps + 1e-12))
 
     def _nearest(self, part: int, sel: np.ndarray) -> str | None:
         if not sel.any():
@@ -272,7 +275,7 @@ def part_modes(
         if sep_m + float(extra[i, 0]) <= s0 + t_r * float(parts.v_h0[i]):
             # the supervisor's stop rule: within S_p(0) of a region that admits no contact
             mode: PartModeName = "stopped"
-            sc, lv = 0.0, 0
+            sc, lv, limit = 0.0, 0, 0.0
         elif held or limit <= 0.0:
             mode = "stopped"
             sc = step if moving and not held else 0.0  # what it would need to move at all
@@ -280,11 +283,16 @@ def part_modes(
         else:
             sc = scale
             lv = _level(sc * vp, levels)
-            lv_at = _level(limit * vp, levels)
-            lv_next = _level(min(limit + step, 1.0) * vp, levels)
+            nxt = min(limit + step, 1.0)  # the next scale of the grid, which the governor refused
+            lv_at, lv_next = _level(limit * vp, levels), _level(nxt * vp, levels)
             if limit >= 1.0 - 1e-9:
                 mode = "free"
-            elif lv_next > lv_at:  # a little faster and it would touch a region above its speed
+            elif lv_next > lv_at and (
+                d + float(extra[i, lv_at])
+                >= _need(nxt, min(vh, float(v_lv[i, lv_at])), vp, rate, governor.env_u, params)
+            ):
+                # faster, it would have to keep S_p from a region it may touch at this speed, and it
+                # could not: it is at that region's permissible speed (else its S_p holds it: SSM)
                 mode = "pfl"
             else:
                 mode = "ssm"
@@ -298,7 +306,7 @@ def part_modes(
         held_from = nearest(i, lv) if math.isfinite(separation) else None
         region = held_from
         if mode == "pfl" and regions is not None:
-            region = regions.at(i, float(levels[_level(min(limit + step, 1.0) * vp, levels)]))
+            region = regions.between(i, float(levels[lv_at]), float(levels[lv_next]))
         limit = 0.0 if held else limit
         out.append(PartMode(mode, region, held_from, separation, float(required), limit, scale * vp))
     return tuple(out)

@@ -151,7 +151,9 @@ def test_the_limiting_part_has_the_scale_of_the_servo_tick(seed: int) -> None:
     modes = part_modes(parts, robot, GOVERNOR, scale=0.5, dt_h=dt_h, rate=RATE, regions=regions)
     assert all(m.mode in PART_MODES for m in modes)
     tick = governed_scale(parts, robot, dt_h, 0.5, 0.0, RATE, 0.0, 1.0, GOVERNOR)
-    assert modes[binding_part(modes)].limit_scale == pytest.approx(tick)
+    # (a part within S_p(0) of the head is stopped by the supervisor's rule, whatever the governor allows)
+    stop_rule = any(m.mode == "stopped" and m.held_from == "skull_forehead" for m in modes)
+    assert modes[binding_part(modes)].limit_scale == pytest.approx(0.0 if stop_rule else tick)
     assert binding_part(()) == -1
 
 
@@ -160,3 +162,12 @@ def test_the_screens_name_every_mode_and_every_region() -> None:
     assert mode_text("free") == "free" and mode_text("ssm") == "SSM" and mode_text("stopped") == "stopped"
     assert mode_text("pfl:hand_fingers") == "PFL · hand/fingers" and mode_text(None) == "–"
     assert region_text("upper_arm_elbow") == "upper arm/elbow"
+
+
+def test_crossing_a_far_regions_speed_is_not_pfl() -> None:
+    """Faster than the lower leg's permissible speed (0.36 m/s), a part must keep S_p from the legs too, but
+    they are 3 m away: what holds it near the head is its S_p from the head (SSM), not the legs' speed."""
+    parts, regions, _ = _scene([{HEAD: 0.55}])
+    (m,) = _modes(parts, _motion([1.5]), regions, scale=0.3)
+    assert 0.36 < m.limit_scale * 1.5 < 1.36  # between the legs' and the hand's speeds
+    assert m.mode == "ssm" and m.region == m.held_from == "skull_forehead"
