@@ -146,8 +146,9 @@ class SupervisorStatus:
         t: Time of the last servo tick (s).
         state: One of :data:`SUPERVISOR_STATES`.
         scale: Current speed scale.
-        separation_m: The separation (m) of the part that limits the robot (the smallest allowed scale) from
-            the body regions it keeps ``S_p`` from at its speed, as last measured; inf when no person was seen.
+        separation_m: The separation (m) of the part that limits the robot (the smallest allowed scale)
+            from the body regions it keeps ``S_p`` from at its speed, as last measured; inf when nobody was
+            seen.
         required_separation_m: The separation (m) the speed governor holds that part to at its current
             speed (:attr:`app.safety.modes.PartMode.required_m`; for a stopped part, what it needs to move).
         q: (6,) last commanded configuration.
