@@ -129,11 +129,33 @@ class MethodOrderRead(BaseModel):
     methods: list[Method]
 
 
+class PartModeRead(BaseModel):
+    """What limits one robot part now (:class:`app.safety.modes.PartMode`): ``mode`` one of ``free``,
+    ``ssm``, ``pfl``, ``stopped``; ``label`` the same with the region (``pfl:hand_fingers``); ``text`` as the
+    screens show it; ``region`` the body region of the mode, ``held_from`` the one it keeps ``S_p`` from;
+    ``separation_m`` from that region and ``required_m`` the separation the governor holds it to (m; None:
+    nobody seen); ``limit_scale`` the largest path scale it allows alone."""
+
+    name: str
+    mode: Literal["free", "ssm", "pfl", "stopped"]
+    label: str
+    text: str
+    region: str | None
+    held_from: str | None
+    held_from_text: str | None = None
+    separation_m: float | None
+    required_m: float | None
+    limit_scale: float
+
+
 class RobotStatus(BaseModel):
     """The robot and supervisor now (from the runtime's latest snapshot).
 
     ``q`` (6,) joint positions (rad); ``p_world_tcp`` (3,) tool position in the world frame (m);
-    separations in metres (None when no person is tracked).
+    separations in metres (None when no person is tracked): ``separation_m`` of the part that limits the
+    robot from the regions it keeps ``S_p`` from, ``required_separation_m`` what the speed governor holds it
+    to. ``mode``: that part's mode (``free``, ``ssm``, ``pfl:<region>``, ``stopped``; None without a trial),
+    ``mode_text`` as the screens show it, ``parts`` every part's.
     """
 
     t: float
@@ -149,6 +171,10 @@ class RobotStatus(BaseModel):
     method: str | None
     trial_elapsed_s: float | None
     trial_duration_s: float | None
+    mode: str | None = None
+    mode_text: str = "–"
+    limiting_part: str | None = None
+    parts: list[PartModeRead] = []
 
 
 def robot_status(snapshot: Any) -> RobotStatus:
@@ -175,7 +201,16 @@ def robot_status(snapshot: Any) -> RobotStatus:
         method=snapshot.method,
         trial_elapsed_s=opt(snapshot.trial_elapsed_s),
         trial_duration_s=opt(snapshot.trial_duration_s),
+        **_modes_of(snapshot),
     )
+
+
+def _modes_of(snapshot: Any) -> dict[str, Any]:
+    """The mode fields of a snapshot's JSON (none from a snapshot without them)."""
+    to_json = getattr(snapshot, "to_json", None)
+    got = to_json() if callable(to_json) else {}
+    keys = ("mode", "mode_text", "limiting_part", "parts")
+    return {k: got[k] for k in keys if k in got}
 
 
 #: Responses every authenticated route may give (documented in the OpenAPI schema).

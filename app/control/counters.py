@@ -10,6 +10,7 @@ from typing import Literal
 import numpy as np
 
 from app.control.trajectory_views import TrajectoryLike
+from app.safety.modes import PartMode
 
 SupervisorState = Literal["idle", "nominal", "collision_avoidance", "stopped", "estop", "fault"]
 #: Every state a :class:`~app.control.supervisor.Supervisor` can be in.
@@ -145,14 +146,18 @@ class SupervisorStatus:
         t: Time of the last servo tick (s).
         state: One of :data:`SUPERVISOR_STATES`.
         scale: Current speed scale.
-        separation_m: Last measured separation (m), inf when no person was seen.
-        required_separation_m: S_p for the robot's current speed (m).
+        separation_m: The separation (m) of the part that limits the robot (the smallest allowed scale)
+            from the body regions it keeps ``S_p`` from at its speed, as last measured; inf when nobody was
+            seen.
+        required_separation_m: The separation (m) the speed governor holds that part to at its current
+            speed (:attr:`app.safety.modes.PartMode.required_m`; for a stopped part, what it needs to move).
         q: (6,) last commanded configuration.
         plan: The trajectory in execution (None when holding).
         plan_tau: Path time in it.
         backup: The trajectory of a pending switch, when known.
         stale: The stream is stale (the robot is held).
         estopped: E-stop latched.
+        modes: What limits each robot part now (:func:`app.safety.modes.part_modes`), in the parts' order.
     """
 
     t: float
@@ -166,3 +171,4 @@ class SupervisorStatus:
     backup: TrajectoryLike | None
     stale: bool
     estopped: bool
+    modes: tuple[PartMode, ...] = ()

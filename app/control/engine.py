@@ -46,6 +46,7 @@ from app.planning.ssm_timing import part_speeds
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import HumanFrame
 from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw, directed_approach
+from app.safety.modes import PartMode, binding_part, mode_text, region_text
 from app.safety.monitor import GroundTruthMonitor, MonitorTotals, is_intrusion
 from app.safety.pfl import PFLModel
 from app.safety.stopping import UR5E_STOP
@@ -354,8 +355,11 @@ class Snapshot:
             ``fault``).
         method: Method of the running trial, or None.
         speed_scale: Speed scale along the path, 0..1.
-        separation_m: Last measured robot-person separation (m), None when nobody was seen.
-        required_separation_m: S_p for the robot's current speed (m).
+        separation_m: The separation (m) of the part that limits the robot from the body regions it keeps
+            ``S_p`` from (:attr:`app.control.counters.SupervisorStatus.separation_m`), None when nobody
+            was seen.
+        required_separation_m: The separation (m) the speed governor holds that part to at its current
+            speed (what it needs to move, where it is stopped).
         planning_ms: Recent backup-plan compute times (ms), oldest first.
         counters: Running counts (completed tasks, replans, deadline misses, frames, ...).
         q: (6,) robot joint positions (rad).
@@ -373,6 +377,9 @@ class Snapshot:
             without a trial.
         time_budget_by_goal: The same per task pose so far (:meth:`TrialEngine.time_budget`); empty without a
             trial.
+        part_modes: What limits each robot part now (:class:`app.safety.modes.PartMode`); empty without a
+            trial.
+        part_names: The robot parts' names, in the order of ``part_modes``.
     """
 
     t: float
@@ -396,6 +403,25 @@ class Snapshot:
     trial_duration_s: float | None = None
     time_budget: dict[str, float] = field(default_factory=dict)
     time_budget_by_goal: dict[str, dict[str, float]] = field(default_factory=dict)
+    part_modes: tuple[PartMode, ...] = ()
+    part_names: tuple[str, ...] = ()
+
+    @property
+    def limiting_part(self) -> int:
+        """Index of the part that limits the robot (:func:`app.safety.modes.binding_part`; -1: none)."""
+        return binding_part(self.part_modes)
+
+    @property
+    def mode(self) -> str | None:
+        """The robot's mode: the limiting part's (:attr:`app.safety.modes.PartMode.label`), ``stopped``
+        under an E-stop, None without a trial. The one field the operator page and the 3D view show."""
+        if self.estopped:
+            return "stopped"
+        k = self.limiting_part
+        return None if k < 0 else self.part_modes[k].label
+
+    def part_name(self, i: int) -> str:
+        return self.part_names[i] if 0 <= i < len(self.part_names) else f"part {i}"
 
     def __post_init__(self) -> None:
         for name in ("q", "p_world_tcp", "skeleton", "forecast", "plan_tcp", "backup_tcp"):
@@ -442,6 +468,24 @@ class Snapshot:
                 g: {k: round(float(v), 3) for k, v in parts.items()}
                 for g, parts in self.time_budget_by_goal.items()
             },
+            "mode": self.mode,
+            "mode_text": mode_text(self.mode),
+            "limiting_part": None if self.limiting_part < 0 else self.part_name(self.limiting_part),
+            "parts": [
+                {
+                    "name": self.part_name(i),
+                    "mode": m.mode,
+                    "label": m.label,
+                    "text": m.text,
+                    "region": m.region,
+                    "held_from": m.held_from,
+                    "held_from_text": None if m.held_from is None else region_text(m.held_from),
+                    "separation_m": num(m.separation_m),
+                    "required_m": num(m.required_m),
+                    "limit_scale": round(float(m.limit_scale), 4),
+                }
+                for i, m in enumerate(self.part_modes)
+            ],
         }
 
 

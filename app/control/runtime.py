@@ -60,6 +60,7 @@ from app.control.headless import (
 )
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
 from app.control.supervisor import SupervisorConfig
+from app.planning.collision import ROBOT_LINKS
 from app.prediction.forecast import HumanForecast
 
 log = logging.getLogger(__name__)
@@ -867,6 +868,8 @@ class Runtime:
             trial_duration_s=engine.duration_s,
             time_budget=budget,
             time_budget_by_goal=by_goal,
+            part_modes=st.modes,
+            part_names=ROBOT_LINKS if len(st.modes) == len(ROBOT_LINKS) else (),
             **base,
         )
 

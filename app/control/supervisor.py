@@ -55,7 +55,8 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any, Literal
 
 import numpy as np
@@ -78,6 +79,7 @@ from app.control.trajectory_views import (
     ScaledView,
     SpeedProfile,
     TrajectoryLike,
+    traj_state,
 )
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
@@ -94,6 +96,7 @@ from app.safety.governor import (
     directed_pairs,
     ssm_alone,
 )
+from app.safety.modes import PartMode, RegionMap, binding_part, part_modes
 from app.safety.pfl import PFLModel, pfl_levels
 from app.safety.stopping import UR5E_STOP
 
@@ -327,6 +330,7 @@ class Supervisor:
         # their worst-case approach from its middle to the frame, the travel since (the compiled tick's input)
         self._parts = PartSeparation(np.full(L, math.inf), np.zeros(L), np.zeros(L), ssm_alone(L))
         self._travel = np.zeros(L)  # each part's travel since the robot's pose of the measurement (a bound)
+        self._pairs: tuple[np.ndarray, np.ndarray] | None = None  # (L, M) distances and (M,) capsule speeds
         self._toward: tuple[_Active, PathClosing] | None = None  # the parts' closing along the plan in
         # execution, measured at the last frame
         self._sep_person_t = -math.inf  # time of the frame the separation was measured on
@@ -482,7 +486,7 @@ class Supervisor:
         # separation of each robot part now (robot at its last commanded pose vs the person as seen), and
         # the person's approach speed: how fast their motion closed the distance over the last window
         old = self._older_frame(frame.t - cfg.human_speed_window_s)
-        pfl = None
+        pfl, pairs = None, None
         if self.pfl is not None or self._floors is not None:
             # ISO 13855's person: each capsule approaches at least at its region's speed; power and force
             # limiting inside S_p by region
@@ -495,7 +499,8 @@ class Supervisor:
             near = d_now <= d_now.min(axis=1, keepdims=True) + cfg.near_band_m
             sep_parts = d_now.min(axis=1) - cfg.tracking_margin_m
             v_h0 = np.where(near, v_pairs, 0.0).max(axis=1)
-            pfl = self._pfl_levels(d_now, v_pairs, frame.joints)
+            pfl, caps = self._pfl_levels(d_now, v_pairs, frame.joints)
+            pairs = (d_now, caps)
         elif old is not None:
             # the person's directed speed toward each part: the fastest approach of the body parts that are
             # (nearly) the nearest to it (over all of them, so it does not jump when the nearest pair changes)
@@ -520,7 +525,7 @@ class Supervisor:
             toward = None if closing is None else (active, closing)
         self._history.append(frame)
         with self._lock:
-            self._toward = toward
+            self._toward, self._pairs = toward, pairs
             self._parts = PartSeparation(
                 sep_parts,
                 np.asarray(self.ssm.human_approach(v_h0, frame.t - t_mid)[0], dtype=np.float64),
@@ -672,7 +677,7 @@ class Supervisor:
             # (a plan that ends before then: the robot rests at its end and the switch waits for T + D)
             tau_b = min(tau + _ramp_distance(s, cfg.scale_up_rate, D), active.traj.t_end)
             t_start = T + D
-            q_s, qd_s = _state(active.traj, tau_b)
+            q_s, qd_s = traj_state(active.traj, tau_b)
             if tau_b >= active.traj.t_end:
                 qd_s = np.zeros(6)
         req = BackupRequest(
@@ -817,7 +822,7 @@ class Supervisor:
                 self._servo_governed(t, dt)
             active = self._active
             tau = min(self._tau, active.traj.t_end) if active.kind != "hold" else active.traj.t_end
-            q, qd = _state(active.traj, tau)
+            q, qd = traj_state(active.traj, tau)
             qd = qd * self._s
             if not active.under_way(self._tau):
                 qd = np.zeros(6)
@@ -1101,39 +1106,54 @@ class Supervisor:
             return self.counters.budget_copy()
 
     def status(self) -> SupervisorStatus:
-        """An immutable read-out (for snapshots)."""
+        """An immutable read-out (for snapshots; what limits each part is worked out after the lock)."""
         with self._lock:
-            active = self._active
-            pend = self._pending
-            backup = pend.outcome.traj if pend is not None and pend.outcome is not None else None
-            i = int(np.argmin(self._parts.sep_m))
-            v_h = self._v_h_bound(self._t)
-            return SupervisorStatus(
+            active, pend, modes_now = self._active, self._pending, self._part_modes()
+            st = SupervisorStatus(
                 t=self._t,
                 state=self._effective_state(),
                 scale=self._s,
-                separation_m=float(self._parts.sep_m[i]),
-                required_separation_m=float(
-                    self.ssm.sp(float(self._v_cmd[i]), float(self._v_cmd.max()), float(v_h[i]))
-                ),
+                separation_m=math.inf,  # the limiting part's, below
+                required_separation_m=math.nan,
                 q=self._q_cmd.copy(),
                 plan=None if active.kind == "hold" else active.traj,
                 plan_tau=self._tau,
-                backup=backup,
+                backup=pend.outcome.traj if pend is not None and pend.outcome is not None else None,
                 stale=self._stale,
                 estopped=self._estop,
             )
+        modes = modes_now()
+        held = modes[binding_part(modes)]
+        return replace(st, separation_m=held.separation_m, required_separation_m=held.required_m, modes=modes)
 
-    def _pfl_levels(self, d_pairs: np.ndarray, v_pairs: np.ndarray, joints: np.ndarray) -> PFLLevels:
+    def _pfl_levels(
+        self, d_pairs: np.ndarray, v_pairs: np.ndarray, joints: np.ndarray
+    ) -> tuple[PFLLevels, np.ndarray]:
         """Power and force limiting inside ``S_p`` (:meth:`app.safety.pfl.PFLModel.levels`; SSM alone
-        without a model); each level at its own approach speed where the person is assumed at constant
-        speed (ISO 13855's), at the part's grown worst case for a person who may speed up."""
+        without a model), each level at its own approach speed where the person is assumed at constant speed
+        (ISO 13855's), else at the part's grown worst case; and the capsules' speeds (M,) behind them."""
         v = v_pairs if self.ssm.human_accel_mps2 <= 0.0 else None
-        band = self.config.near_band_m
-        if self.pfl is None:
-            return PFLLevels(*pfl_levels(d_pairs, np.full(d_pairs.shape[1], -1.0), v, band_m=band))
-        gaps = self.geometry.human_static_gaps(joints, self.pfl.pinnable_index) if self.pfl.enabled else None
-        return self.pfl.levels(d_pairs, v, gaps, band_m=band)
+        caps = np.full(d_pairs.shape[1], -1.0)
+        if self.pfl is not None and self.pfl.enabled:
+            gaps = self.geometry.human_static_gaps(joints, self.pfl.pinnable_index)
+            caps = self.pfl.capsule_speeds_mps(gaps, d_pairs.shape[1])
+        return PFLLevels(*pfl_levels(d_pairs, caps, v, band_m=self.config.near_band_m)), caps
+
+    def _part_modes(self) -> Callable[[], tuple[PartMode, ...]]:
+        """What limits each part now (:func:`app.safety.modes.part_modes`, at the snapshot rate, from the
+        governor's inputs, copied: call it after the lock; it changes none of them). Caller holds the lock."""
+        cfg, prof, pairs, pfl = self.config, self._active.profile, self._pairs, self.pfl
+        held = self._estop or self._fault or self._stale or self._brake is not None  # the robot is held
+        held = held or (self._state == "stopped" and self._s <= _UNDER_WAY_SCALE)  # ... after a stop
+        vmax = prof.window_at(self._tau)
+        rate = brake_rate(float(vmax.max()), prof.joint_window_at(self._tau), cfg.brake_decel_mps2,
+                          cfg.brake_joint_decel)  # fmt: skip
+        robot = self._robot_motion(vmax, 0.0, rate, 1.0)
+        return partial(
+            part_modes, self._parts, robot._replace(closed_m=robot.closed_m.copy()), self._governor,
+            scale=self._s, dt_h=self._t - self._v_h_t if math.isfinite(self._v_h_t) else math.nan, rate=rate,
+            regions=None if pairs is None or pfl is None else RegionMap(*pairs, pfl.regions), held=held,
+        )  # fmt: skip
 
     def _older_frame(self, t: float) -> HumanFrame | None:
         """The newest remembered frame at or before ``t``."""
@@ -1141,12 +1161,6 @@ class Supervisor:
             if f.t <= t + 1e-9:
                 return f
         return None
-
-    def _v_h_bound(self, t: float) -> np.ndarray:
-        if not math.isfinite(self._v_h_t):
-            return np.full(self.n_parts, self.ssm.human_speed_max_mps)
-        _, v = self.ssm.human_approach(self._parts.v_h0, t - self._v_h_t)
-        return np.asarray(v)
 
     def _robot_motion(self, vmax: np.ndarray, dt: float, rate: float, hi: float) -> RobotMotion:
         """The robot's motion as the governor's tick reads it (:meth:`PathClosing.motion`: the closing
@@ -1172,16 +1186,6 @@ class Supervisor:
     def recent_decide_s(self) -> tuple[float, ...]:
         with self._lock:
             return tuple(self._recent_decide_s)
-
-
-def _state(traj: TrajectoryLike, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(q(t), qd(t))`` (6,) each, through the trajectory's one-look-up ``state`` where it has one."""
-    state = getattr(traj, "state", None)
-    if state is not None:
-        q, qd = state(t)
-    else:
-        q, qd = traj.q(t), traj.qd(t)
-    return np.asarray(q, dtype=np.float64).reshape(6), np.asarray(qd, dtype=np.float64).reshape(6)
 
 
 def _ramp_distance(s: float, up_rate: float, horizon_s: float) -> float:

@@ -289,3 +289,13 @@ def _forward_max(x: np.ndarray, w: int) -> np.ndarray:
     pad = np.concatenate([x, np.full((w - 1, *x.shape[1:]), -np.inf)], axis=0)
     win = np.lib.stride_tricks.sliding_window_view(pad, w, axis=0)[:n]
     return win.max(axis=-1)
+
+
+def traj_state(traj: TrajectoryLike, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(q(t), qd(t))`` (6,) each, through the trajectory's one-look-up ``state`` where it has one."""
+    state = getattr(traj, "state", None)
+    if state is not None:
+        q, qd = state(t)
+    else:
+        q, qd = traj.q(t), traj.qd(t)
+    return np.asarray(q, dtype=np.float64).reshape(6), np.asarray(qd, dtype=np.float64).reshape(6)

@@ -255,13 +255,19 @@ class PFLModel:
         level at the part's own worst case), the capsules' gaps to the scene ``static_gaps_m`` (M,) (None:
         none pinned): each capsule's permissible speed, quasi-static where pinned (:func:`pfl_levels`). With
         PFL off: one level, every capsule (its approach speed still by capsule)."""
-        caps = np.full(np.shape(d_pairs)[1], -1.0)
-        if self.enabled:
-            pinned = None
-            if static_gaps_m is not None:
-                pinned = pinned_capsules(static_gaps_m, self.pinnable, pin_gap_m=self.pin_gap_m)
-            caps = self.caps_mps(pinned)
+        caps = self.capsule_speeds_mps(static_gaps_m, np.shape(d_pairs)[1])
         return PFLLevels(*pfl_levels(d_pairs, caps, v_pairs, band_m=band_m))
+
+    def capsule_speeds_mps(self, static_gaps_m: np.ndarray | None, n_caps: int) -> np.ndarray:
+        """(M,) each of the ``n_caps`` capsules' permissible speed (m/s) as :meth:`levels` takes it:
+        quasi-static where the capsule lies within :attr:`pin_gap_m` of the scene (``static_gaps_m`` (M,);
+        None: none pinned), -1 everywhere with PFL off."""
+        if not self.enabled:
+            return np.full(n_caps, -1.0)
+        pinned = None
+        if static_gaps_m is not None:
+            pinned = pinned_capsules(static_gaps_m, self.pinnable, pin_gap_m=self.pin_gap_m)
+        return self.caps_mps(pinned)
 
     def caps_mps(self, pinned: np.ndarray | None = None) -> np.ndarray:
         """(M,) each capsule's permissible speed (m/s): quasi-static where ``pinned`` (M,) is True."""

@@ -19,6 +19,7 @@ Example::
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -30,6 +31,7 @@ import numpy as np
 
 from app.config import Box, WorkCell
 from app.prediction.skeleton import BONES, JOINT_INDEX, NUM_JOINTS
+from app.safety.modes import mode_text, region_text
 from app.ui._geometry import segment_instances, unit_cylinder, unit_sphere
 from app.ui.viser_server import ViserServerThread
 
@@ -62,6 +64,15 @@ COLOR_WARN: RGB = (243, 156, 18)
 COLOR_DANGER: RGB = (214, 48, 49)
 COLOR_IDLE: RGB = (127, 140, 141)
 COLOR_ROBOT: RGB = (176, 186, 198)
+COLOR_PFL: RGB = (52, 152, 219)
+#: The robot's capsules by what limits each part (:data:`app.safety.modes.PART_MODES`): running free in its
+#: own grey, slowed by SSM amber, at a region's PFL speed blue, stopped red (the page's colours).
+MODE_COLORS: dict[str, RGB] = {
+    "free": COLOR_ROBOT,
+    "ssm": COLOR_WARN,
+    "pfl": COLOR_PFL,
+    "stopped": COLOR_DANGER,
+}
 
 PERSON_BONE_RADIUS_M = 0.035
 PERSON_JOINT_RADIUS_M = 0.042
@@ -104,7 +115,7 @@ def state_style(state: str, *, estopped: bool = False, stale: bool = False) -> t
     if estopped:
         return "E-STOP", COLOR_DANGER
     if stale:
-        return f"{text} (STREAM STALE)", COLOR_DANGER
+        return f"{text} · STREAM STALE", COLOR_DANGER
     if any(k in low for k in ("stop", "fault", "error", "emergency")):
         return text, COLOR_DANGER
     if any(k in low for k in ("avoid", "replan", "slow", "hold", "wait")):
@@ -495,19 +506,31 @@ class CellView:
         self._show[key] = visible
         self._handles[f"layer_{key}"].visible = visible
 
-    def _set_robot(self, q: np.ndarray, color: RGB) -> np.ndarray:
+    def _set_robot(self, q: np.ndarray, color: RGB | np.ndarray) -> np.ndarray:
+        """Place the robot's capsules at ``q`` (6,), coloured ``color``: one RGB, or one per link (L, 3)."""
         a, b, _r = self._robot_capsules(np.asarray(q, dtype=np.float64).reshape(1, 6))
         a, b = np.asarray(a)[0], np.asarray(b)[0]
         pos, wxyz, scale = segment_instances(a, b, self._link_radius)
         links, joints = self._handles["robot_links"], self._handles["robot_joints"]
+        colors = np.broadcast_to(np.asarray(color, dtype=np.uint8), (self._n_links, 3))
         links.batched_positions = pos
         links.batched_wxyzs = wxyz
         links.batched_scales = scale
-        links.batched_colors = np.tile(np.asarray(color, dtype=np.uint8), (self._n_links, 1))
+        links.batched_colors = np.ascontiguousarray(colors)
         joints.batched_positions = np.concatenate([a, b], axis=0)
         joints.batched_scales = np.repeat(np.tile(self._link_radius, 2)[:, None], 3, axis=1)
-        joints.batched_colors = np.tile(np.asarray(color, dtype=np.uint8), (2 * self._n_links, 1))
+        joints.batched_colors = np.concatenate([colors, colors], axis=0)
         return b[-1]
+
+    def _robot_colors(self, snap: Any, estopped: bool) -> RGB | np.ndarray:
+        """One colour per link by the snapshot's ``part_modes`` (:data:`MODE_COLORS`), red under an
+        E-stop, the robot's grey without modes (or with another number of parts than links)."""
+        if estopped:
+            return COLOR_DANGER
+        modes = getattr(snap, "part_modes", None) or ()
+        if len(modes) != self._n_links:
+            return COLOR_ROBOT
+        return np.array([MODE_COLORS.get(str(getattr(m, "mode", "")), COLOR_ROBOT) for m in modes])
 
     def _set_person(self, skeleton: np.ndarray | None) -> None:
         bones, joints = self._handles["person_bones"], self._handles["person_joints"]
@@ -587,10 +610,9 @@ class CellView:
         stale = bool(getattr(snap, "stale", False))
         state = str(getattr(snap, "state", "unknown"))
         text, color = state_style(state, estopped=estopped, stale=stale)
-        robot_color = COLOR_DANGER if estopped else COLOR_ROBOT
         h = self._handles
         with self._server.atomic():
-            p_flange_end = self._set_robot(q, robot_color)
+            p_flange_end = self._set_robot(q, self._robot_colors(snap, estopped))
             tcp = _finite(getattr(snap, "p_world_tcp", None), (3,))
             if tcp is None or tcp.ndim != 1:
                 tcp = p_flange_end
@@ -623,14 +645,13 @@ class CellView:
                 self._has["separation"] = False
                 sphere.visible = False
 
-            # Text re-renders the client's GUI: refresh it when the state changes, else at most TEXT_RATE_HZ
-            # (on the snapshots' own clock, so that replays and tests behave the same).
+            # Text re-renders the client's GUI: refresh it when the state or the mode changes, else at most
+            # TEXT_RATE_HZ (on the snapshots' own clock, so that replays and tests behave the same).
             t = float(getattr(snap, "t", 0.0))
-            if text != self._last_text or not (0.0 <= t - self._last_text_t < 1.0 / TEXT_RATE_HZ):
-                self._last_text, self._last_text_t = text, t
-                speed = getattr(snap, "speed_scale", None)
-                label = text if speed is None else f"{text} · speed {100.0 * float(speed):.0f}%"
-                h["state_label"].text = label
+            key = f"{text}|{getattr(snap, 'mode', None)}"
+            if key != self._last_text or not (0.0 <= t - self._last_text_t < 1.0 / TEXT_RATE_HZ):
+                self._last_text, self._last_text_t = key, t
+                h["state_label"].text = headline(snap, text)
                 if "gui_status" in h:
                     h["gui_status"].content = _status_markdown(snap, text, separation, required)
         self.applied += 1
@@ -640,18 +661,49 @@ def _fmt_m(v: Any) -> str:
     return "–" if v is None or not np.isfinite(v) else f"{float(v):.2f} m"
 
 
+def _speed_text(snap: Any) -> str:
+    """The speed scale in per cent, rounded as the page rounds it (``Math.round``: halves up)."""
+    speed = getattr(snap, "speed_scale", None)
+    if speed is None or not np.isfinite(speed):
+        return "–"
+    return f"{math.floor(100.0 * float(speed) + 0.5)}%"
+
+
+def headline(snap: Any, text: str) -> str:
+    """The one line of state, mode and speed that the 3D view's label shows, as the operator page's
+    supervisor panel shows them (``NOMINAL · PFL · hand/fingers · speed 68%``): ``text`` from
+    :func:`state_style`, the mode and speed from the same snapshot's ``mode`` and ``speed_scale``."""
+    mode = getattr(snap, "mode", None)
+    head = text if mode is None else f"{text} · {mode_text(mode)}"
+    speed = _speed_text(snap)
+    return head if speed == "–" else f"{head} · speed {speed}"  # a replay has no speed
+
+
 def _status_markdown(snap: Any, text: str, separation: Any, required: Any) -> str:
     method = getattr(snap, "method", None) or "–"
     trial = getattr(snap, "trial_id", None)
     elapsed = getattr(snap, "trial_elapsed_s", None)
     duration = getattr(snap, "trial_duration_s", None)
-    lines = [f"**State:** {text}", f"**Method:** {method}"]
+    lines = [
+        f"**State:** {text}",
+        f"**Mode:** {mode_text(getattr(snap, 'mode', None))}",
+        f"**Speed:** {_speed_text(snap)}",
+        f"**Method:** {method}",
+    ]
     if trial is not None:
         tail = ""
         if elapsed is not None and duration:
             tail = f" ({float(elapsed):.0f} / {float(duration):.0f} s)"
         lines.append(f"**Trial:** #{trial}{tail}")
-    lines.append(f"**Separation:** {_fmt_m(separation)} (required {_fmt_m(required)})")
+    held_from = ""
+    modes = getattr(snap, "part_modes", None) or ()
+    k = getattr(snap, "limiting_part", -1)
+    if isinstance(k, int) and 0 <= k < len(modes):
+        name = snap.part_name(k) if hasattr(snap, "part_name") else f"part {k}"
+        region = getattr(modes[k], "held_from", None)
+        held_from = f", {name.replace('_', ' ')}" + (f" from the {region_text(region)}" if region else "")
+    lines.append(f"**Separation:** {_fmt_m(separation)} (required {_fmt_m(required)}{held_from})")
+    lines.append(f"**Snapshot:** t = {float(getattr(snap, 't', 0.0)):.3f} s")
     return "  \n".join(lines)
 
 

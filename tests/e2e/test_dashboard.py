@@ -13,6 +13,7 @@ import contextlib
 import csv
 import io
 import os
+import re
 import shutil
 import time
 from pathlib import Path
@@ -74,6 +75,58 @@ def wait_for_3d_view(frame: Any, page: Any) -> None:
         if previous is not None and abs(mean - previous) < 0.5:
             break
         previous = mean
+
+
+#: The 3D view's status panel (viser markdown): state, mode, speed and the snapshot's time.
+VISER_STATUS = re.compile(
+    r"State:\s*(?P<state>.+?)\s*Mode:\s*(?P<mode>.+?)\s*Speed:\s*(?P<speed>\S+).*?t = (?P<t>[\d.]+) s", re.S
+)
+#: Records what the page's supervisor panel showed for every snapshot it drew, by the snapshot's time.
+RECORD_PANEL_JS = """() => {
+  const el = document.querySelector('[data-testid=live-state]');
+  const text = (id) => document.querySelector(`[data-testid=${id}]`).textContent;
+  window.__shown = new Map();
+  new MutationObserver(() => {
+    window.__shown.set(el.dataset.t, [text('live-state'), text('live-mode'), text('speed-scale')]);
+    if (window.__shown.size > 5000) window.__shown.delete(window.__shown.keys().next().value);
+  }).observe(el, { attributes: true, attributeFilter: ['data-t'] });
+}"""
+MODE_TEXT = re.compile(r"^(free|SSM|PFL · [a-z /]+|stopped)$")
+PART_MODE = re.compile(r"^(free|ssm|pfl:[a-z_]+|stopped)$")
+
+
+def viser_status_panel(frame: Any) -> Any:
+    """The 3D view's status text: the innermost element that holds both its first and its last line."""
+    return frame.locator("*", has_text="State:").filter(has_text="Snapshot:").last
+
+
+def check_panel_and_3d_view_agree(page: Any, frame: Any, *, timeout_s: float = 40.0) -> int:
+    """The page's supervisor panel and the 3D view's status panel show the same state, mode and speed for
+    the same snapshot (both read the snapshot's ``state``, ``mode`` and ``speed_scale``). Returns how many
+    snapshots were compared (at least 3): the two draw at their own rates, so the comparison waits for
+    snapshots that both drew."""
+    page.evaluate(RECORD_PANEL_JS)
+    status = viser_status_panel(frame)
+    samples: list[dict[str, str]] = []
+    compared = 0
+    deadline = time.monotonic() + timeout_s
+    while compared < 3 and time.monotonic() < deadline:
+        found = VISER_STATUS.search(status.inner_text())
+        if found:
+            samples.append(found.groupdict())
+        page.wait_for_timeout(300)
+        for sample in list(samples):
+            shown = page.evaluate("t => (window.__shown.get(t) || null)", sample["t"])
+            if shown is None:
+                continue
+            samples.remove(sample)
+            assert [s.strip() for s in shown] == [sample["state"], sample["mode"], sample["speed"]], (
+                f"at t = {sample['t']} s the page shows {shown}, the 3D view {sample}"
+            )
+            compared += 1
+        del samples[:-40]
+    assert compared >= 3, f"the page and the 3D view drew no common snapshot in {timeout_s:.0f} s"
+    return compared
 
 
 def latest_trial(server: Any) -> dict[str, Any]:
@@ -188,8 +241,28 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
     wait_for_3d_view(frame, page)
     page.screenshot(path=str(artifacts_dir / "dashboard-live.png"), full_page=True)
 
+    # --- the operator sees the mode: what limits each part, one state and one speed everywhere ----------
+    mode = page.get_by_test_id("live-mode")
+    wait_until(lambda: MODE_TEXT.match(mode.inner_text()), "the page to show the robot's mode")
+    parts = page.get_by_test_id("part-modes").locator("li")
+    expect(parts).to_have_count(9, timeout=UI_TIMEOUT_MS)  # one per capsule of the UR5e and its tool
+    for i in range(9):
+        assert PART_MODE.match(parts.nth(i).get_attribute("data-mode") or ""), parts.nth(i).inner_text()
+    expect(page.get_by_test_id("part-modes").locator("li.limiting")).to_have_count(1)
+    live = server.api("GET", "/api/state").json()
+    assert live["mode"] is not None and [p["name"] for p in live["parts"]][-1] == "tool"
+    if live["required_separation_m"] is not None and live["limiting_part"] is not None:
+        expect(page.get_by_test_id("required-separation")).to_contain_text(" m (", timeout=UI_TIMEOUT_MS)
+    check_panel_and_3d_view_agree(page, frame)
+
     page.get_by_test_id("estop-button").click()
     expect(live_state).to_have_text("E-STOP", timeout=UI_TIMEOUT_MS)
+    expect(page.get_by_test_id("live-mode")).to_have_text("stopped", timeout=UI_TIMEOUT_MS)
+    expect(page.get_by_test_id("speed-scale")).to_have_text("0%", timeout=UI_TIMEOUT_MS)
+    viser_status = viser_status_panel(frame)
+    expect(viser_status).to_contain_text("E-STOP", timeout=UI_TIMEOUT_MS)
+    found = VISER_STATUS.search(viser_status.inner_text())
+    assert found and (found["state"], found["mode"], found["speed"]) == ("E-STOP", "stopped", "0%")
     expect(page.get_by_test_id("toast")).to_contain_text("E-stop")
     robot = server.api("GET", "/api/robot").json()
     assert robot["estopped"] is True

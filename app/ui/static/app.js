@@ -287,9 +287,9 @@
     $("live-method").textContent = s.method ? `method: ${s.method}` : "–";
     const speed = Number(s.speed_scale);
     $("speed-meter").value = Number.isFinite(speed) ? speed : 0;
-    $("speed-scale").textContent = Number.isFinite(speed) ? `${Math.round(speed * 100)}%` : "–";
-    $("separation").textContent = fmt(s.separation_m, 2, " m");
-    $("required-separation").textContent = fmt(s.required_separation_m, 2, " m");
+    $("speed-scale").textContent = Number.isFinite(speed) ? `${Math.floor(speed * 100 + 0.5)}%` : "–";
+    big.dataset.t = Number.isFinite(Number(s.t)) ? Number(s.t).toFixed(3) : "";
+    renderModes(s);
     const p = s.p_world_tcp;
     $("tcp").textContent = Array.isArray(p) ? p.map((v) => fmt(v, 3)).join(", ") : "–";
     $("skeleton-status").textContent = s.skeleton ? (s.stale ? "stale" : "tracked") : "not seen";
@@ -332,6 +332,48 @@
       state.planHistory = plans.slice(-PLAN_HISTORY);
       drawPlanning(s);
     }
+  }
+
+  // What limits the robot (one field of the snapshot, as the 3D view shows it): the limiting part's mode,
+  // the separation it keeps and the one the speed governor holds it to, and every part's mode.
+  const partName = (name) => String(name || "").replace(/_/g, " ");
+
+  function renderModes(s) {
+    const parts = Array.isArray(s.parts) ? s.parts : [];
+    const limiting = parts.find((p) => p.name === s.limiting_part) || null;
+    const chip = $("live-mode");
+    chip.textContent = s.mode_text || "–";
+    chip.dataset.mode = s.mode ? String(s.mode).split(":")[0] : "";
+    chip.dataset.label = s.mode || "";
+    $("live-limiting").textContent = limiting ? `limited by the ${partName(limiting.name)}` : "";
+    const from = limiting && limiting.held_from_text ? ` from the ${limiting.held_from_text}` : "";
+    $("separation").textContent = fmt(s.separation_m, 2, " m") + (fmt(s.separation_m) === "–" ? "" : from);
+    const req = fmt(s.required_separation_m, 2, " m");
+    $("required-separation").textContent =
+      limiting && req !== "–" ? `${req} (${partName(limiting.name)}${limiting.mode === "stopped" ? ", to move" : ""})` : req;
+    const list = $("part-modes");
+    while (list.children.length > parts.length) list.lastElementChild.remove();
+    while (list.children.length < parts.length) {
+      const li = document.createElement("li");
+      for (const cls of ["part-name", "mode-chip", "num"]) {
+        const span = document.createElement("span");
+        span.className = cls;
+        li.append(span);
+      }
+      list.append(li);
+    }
+    parts.forEach((p, i) => {
+      const li = list.children[i];
+      li.className = p.name === s.limiting_part ? "limiting" : "";
+      li.dataset.part = p.name;
+      li.dataset.mode = p.label;
+      const [name, mode, nums] = li.children;
+      name.textContent = partName(p.name);
+      mode.textContent = p.text;
+      mode.dataset.mode = p.mode;
+      nums.textContent = `${fmt(p.separation_m, 2)} / ${fmt(p.required_m, 2)} m`;
+      nums.title = `separation${p.held_from_text ? " from the " + p.held_from_text : ""} / held to`;
+    });
   }
 
   function renderCounters(counters) {

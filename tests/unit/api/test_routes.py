@@ -4,6 +4,7 @@ success paths and the 404, 409 and 422 paths."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 from typing import Any
 
@@ -416,3 +417,31 @@ def test_health_is_503_when_the_runtime_stops_publishing(client: TestClient, run
     now[0] = 110.0  # the frame loop has published nothing for 10.5 s
     r = client.get("/api/health")
     assert r.status_code == 503 and r.json() == {**r.json(), "status": "degraded", "runtime": "stopped"}
+
+
+def test_the_robot_status_carries_the_mode_the_live_snapshot_has() -> None:
+    """``GET /api/robot`` and the E-stop's answer carry the mode fields of ``/api/live`` (the page merges an
+    answer into the last snapshot: a stale mode must not survive it)."""
+    import numpy as np
+
+    from app.api.schemas import robot_status
+    from app.control.engine import Snapshot
+    from app.safety.modes import PartMode
+
+    modes = (
+        PartMode("free", "skull_forehead", "skull_forehead", 1.2, 0.5, 1.0, 0.2),
+        PartMode("pfl", "hand_fingers", "chest", 0.7, 0.6, 0.675, 1.35),
+    )
+    snap = Snapshot(
+        t=1.0, trial_id=3, state="nominal", method="reactive", speed_scale=0.675, separation_m=0.7,
+        required_separation_m=0.6, planning_ms=(), counters={}, q=np.zeros(6), p_world_tcp=np.zeros(3),
+        part_modes=modes, part_names=("wrist_3", "tool"),
+    )  # fmt: skip
+    got = robot_status(snap).model_dump()
+    live = snap.to_json()
+    for key in ("mode", "mode_text", "limiting_part", "parts"):
+        assert got[key] == live[key], key
+    assert got["mode"] == "pfl:hand_fingers" and got["mode_text"] == "PFL · hand/fingers"
+    assert got["limiting_part"] == "tool" and got["parts"][1]["held_from_text"] == "chest"
+    estopped = robot_status(dataclasses.replace(snap, estopped=True, part_modes=(), part_names=()))
+    assert estopped.mode == "stopped" and estopped.parts == []

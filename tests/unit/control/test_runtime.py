@@ -28,6 +28,7 @@ from app.control.runtime import (
     TrialAlreadyRunning,
     run_headless_trial,
 )
+from app.planning.collision import ROBOT_LINKS
 from app.prediction.predictor import DEFAULT_WEIGHTS
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
 from app.safety.ssm import SSMParams
@@ -175,7 +176,13 @@ def test_live_trial_runs_to_its_end_and_reports(stack: PlanningStack) -> None:
             s = sub.get(0.1)
             if s is not None and s.trial_id == 7:
                 got_trial_snapshot = True
-                json.dumps(s.to_json(), allow_nan=False)
+                live = s.to_json()
+                json.dumps(live, allow_nan=False)
+                # what limits each of the UR5e's parts, by name, and the robot's mode: its limiting part's
+                assert [p["name"] for p in live["parts"]] == list(ROBOT_LINKS)
+                limiting = next(p for p in live["parts"] if p["name"] == live["limiting_part"])
+                assert live["mode"] == limiting["label"] and live["mode_text"] == limiting["text"]
+                assert {p["mode"] for p in live["parts"]} <= {"free", "ssm", "pfl", "stopped"}
                 break
         assert got_trial_snapshot
         assert ended.done.wait(30.0), "the trial listener was not called"

@@ -954,3 +954,33 @@ def test_the_ssm_timing_predicts_how_long_the_governor_takes_past_a_person(
     if strict and side_m < 0.8:
         assert measured > 1.5 * full  # the governor slowed this move a lot ...
     assert t[-1] == pytest.approx(measured, rel=0.2)  # ... and the prediction knew by how much
+
+
+def test_the_status_says_what_limits_the_robot_and_the_separation_it_is_held_to() -> None:
+    """The status's modes (:func:`app.safety.modes.part_modes`) follow the governor: free with nobody near,
+    not free while the governor holds the robot below full speed, stopped at an E-stop; its separation and
+    required separation are the limiting part's, and a robot at or below its limit is never closer than it."""
+    # a person comes from far away to 0.45 m beside the middle of the path, and stays there
+    person = walker(np.array([1.0, 3.0, 0.0]), np.array([1.0, 0.45, 0.0]), 1.0, 2.5)
+    h = Harness(person, forecast_fn=lambda t: HumanForecast.hold(HumanFrame(t, person_at(FAR))))
+    h.sup.set_goal("B")
+    h.run(1.0)
+    st = h.sup.status()
+    assert [m.mode for m in st.modes] == ["free"] and st.scale == pytest.approx(1.0)
+    assert st.separation_m == st.modes[0].separation_m and st.required_separation_m == st.modes[0].required_m
+    assert st.required_separation_m < st.separation_m
+    seen = set()
+    while h.t < 4.0:
+        h.run(h.t + 0.05)
+        st = h.sup.status()
+        (m,) = st.modes
+        seen.add(m.mode)
+        assert m.mode in ("free", "ssm", "stopped")  # SSM alone here: no region to touch
+        if st.scale < 0.99 and st.state == "nominal" and m.mode == "free":
+            assert m.limit_scale == pytest.approx(1.0)  # only ramping up
+        if st.state == "nominal" and m.mode != "stopped" and st.scale <= m.limit_scale:
+            # not braking down to a lower limit: the separation it is held to is kept
+            assert st.required_separation_m <= st.separation_m + 1e-9
+    assert "free" in seen and ({"ssm", "stopped"} & seen)
+    h.sup.estop(h.t)
+    assert [m.mode for m in h.sup.status().modes] == ["stopped"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
@@ -126,3 +127,55 @@ def test_recorded_motion_exports_as_clips_the_predictor_reads(repo: StudyReposit
     assert sorted(c.frames for c in clips) == [58, 60, 80]
     first = next(c for c in clips if c.name.endswith("_0"))
     np.testing.assert_allclose(first.positions, sk[:60], atol=1e-6)
+
+
+def test_the_safety_models_keys_reach_the_metrics_csv_and_the_report_per_trial_and_method(
+    tmp_path: Path,
+) -> None:
+    """ISO/TS 15066's judge with PFL (issue 36): violations apart from those a faster person started,
+    harmful contacts and the time the person was faster than assumed, per trial in ``metrics.csv`` and per
+    method in ``hrc report`` (its JSON and its CSV table)."""
+    from app.study.stats import REPORT_METRICS, csv_table, summarize
+
+    keys = ("violations_person_faster", "harmful_contacts", "exceedance_s")
+    assert set(keys) <= set(REPORT_METRICS) and set(keys) <= set(METRIC_COLUMNS)
+    url = f"sqlite:///{tmp_path / 'safety.db'}"
+    upgrade_to_head(url)
+    r = StudyRepository(make_engine(url))
+    try:
+        values = {"proactive": (2, 0, 0.5), "reactive": (0, 1, 1.25)}
+        for code in ("P1", "P2"):
+            p = r.create_participant(ParticipantCreate(code=code))
+            for method, (faster, harmful, exceed) in values.items():
+                t = r.create_trial(participant_id=p.id, method=method, seed=1)
+                r.finish_trial(
+                    t.id,
+                    status="completed",
+                    metrics=TrialMetrics(
+                        method=method,
+                        duration_s=30.0,
+                        completed_tasks=3,
+                        violations_person_faster=faster,
+                        harmful_contacts=harmful,
+                        exceedance_s=exceed,
+                    ),
+                    events=[],
+                )
+        met = pd.read_csv(io.StringIO(table_csv(r, "metrics")))
+        for method, want in values.items():
+            rows = met[met["method"] == method]
+            assert len(rows) == 2
+            for key, value in zip(keys, want, strict=True):
+                assert rows[key].tolist() == [value, value], (method, key)
+        summary = summarize(r.metrics_rows())
+        json_report = json.loads(json.dumps(summary, allow_nan=False))  # `hrc report --json`
+        for method, want in values.items():
+            for key, value in zip(keys, want, strict=True):
+                assert json_report[method][key]["mean"] == pytest.approx(value), (method, key)
+        table = pd.read_csv(io.StringIO(csv_table(summary)))
+        for key, (pro, rea) in zip(keys, zip(*values.values(), strict=True), strict=True):
+            row = table[table["metric"] == key]
+            assert row["proactive_mean"].item() == pytest.approx(pro)
+            assert row["reactive_mean"].item() == pytest.approx(rea)
+    finally:
+        r.close()

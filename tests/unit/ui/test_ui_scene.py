@@ -485,3 +485,55 @@ def test_layer_toggles_are_each_viewers_own(cell: Any) -> None:
             b.close()
         wait_for(lambda: not scene.server.get_clients(), "the viewers to leave")
         wait_for(lambda: scene.view.client_layers(ids[0]) is None, "their toggles to go")
+
+
+def _part(mode: str, region: str | None = None, held_from: str | None = "skull_forehead", limit: float = 1.0):
+    from app.safety.modes import PartMode
+
+    return PartMode(mode, region or held_from, held_from, 0.8, 0.45, limit, 0.5)  # type: ignore[arg-type]
+
+
+def test_the_robot_is_coloured_by_each_parts_mode_and_the_label_says_what_the_page_says(
+    server: Any, cell: Any
+) -> None:
+    """Each capsule in its part's mode's colour; the label and the status panel show the state, the mode and
+    the speed of the same snapshot, in the words of the operator page (the snapshot's ``mode_text``)."""
+    from app.control.engine import Snapshot
+    from app.ui.scene import MODE_COLORS, headline
+
+    view = CellView(server, cell, robot_capsules=fake_capsules)
+    modes = (
+        _part("free"),
+        _part("ssm", limit=0.9),
+        _part("pfl", "hand_fingers", limit=0.675),
+        _part("stopped", limit=0.0),
+    )
+    snap = Snapshot(
+        t=3.25, trial_id=1, state="collision_avoidance", method="proactive", speed_scale=0.0,
+        separation_m=0.8, required_separation_m=0.45, planning_ms=(), counters={}, q=np.zeros(6),
+        p_world_tcp=np.array([0.3, 0.0, 0.4]), part_modes=modes, part_names=("a", "b", "tool", "d"),
+    )  # fmt: skip
+    view.apply(snap)
+    h = view.handles
+    want = np.array([MODE_COLORS[m.mode] for m in modes], dtype=np.uint8)
+    assert np.array_equal(h["robot_links"].batched_colors, want)
+    assert np.array_equal(h["robot_joints"].batched_colors, np.concatenate([want, want]))
+    page = snap.to_json()
+    assert snap.mode == "stopped" and page["mode_text"] == "stopped" and page["limiting_part"] == "d"
+    assert h["state_label"].text == headline(snap, "COLLISION AVOIDANCE")
+    assert h["state_label"].text == "COLLISION AVOIDANCE · stopped · speed 0%"
+    status = h["gui_status"].content
+    assert "**State:** COLLISION AVOIDANCE" in status and "**Mode:** stopped" in status
+    assert "**Speed:** 0%" in status and "t = 3.250 s" in status
+    assert "0.80 m (required 0.45 m, d from the skull/forehead)" in status
+    assert [p["text"] for p in page["parts"]] == ["free", "SSM", "PFL · hand/fingers", "stopped"]
+
+    # the mode changes with the state unchanged: the label follows at once; an E-stop turns the arm red
+    view.apply(replace(snap, t=3.26, part_modes=(*modes[:3], _part("free")), speed_scale=0.5))
+    assert h["state_label"].text == "COLLISION AVOIDANCE · PFL · hand/fingers · speed 50%"
+    view.apply(replace(snap, t=3.3, estopped=True))
+    assert np.all(h["robot_links"].batched_colors == np.array(COLOR_DANGER, dtype=np.uint8))
+    assert h["state_label"].text == "E-STOP · stopped · speed 0%"
+    # without modes (a replay, no trial) the arm keeps its grey and the label the state and speed alone
+    view.apply(FakeSnapshot(t=4.0, speed_scale=0.25))
+    assert h["state_label"].text == "NOMINAL · speed 25%"
