@@ -21,7 +21,8 @@ What it counts, while the robot is not at standstill:
 
 - a **violation**: a part closer than its ``S_p`` to a capsule while its speed toward that capsule is above
   the region's permissible speed. An episode that a person approaching faster than ISO 13855's speed opened
-  (within ``T_r + T_s`` of such an approach) is counted apart (``violations_person_faster``), as one that an
+  (before the robot could react and stop: within ``T_r + T_s`` of the last such check, ``T_s`` the robot's
+  stopping time then) is counted apart (``violations_person_faster``), as one that an
   intrusion (a jump no person makes) opened is (``violations_in_intrusions``);
 - a **contact**: a part touching the person (``d <= 0``); a **harmful contact**: a contact at a speed toward
   the region above its permissible speed, or any contact with skull, face or neck;
@@ -275,9 +276,9 @@ class GroundTruthMonitor:
         self.violations_in_intrusions = 0
         self.violations_person_faster = 0
         self._intrusion_t = -math.inf  # time of the last check that saw an intrusion
-        self._faster_t = (
-            -math.inf
-        )  # time of the last check at which the person approached faster than assumed
+        # a violation that opens before this is the faster person's: the last check at which the person
+        # approached faster than assumed, plus the time the robot needed from there to react and stop
+        self._faster_until = -math.inf
         self._open: dict[str, _OpenEpisode] = {}  # the episodes under way, by kind
         self.episodes: list[MonitorEpisode] = []
         # judged on the true person, the sensing uncertainty Z_d is not added: it stands for the difference
@@ -396,7 +397,7 @@ class GroundTruthMonitor:
         # makes is an intrusion, counted apart)
         faster = (v_true > self.iso_speeds[None, :]) & inside
         if faster.any() and not jumped:
-            self._faster_t = float(t)
+            self._faster_until = max(self._faster_until, float(t) + t_r + t_s)
             self.exceedance_s += tick
             self.max_approach_mps = max(self.max_approach_mps, float(v_true[faster].max()))
         # stress figures, SSM alone: the true measured speed (near band), ISO 13855's constant speeds
@@ -471,7 +472,7 @@ class GroundTruthMonitor:
             if kind == "violation":
                 intrusion = sample.t - self._intrusion_t <= self.t_r
                 # a person faster than assumed, within the time the robot needs to react and stop
-                person_faster = not intrusion and sample.t - self._faster_t <= self.t_r + self._stop_s(sample)
+                person_faster = not intrusion and sample.t <= self._faster_until
                 if intrusion:
                     self.violations_in_intrusions += 1
                 elif person_faster:
@@ -485,9 +486,6 @@ class GroundTruthMonitor:
                 self._open[kind] = _OpenEpisode(sample, sample, margin_m, sample.t, intrusion, person_faster)
         elif kind in self._open:
             self._open[kind].update(sample, margin_m)
-
-    def _stop_s(self, sample: MonitorSample) -> float:
-        return float(self.stopping.stop_time_s(max(sample.robot_speed_mps, 0.0), 0.0))
 
     def _end(self, kind: str) -> None:
         self._in[kind] = False

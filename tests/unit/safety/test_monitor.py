@@ -325,3 +325,17 @@ def test_an_episode_still_under_way_when_the_trial_ends_is_listed(geometry) -> N
     episodes = mon.totals().episodes
     assert mon.violations == 1 and [e.kind for e in episodes].count("violation") == 1
     assert next(e for e in episodes if e.kind == "violation").duration_s == pytest.approx(0.008)
+
+
+def test_a_violation_is_the_faster_persons_until_the_robot_could_have_stopped(geometry) -> None:
+    """A person faster than assumed opens a window of ``T_r + T_s`` (the robot's stopping time at that
+    check): a violation that opens inside it is the faster person's, one after it the robot's."""
+    q, qd, person, direction = _scene(geometry, 0.3)
+    t_s = UR5E_STOP.stop_time_s(float(geometry.part_speeds(q, qd).max()), float(np.abs(qd).max()))
+    for late, counted in ((0.5 * (T_R + t_s), "violations_person_faster"), (1.5 * (T_R + t_s), "violations")):
+        mon = _monitor(geometry)
+        mon.check(0.0, q, -qd, person, person + 0.024 * direction, 0.008)  # 3 m/s within S_p: faster
+        assert mon.violations_person_faster == 1 and mon.max_approach_mps > 2.5
+        mon.check(0.008, q, np.zeros(6), person, person, 0.008)  # the robot at rest: the episode ends
+        mon.check(late, q, -qd, person, person, 0.008)  # moving again inside S_p, the person still
+        assert getattr(mon, counted) == (2 if counted == "violations_person_faster" else 1), late
