@@ -90,9 +90,9 @@ def _r(
 
 
 #: The body regions of ISO/TS 15066:2016 Annex A: quasi-static force (Table A.2), effective spring constant
-#: and effective mass (Table A.3). Checked against two open implementations that publish them: the UR e-Series
-#: ROS 2 safety controller's ``compute_PFL_vel_lim`` header and EricssonResearch/scott-eu ``speedLimit.py``
-#: (2x the forces for transient contact); the same figures in ``shared/reference/pfl-values.md``.
+#: and effective mass (Table A.3). Checked value by value against the tables as a UR e-Series ROS 2 safety
+#: controller transcribes them (``SafetyController.compute_PFL_vel_lim``, Tables A.2 and A.3 in its header);
+#: the factor 2 for transient contact is Annex A's (A.3.2).
 BODY_REGIONS: dict[str, BodyRegion] = {
     r.name: r
     for r in (
