@@ -347,7 +347,6 @@ class Supervisor:
         # the last plan from rest failed because the person as forecast was in the way (PlanOutcome.blocked)
         self._person_in_way = False
         self._state: SupervisorState = "idle"
-        self._recent_decide_s: deque[float] = deque(maxlen=256)
 
     # ------------------------------------------------------------------------------------------------
     # task interface
@@ -638,7 +637,6 @@ class Supervisor:
 
     def _done(self, action: str, t_v: float | None, sep: float, c0: float) -> FrameDecision:
         dt = self.timer() - c0
-        self._recent_decide_s.append(dt)
         return FrameDecision(action, t_v, sep, dt)
 
     def _first_violation(
@@ -1182,10 +1180,6 @@ class Supervisor:
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
         robot = self._robot_motion(vmax, dt, rate, hi)
         return float(_kernel_governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
-
-    def recent_decide_s(self) -> tuple[float, ...]:
-        with self._lock:
-            return tuple(self._recent_decide_s)
 
 
 def _ramp_distance(s: float, up_rate: float, horizon_s: float) -> float:

@@ -35,12 +35,6 @@ class TrajectoryLike(Protocol):
     def qd(self, t: Any) -> np.ndarray: ...
 
 
-class PlanLike(Protocol):
-    times: np.ndarray
-    q: np.ndarray
-    nodes: np.ndarray
-
-
 class PlanResultLike(Protocol):
     ok: bool
     plan: Any

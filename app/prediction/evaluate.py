@@ -14,7 +14,6 @@ from typing import Any
 
 import numpy as np
 
-from app.prediction.baselines import constant_velocity, zero_velocity
 from app.prediction.data import Clip, windows
 
 #: Horizons (ms) reported by ``hrc hmp eval`` and ``hrc bench hmp``.
@@ -93,11 +92,6 @@ def error_quantiles(pred: np.ndarray, target: np.ndarray) -> dict[str, list[floa
         out[f"p{q}"] = [0.0, *(float(v) for v in per_step)]
     out["max_p95"] = [0.0, *(float(v) for v in np.percentile(err.max(axis=2), 95, axis=0))]
     return out
-
-
-def baseline_fns() -> dict[str, PredictFn]:
-    """The two baselines as ``obs (N, T, J, 3) -> pred (N, H, J, 3)`` with H bound at call time."""
-    return {"constant_velocity": constant_velocity, "zero_velocity": zero_velocity}
 
 
 def evaluate_windows(

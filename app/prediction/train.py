@@ -13,7 +13,7 @@ import math
 import platform
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -463,8 +463,3 @@ def model_card(
     if extra:
         lines += ["", extra]
     return "\n".join(lines) + "\n"
-
-
-def default_config(**overrides: object) -> TrainConfig:
-    """A :class:`TrainConfig` with some fields replaced."""
-    return replace(TrainConfig(), **overrides)

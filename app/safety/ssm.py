@@ -98,11 +98,6 @@ class SSMParams:
         """``T_r + T_s / 2`` (s): ``S_r + S_s = v_r * robot_time_s``."""
         return self.t_reaction_s + self.t_stop_s / 2
 
-    def human_distance_m(self, v_human_mps: float | None = None) -> float:
-        """``S_h = v_h (T_r + T_s)`` (m), with ``v_human_mps`` overriding the default speed."""
-        v_h = self.v_human_mps if v_human_mps is None else float(v_human_mps)
-        return v_h * (self.t_reaction_s + self.t_stop_s)
-
 
 def forecast_clearance(
     v_robot_mps: float | np.ndarray,

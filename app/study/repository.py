@@ -189,15 +189,6 @@ def _metrics_values(metrics: TrialMetrics | Mapping[str, Any]) -> dict[str, Any]
     return values
 
 
-def metrics_from_read(row: TrialMetricsRead, method: Method) -> TrialMetrics:
-    """Back to the runtime's :class:`TrialMetrics` (a NULL metric reads as :data:`NULLABLE_METRICS` says)."""
-    values = {c: getattr(row, c) for c in METRIC_COLUMNS}
-    for c, missing in NULLABLE_METRICS.items():
-        if values[c] is None:
-            values[c] = missing
-    return TrialMetrics(method=method, **values)
-
-
 def _participant_read(p: Participant) -> ParticipantRead:
     return ParticipantRead.model_validate(p)
 

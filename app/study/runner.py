@@ -18,7 +18,7 @@ import os
 import sys
 import time
 import traceback
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field, is_dataclass
@@ -497,11 +497,3 @@ def run_study(
         aborted=aborted,
         wall_s=time.perf_counter() - t0,
     )
-
-
-def jobs_by_participant(jobs: Sequence[TrialJob]) -> dict[str, list[TrialJob]]:
-    """The jobs grouped by participant code, each group in order of ``order_index``."""
-    out: dict[str, list[TrialJob]] = {}
-    for job in jobs:
-        out.setdefault(job.participant_code, []).append(job)
-    return {k: sorted(v, key=lambda j: j.order_index) for k, v in out.items()}

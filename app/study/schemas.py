@@ -186,13 +186,6 @@ class TrialRead(_Out):
     metrics: TrialMetricsRead | None = None
 
 
-class TrialFinish(_In):
-    """How a trial ended (the API's ``POST /trials/{id}/finish`` body, if it offers one)."""
-
-    status: FinalStatus
-    reason: str | None = Field(None, max_length=2_000)
-
-
 class TrialEventRead(_Out):
     id: int
     trial_id: int

@@ -231,3 +231,27 @@ def test_the_architecture_notes_list_exactly_the_modules_that_exist() -> None:
         "docs/architecture.md is out of date (run scripts/module_map.py): "
         f"missing {sorted(present - listed)}, gone {sorted(listed - present)}"
     )
+
+
+def test_the_dead_names_are_gone() -> None:
+    """Names nothing called (issue: one pipeline, typed seams) stay deleted."""
+    import app.control.supervisor as supervisor
+    import app.control.trajectory_views as trajectory_views
+    import app.prediction.evaluate as evaluate
+    import app.prediction.train as train
+    import app.study.repository as repository
+    import app.study.runner as runner
+    import app.study.schemas as schemas
+    from app.safety.ssm import SSMParams
+
+    gone = [
+        (evaluate, "baseline_fns"),
+        (train, "default_config"),
+        (SSMParams, "human_distance_m"),
+        (trajectory_views, "PlanLike"),
+        (supervisor.Supervisor, "recent_decide_s"),
+        (repository, "metrics_from_read"),
+        (schemas, "TrialFinish"),
+        (runner, "jobs_by_participant"),
+    ]
+    assert [name for owner, name in gone if hasattr(owner, name)] == []
