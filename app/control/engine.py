@@ -571,6 +571,8 @@ def governor_model(
             human_accel_mps2=accel,
             stop_decel_mps2=UR5E_STOP.decel_mps2,
         )
+    pfl = pfl_model(settings)
+    floors = approach_floors(settings, pfl)
     return GovernorModel(
         separation=separation,
         brake_decel_mps2=config.brake_decel_mps2,
@@ -586,8 +588,8 @@ def governor_model(
         # speed with the stopping model's T_s (the same S_p = v_h (T_r + T_s) + ..., T_s the robot's own)
         law=SpeedScaleLaw(ssm) if settings.human_model == "cmu_p99" else None,
         robot_toward=config.robot_toward,
-        pfl_caps_mps=tuple(float(v) for v in pfl_model(settings).transient_mps) if settings.pfl else (),
-        approach_floor_mps=tuple(float(v) for v in approach_floors(settings)) if _floored(settings) else (),
+        pfl_caps_mps=tuple(float(v) for v in pfl.transient_mps) if pfl.enabled else (),
+        approach_floor_mps=() if floors is None else tuple(float(v) for v in floors),
     )
 
 
@@ -599,18 +601,13 @@ def pfl_model(settings: Settings) -> PFLModel:
     return PFLModel.for_capsules(HUMAN_CAPSULES, payload_kg=settings.pfl_payload_kg, enabled=settings.pfl)
 
 
-def _floored(settings: Settings) -> bool:
-    return settings.human_model == "iso13855"
-
-
-def approach_floors(settings: Settings) -> np.ndarray:
+def approach_floors(settings: Settings, pfl: PFLModel | None = None) -> np.ndarray | None:
     """(M,) each person capsule's least approach speed (m/s) that the governor assumes: ISO 13855's by region
-    (``Settings.human_model = "iso13855"``: never lower; the measured one where faster); zeros for the
-    what-if person (the measured speed alone)."""
-    model = pfl_model(settings)
-    if not _floored(settings):
-        return np.zeros(len(model.capsules))
-    return model.iso_speeds_mps
+    (``Settings.human_model = "iso13855"``: never lower; the measured one where faster); None for the
+    what-if person (the measured speed alone). ``pfl``: the trial's model (default: built here)."""
+    if settings.human_model != "iso13855":
+        return None
+    return (pfl if pfl is not None else pfl_model(settings)).iso_speeds_mps
 
 
 class TrialEngine:
@@ -687,6 +684,7 @@ class TrialEngine:
                 "cycle): build it with PlanningStack.for_cell(cell, t_reaction_s=...) or "
                 "stack.with_reaction_time(...)"
             )
+        self.pfl = pfl_model(settings)  # the trial's power and force limiting (supervisor and judge)
         self.governor_model = governor_model(
             settings, stack.ssm, self.config, self.options, separation=separation
         )
@@ -718,8 +716,8 @@ class TrialEngine:
             t0=t0,
             on_event=self._emit_abs,
             timer=timer,
-            pfl=pfl_model(settings),
-            approach_floor_mps=approach_floors(settings) if _floored(settings) else None,
+            pfl=self.pfl,
+            approach_floor_mps=approach_floors(settings, self.pfl),
         )
         self.task = TaskExecutive(
             stack.cell,
@@ -749,7 +747,7 @@ class TrialEngine:
                 part_names=ROBOT_LINKS,
                 human_capsules=HUMAN_CAPSULES,
                 reaction_time_s=self.reaction_time_s,
-                pfl=pfl_model(settings),
+                pfl=self.pfl,
             )
         self.truth = truth
         self._truth_prev: tuple[float, np.ndarray] | None = None

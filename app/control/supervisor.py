@@ -94,6 +94,7 @@ from app.safety.governor import (
     SpeedScaleLaw,
     brake_rate,
     directed_pairs,
+    nearest_approach,
     ssm_alone,
 )
 from app.safety.modes import PartMode, RegionMap, binding_part, part_modes
@@ -495,9 +496,8 @@ class Supervisor:
                 v_unknown_mps=self.ssm.human_speed_max_mps, floor_mps=self._floors,
             )  # fmt: skip
             t_mid = frame.t if old is None else 0.5 * (frame.t + old.t)
-            near = d_now <= d_now.min(axis=1, keepdims=True) + cfg.near_band_m
-            sep_parts = d_now.min(axis=1) - cfg.tracking_margin_m
-            v_h0 = np.where(near, v_pairs, 0.0).max(axis=1)
+            sep_parts, v_h0 = nearest_approach(d_now, v_pairs, band_m=cfg.near_band_m)
+            sep_parts = sep_parts - cfg.tracking_margin_m
             pfl, caps = self._pfl_levels(d_now, v_pairs, frame.joints)
             pairs = (d_now, caps)
         elif old is not None:
@@ -1131,11 +1131,12 @@ class Supervisor:
         without a model), each level at its own approach speed where the person is assumed at constant speed
         (ISO 13855's), else at the part's grown worst case; and the capsules' speeds (M,) behind them."""
         v = v_pairs if self.ssm.human_accel_mps2 <= 0.0 else None
-        caps = np.full(d_pairs.shape[1], -1.0)
-        if self.pfl is not None and self.pfl.enabled:
-            gaps = self.geometry.human_static_gaps(joints, self.pfl.pinnable_index)
-            caps = self.pfl.capsule_speeds_mps(gaps, d_pairs.shape[1])
-        return PFLLevels(*pfl_levels(d_pairs, caps, v, band_m=self.config.near_band_m)), caps
+        band = self.config.near_band_m
+        if self.pfl is None:
+            caps = np.full(d_pairs.shape[1], -1.0)
+            return PFLLevels(*pfl_levels(d_pairs, caps, v, band_m=band)), caps
+        gaps = self.geometry.human_static_gaps(joints, self.pfl.pinnable_index) if self.pfl.enabled else None
+        return self.pfl.levels(d_pairs, v, gaps, band_m=band)
 
     def _part_modes(self) -> Callable[[], tuple[PartMode, ...]]:
         """What limits each part now (:func:`app.safety.modes.part_modes`, at the snapshot rate, from the

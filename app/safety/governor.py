@@ -263,12 +263,21 @@ def directed_approach(
     approach speed (ISO 13855's; the measured one where it is faster, never lower). The supervisor
     measures the person with it, and :class:`GovernorModel` predicts the governor from a forecast with it."""
     d_now = np.asarray(d_now, dtype=np.float64)
-    sep = d_now.min(axis=-1)
     approach = np.maximum(np.asarray(d_before, dtype=np.float64) - d_now, 0.0) / max(float(dt_s), 1e-6)
     if floor_mps is not None:
         approach = np.maximum(approach, np.asarray(floor_mps, dtype=np.float64))
+    return nearest_approach(d_now, approach, band_m=band_m)
+
+
+def nearest_approach(
+    d_now: np.ndarray, v_pairs: np.ndarray, *, band_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each robot part's separation (L,) and the fastest approach ``v_pairs`` (L, M) of the person's
+    capsules within ``band_m`` of its nearest one, from the distances ``d_now`` (L, M)
+    (:func:`directed_approach`)."""
+    sep = d_now.min(axis=-1)
     near = d_now <= sep[..., None] + band_m
-    return sep, np.where(near, approach, 0.0).max(axis=-1)
+    return sep, np.where(near, v_pairs, 0.0).max(axis=-1)
 
 
 def directed_pairs(

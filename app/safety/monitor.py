@@ -51,7 +51,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from app.safety.pfl import PFLModel, capsule_region, pinned_capsules
+from app.safety.pfl import PFLModel, capsule_region
 from app.safety.ssm import SSMParams, required_separation
 from app.safety.stopping import UR5E_STOP, StoppingModel
 
@@ -270,8 +270,7 @@ class GroundTruthMonitor:
             raise ValueError("the PFL model's capsules are not the person's capsules of the geometry")
         self.regions = tuple(capsule_region(c) for c in human_capsules)
         self.iso_speeds = self.pfl.iso_speeds_mps
-        self._pinnable = self.pfl.pinnable
-        self._use_pins = self.pfl.enabled and bool(self._pinnable.any())
+        self._use_pins = self.pfl.enabled and bool(self.pfl.pinnable.any())
         self.intrusions = 0
         self.violations_in_intrusions = 0
         self.violations_person_faster = 0
@@ -320,10 +319,12 @@ class GroundTruthMonitor:
     def caps_mps(self, joints: np.ndarray) -> np.ndarray:
         """(M,) each capsule's permissible contact speed (m/s) with the person at ``joints``: quasi-static
         where a hand or forearm lies on the scene; -1 where no contact is permitted (or PFL is off)."""
-        if not self._use_pins:
-            return self.pfl.caps_mps(None)
-        gaps = np.asarray(self.geometry.human_static_gaps(joints, self.pfl.pinnable_index), dtype=np.float64)
-        return self.pfl.caps_mps(pinned_capsules(gaps, self._pinnable, pin_gap_m=self.pfl.pin_gap_m))
+        gaps = None
+        if self._use_pins:
+            gaps = np.asarray(
+                self.geometry.human_static_gaps(joints, self.pfl.pinnable_index), dtype=np.float64
+            )
+        return self.pfl.capsule_speeds_mps(gaps, len(self.pfl.capsules))
 
     def check(
         self,

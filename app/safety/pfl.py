@@ -249,14 +249,15 @@ class PFLModel:
         static_gaps_m: np.ndarray | None,
         *,
         band_m: float,
-    ) -> PFLLevels:
+    ) -> tuple[PFLLevels, np.ndarray]:
         """The governor's :class:`~app.safety._kernels.PFLLevels` for robot parts at the distances
         ``d_pairs`` (L, M) from the person's capsules, who approach each at ``v_pairs`` (L, M) (None: each
         level at the part's own worst case), the capsules' gaps to the scene ``static_gaps_m`` (M,) (None:
         none pinned): each capsule's permissible speed, quasi-static where pinned (:func:`pfl_levels`). With
-        PFL off: one level, every capsule (its approach speed still by capsule)."""
+        PFL off: one level, every capsule (its approach speed still by capsule). And the capsules' speeds
+        (M,) behind them."""
         caps = self.capsule_speeds_mps(static_gaps_m, np.shape(d_pairs)[1])
-        return PFLLevels(*pfl_levels(d_pairs, caps, v_pairs, band_m=band_m))
+        return PFLLevels(*pfl_levels(d_pairs, caps, v_pairs, band_m=band_m)), caps
 
     def capsule_speeds_mps(self, static_gaps_m: np.ndarray | None, n_caps: int) -> np.ndarray:
         """(M,) each of the ``n_caps`` capsules' permissible speed (m/s) as :meth:`levels` takes it:

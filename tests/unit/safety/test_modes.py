@@ -47,11 +47,11 @@ def _scene(near: list[dict[int, float]], *, pfl: bool = True) -> tuple[PartSepar
             d[i, m] = dist
     v = np.broadcast_to(model.iso_speeds_mps, d.shape)
     gaps = np.full(len(HUMAN_CAPSULES), 1.0)
-    levels = model.levels(d, v, gaps, band_m=0.25)
+    levels, caps = model.levels(d, v, gaps, band_m=0.25)
     near_band = d <= d.min(axis=1, keepdims=True) + 0.25
     v_h0 = np.where(near_band, v, 0.0).max(axis=1)
     parts = PartSeparation(d.min(axis=1), np.zeros(len(near)), v_h0, levels)
-    regions = RegionMap(d, model.capsule_speeds_mps(gaps, len(HUMAN_CAPSULES)), model.regions)
+    regions = RegionMap(d, caps, model.regions)
     return parts, regions, model
 
 
