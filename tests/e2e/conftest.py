@@ -77,7 +77,8 @@ class HrcServer:
     def api(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
         """A REST call with the token (for set-up and for checks beside the browser)."""
         headers = {**self.headers, **kwargs.pop("headers", {})}
-        return httpx.request(method, f"{self.base_url}{path}", headers=headers, timeout=30.0, **kwargs)
+        timeout = kwargs.pop("timeout", 30.0)
+        return httpx.request(method, f"{self.base_url}{path}", headers=headers, timeout=timeout, **kwargs)
 
     def log_tail(self, n: int = 60) -> str:
         try:
