@@ -309,7 +309,7 @@ def test_operator_session_end_to_end(page: Any, hrc_server: Any, artifacts_dir: 
         assert png.status_code == 200 and png.content.startswith(b"\x89PNG"), png.text[:200]
         expect(
             page.get_by_test_id("boxplots"),
-            f"the page's box plots (the server drew them in {drawn_s:.1f} s); server log:\n{server.log_tail(30)}",
+            f"the page's box plots (drawn in {drawn_s:.1f} s); server log:\n{server.log_tail(30)}",
         ).to_be_visible(timeout=120_000)
     # where the completed trials' time went, per method, from the same summary
     for method in ("proactive", "reactive"):

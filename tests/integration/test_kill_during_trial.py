@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from sqlalchemy import text
 
 from app.study.db import make_engine
@@ -186,6 +187,7 @@ def _stop(proc: subprocess.Popen[bytes], sig: int = signal.SIGTERM) -> None:
             proc.wait(timeout=30)
 
 
+@pytest.mark.wallclock
 def test_sigkill_of_the_server_mid_trial_keeps_the_trial_up_to_its_last_checkpoint(tmp_path: Path) -> None:
     port = _free_port()
     db_url = f"sqlite:///{(tmp_path / 'study.db').as_posix()}"

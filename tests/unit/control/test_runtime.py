@@ -154,6 +154,7 @@ def test_snapshot_json_is_plain_and_arrays_are_frozen() -> None:
         )
 
 
+@pytest.mark.wallclock
 def test_live_trial_runs_to_its_end_and_reports(stack: PlanningStack) -> None:
     ended = _Ended()
     rt = Runtime(_settings(), stack=stack, options=EngineOptions(record_frames=False))
@@ -189,7 +190,8 @@ def test_live_trial_runs_to_its_end_and_reports(stack: PlanningStack) -> None:
         sub.close()
     trial_id, metrics, events, status = ended.calls[0]
     assert (trial_id, status) == (7, "completed")
-    assert metrics.method == "reactive" and metrics.duration_s == pytest.approx(1.5, abs=0.2)
+    # a live trial runs on the wall clock: it lasts its 1.5 s, give or take a loaded machine's scheduling
+    assert metrics.method == "reactive" and 1.3 <= metrics.duration_s <= 3.0, metrics.duration_s
     kinds = [e.kind for e in events]
     assert kinds[0] == "trial_started" and kinds[-1] == "trial_ended"
     assert {tid for tid, _ in ended.events} == {7}
