@@ -1,10 +1,11 @@
 """Where may the robot work beside the person? A check of the cell's task poses under the safety model.
 
 The speed governor (:mod:`app.safety.governor`) lets a robot part move only as fast as it can brake before the
-person, as last seen and then doing their worst (speeding up at ``HRC_HUMAN_ACCEL_MAX_MPS2`` for the frame's
-age and the reaction time), could close the protective separation ``S_p``. Near a person that speed is zero:
-a task pose inside that zone of where the person's hands work is a pose the robot can only creep to, or
-wait at, while they are there, however good the plan. :func:`check_layout` measures it for every task pose
+person, as last seen and then approaching at the speed the safety model assumes (``HRC_HUMAN_MODEL``) for
+the frame's age and the reaction time, could close the protective separation ``S_p``. Near a body region
+that admits no contact (skull, face, neck) that speed is zero: a task pose inside that zone of where the
+person's head is while they work is a pose the robot can only creep to, or wait at, while they are there,
+however good the plan. :func:`check_layout` measures it for every task pose
 of the work cell (pickup, drop stations, their approach poses, home) against recorded frames of a person at
 work: per pose, the separation to the person, the speed the governor would allow a part there, and the
 share of the frames in which it allows at least a given speed (a slow approach, by default 0.1 m/s).
@@ -14,8 +15,11 @@ zone the person works in.
 
 The robot stands at the pose in the configuration (IK branch) that keeps it farthest from the person; every
 part counts, each moving straight at the person (the governor's case for a part without a path to measure
-toward). The frames are what the runtime would see: a tracker's recording of the cell, or simulated
-participants at work (``hrc cell check``).
+toward). With power and force limiting (the governor model's ``pfl_caps_mps``), a part may move toward a
+body region that admits contact at that region's permissible speed however close it is, as the governor
+lets it (:mod:`app.safety.pfl`); skull, face and neck admit none, so near a head the part keeps ``S_p``.
+The frames are what the runtime would see: a tracker's recording of the cell, or simulated participants at
+work (``hrc cell check``).
 """
 
 from __future__ import annotations
@@ -136,8 +140,8 @@ def check_layout(
         qs = np.asarray(roadmap.ik[node], dtype=np.float64)[branches]
         i, sep, v_h = _farthest_branch(geometry, qs, used, lag, dt, governor.near_band_m, chunk)
         branch = int(branches[i])
-        allowed = table(sep, v_h).min(axis=1)
-        nearest = sep.min(axis=1)
+        allowed = _allowed(table, sep, v_h, governor).min(axis=1)
+        nearest = sep.min(axis=(1, 2))
         out.append(
             PoseReport(
                 name=name,
@@ -262,7 +266,7 @@ def suggest_stations(
             if ok.size == 0:
                 return None
             _, sep, v_h = _farthest_branch(geometry, q[k, ok], used, lag, dt, governor.near_band_m, chunk)
-            shares.append(_free_share(table(sep, v_h).min(axis=1), speed_mps))
+            shares.append(_free_share(_allowed(table, sep, v_h, governor).min(axis=1), speed_mps))
         return min(shares)
 
     out = []
@@ -357,11 +361,12 @@ def _farthest_branch(
     chunk: int,
 ) -> tuple[int, np.ndarray, np.ndarray]:
     """Of the configurations ``qs`` (B, 6) of one pose, the one whose median separation from the person is
-    the largest: its index, and its parts' separations and the person's directed speeds (:func:`_measure`)."""
+    the largest: its index, and the separations of its parts from the person's capsules and the person's
+    directed speeds toward them (:func:`_measure`)."""
     best: tuple[float, int, np.ndarray, np.ndarray] | None = None
     for i, q in enumerate(np.asarray(qs, dtype=np.float64)):
         sep, v_h = _measure(geometry, q, used, lag, dt, band_m, chunk)
-        score = float(np.median(sep.min(axis=1)))
+        score = float(np.median(sep.min(axis=(1, 2))))
         if best is None or score > best[0]:
             best = (score, i, sep, v_h)
     assert best is not None
@@ -415,15 +420,32 @@ def _measure(
     band_m: float,
     chunk: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each part's separation (N, L) from the robot at ``q`` to the person in every frame of ``recordings``
-    after its first ``lag`` and the person's directed speed (N, L) toward it since the frame ``lag`` (``dt``
-    seconds) earlier (:func:`directed_approach`); each frame's distances are computed once."""
+    """The separation (N, L, M) of each part of the robot at ``q`` from each capsule of the person in every
+    frame of ``recordings`` after its first ``lag``, and the person's directed speed toward the part: per
+    capsule, how fast that distance shrank since the frame ``lag`` (``dt`` seconds) earlier, for a
+    capsule within ``band_m`` of the part's nearest at least the fastest of those (the supervisor's
+    :func:`directed_approach`, so a limb beside the nearest one counts as it does for the governor). Each
+    frame's distances are computed once."""
     seps, speeds = [], []
     for rec in recordings:
         d = np.concatenate(
             [geometry.pair_distances(q, rec[s : s + chunk]) for s in range(0, rec.shape[0], chunk)]
         )
-        sep, v_h = directed_approach(d[lag:], d[:-lag], dt, band_m=band_m)
-        seps.append(sep)
-        speeds.append(v_h)
+        d_now, d_before = d[lag:], d[:-lag]
+        v_pairs = np.maximum(d_before - d_now, 0.0) / dt
+        _, v_near = directed_approach(d_now, d_before, dt, band_m=band_m)
+        near = d_now <= d_now.min(axis=-1, keepdims=True) + band_m
+        seps.append(d_now)
+        speeds.append(np.where(near, np.maximum(v_pairs, v_near[..., None]), v_pairs))
     return np.concatenate(seps), np.concatenate(speeds)
+
+
+def _allowed(table: _SpeedTable, sep: np.ndarray, v_h: np.ndarray, governor: GovernorModel) -> np.ndarray:
+    """The governor's speed (N, L) for each part, from its separations (N, L, M) from the person's
+    capsules and the person's directed speeds toward it: toward each capsule the braking envelope's speed
+    (:meth:`GovernorModel.max_speed`), or that capsule's permissible contact speed where power and force
+    limiting allows more (the governor model's ``pfl_caps_mps``; -1: none, skull, face and neck), the
+    slowest over the capsules."""
+    per_capsule = table(sep, v_h)
+    caps = governor.caps_for(sep.shape[-1])
+    return np.maximum(per_capsule, np.maximum(caps, 0.0)).min(axis=-1)

@@ -19,6 +19,7 @@ from app.cli import app as cli_app
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
 from app.control.layout import check_layout, suggest_stations
+from app.planning.collision import HUMAN_CAPSULES
 from app.prediction.skeleton import JOINT_INDEX, JOINTS
 from tests.unit.planning.test_collision import _standing_person
 from tests.unit.planning.test_ssm_timing import governor
@@ -82,6 +83,34 @@ def test_a_person_reaching_into_a_drop_station_blocks_it(stack: PlanningStack, m
     assert report["B"].allowed_speed_mps == (0.0, 0.0)
     # the zone: no speed asked of a pose closer than it to a still person is allowed
     assert all(p.free == 0.0 for p in report.values() if p.separation_m[1] < checked.zone_m - 0.02)
+
+
+def test_a_hand_at_a_station_leaves_the_robot_its_permissible_speed_and_a_head_does_not(
+    stack: PlanningStack, model
+) -> None:
+    """Power and force limiting in the check, as in the governor: a hand reaching to a station far from
+    the rest of the body lets the robot move there at the slowest permissible speed of the limb's regions;
+    the same reach with SSM alone, or a head there, allows nothing."""
+    import dataclasses
+
+    b = np.asarray(next(s.xyz for s in stack.cell.drop_stations if s.name == "B"))
+    person = _standing_person(2.6, 0.0)  # far across the table ...
+    for name in ("r_elbow", "r_wrist", "r_hand"):  # ... but for a forearm and hand laid onto station B
+        person[JOINT_INDEX[name]] = b + np.array({"r_elbow": [0.35, 0.0, 0.05]}.get(name, [0.0, 0.0, 0.0]))
+    person[JOINT_INDEX["r_wrist"]] = b + np.array([0.06, 0.0, 0.02])
+    arm = [HUMAN_CAPSULES.index(c) for c in ("r_shoulder-r_elbow", "r_elbow-r_wrist", "r_wrist-r_hand")]
+    slowest_limb = float(model.caps_for(len(HUMAN_CAPSULES))[arm].min())
+    assert slowest_limb > 1.0  # an upper arm, a forearm, a hand: about 1.1-1.4 m/s (app.safety.pfl)
+    hand = {p.name: p for p in check_layout(stack, model, [_still(person)], fps=30.0).poses}["B"]
+    assert hand.separation_m[1] < 0.1
+    assert hand.allowed_speed_mps[1] >= 0.9 * slowest_limb and hand.free == 1.0
+    ssm_alone = dataclasses.replace(model, pfl_caps_mps=())
+    alone = {p.name: p for p in check_layout(stack, ssm_alone, [_still(person)], fps=30.0).poses}["B"]
+    assert alone.allowed_speed_mps == (0.0, 0.0) and alone.free == 0.0
+    head = _standing_person(2.6, 0.0)
+    head = head + (b + np.array([0.0, 0.0, 0.45]) - head[JOINT_INDEX["head"]])  # a head above station B
+    above = {p.name: p for p in check_layout(stack, model, [_still(head)], fps=30.0).poses}["B"]
+    assert above.allowed_speed_mps == (0.0, 0.0) and above.free == 0.0
 
 
 def test_a_station_free_where_it_is_stays_there(stack: PlanningStack, model) -> None:
