@@ -1,7 +1,6 @@
 """The paper's replan state machine (section II-B): backup plans under a deadline, emergency plans, the
-decision between *Nominal Execution* and *Collision Avoidance*, and speed scaling by separation.
-
-For every new frame at ``T_i`` the :class:`Supervisor`
+decision between *Nominal Execution* and *Collision Avoidance*, and speed scaling by separation. For every
+new frame at ``T_i`` the :class:`Supervisor`
 
 1. prepares the *backup plan* request from ``s = pi_curr(T_i + D)`` toward the current goal against the
    latest forecast, under the deadline ``D``; its result is usable from ``T_i + D``. Where the robot must
@@ -21,30 +20,27 @@ For every new frame at ``T_i`` the :class:`Supervisor`
    ``D`` thus costs the online replans it cannot deliver, not a stop of a robot that need not stop yet).
 
 A backup plan of frame ``i`` is used by nothing but the switch that frame ``i``'s decision schedules (later
-frames branch from the plan in execution at their own time, and a switch invalidates the backups that
-branched from the plan it replaces), so the request goes to the :class:`PlanJobs` only when the decision
-schedules that switch: the decisions are those of computing every frame's backup, without the plans nobody
-uses (live: on a worker pool, at most ``ceil(D / F)`` in flight; headless: when the switch is due, its
-measured compute time charged as if it had started at ``T_i``). The emergency plan is likewise computed when
-a stop is decided, from the point where the brake brings the robot to rest.
+frames branch from the plan in execution at their own time; a switch invalidates the backups of the plan it
+replaces), so it goes to the :class:`PlanJobs` only when that switch is scheduled: the decisions of computing
+every frame's backup, without the plans nobody uses (live: a worker pool, at most ``ceil(D / F)`` in flight;
+headless: when the switch is due, its measured compute time charged from ``T_i``). The emergency plan is
+likewise computed when a stop is decided, from where the brake brings the robot to rest. The reactive
+baseline is the same machine fed :meth:`HumanForecast.hold` of the current pose.
 
-The reactive baseline is the same machine fed :meth:`HumanForecast.hold` of the current pose.
-
-Execution uses a path-time parameter: the trajectory of the plan in execution is evaluated at ``tau``, which
-advances by ``scale * dt``; speed scaling therefore changes the timing along the path, not the path. Where the
-robot will be at ``T_i + D`` is predicted with the fastest scale the ramp allows, so that the robot reaches
-the branch point of a backup plan at or after ``T_i + D`` and the switch is continuous in position and path
-velocity. Every plan is checked against the latest forecast, in wall time with the current scale, before it
-is executed: a backup is re-checked at the switch, an emergency plan when the robot has come to rest.
+Execution uses a path-time parameter ``tau``, advancing by ``scale * dt``: speed scaling changes the timing
+along the path, not the path; the scale rises no faster than a brake may lower it (the arm follows its
+command). Where the robot will be at ``T_i + D`` is predicted with the fastest ramp, so that it reaches a
+backup's branch point at or after ``T_i + D`` and the switch is continuous. Every plan is checked against the
+latest forecast, in wall time with the current scale, before it is executed: a backup at the switch, an
+emergency plan when the robot has come to rest.
 
 Between frames a *speed governor* keeps ISO/TS 15066's protective separation at every servo tick, per robot
-part (capsule): the part's separation to the last seen pose, reduced by the person's worst-case approach
-since that frame (:class:`SeparationModel`: their measured speed near the part, speeding up at most at
-``human_accel_mps2``) and by the part's own travel, must let the robot brake to rest without the person
-coming closer than ``S_p(part speed, person speed)`` at any instant of the braking.
+part (capsule): the part's separation to the last seen pose, less the person's worst-case approach since
+that frame (:class:`SeparationModel`) and the part's own travel, must let the robot brake to rest without
+the person coming closer than ``S_p`` at any instant of the braking (power and force limiting inside it).
 
-This module is pure: no threads of its own, no clock; time comes in as arguments. One lock makes it safe to
-call :meth:`Supervisor.on_frame` and :meth:`Supervisor.servo` from different threads.
+Pure: no threads, no clock (time comes in as arguments); one lock lets :meth:`Supervisor.on_frame` and
+:meth:`Supervisor.servo` be called from different threads.
 """
 
 from __future__ import annotations
@@ -673,7 +669,10 @@ class Supervisor:
         else:
             # fastest progress the ramp allows: the robot reaches the branch point at or after T + D
             # (a plan that ends before then: the robot rests at its end and the switch waits for T + D)
-            tau_b = min(tau + _ramp_distance(s, cfg.scale_up_rate, D), active.traj.t_end)
+            pr = active.profile
+            rate = brake_rate(float(pr.window_at(tau).max()), pr.joint_window_at(tau), cfg.brake_decel_mps2,
+                              cfg.brake_joint_decel)  # fmt: skip
+            tau_b = min(tau + _ramp_distance(s, _up_rate(cfg.scale_up_rate, rate), D), active.traj.t_end)
             t_start = T + D
             q_s, qd_s = traj_state(active.traj, tau_b)
             if tau_b >= active.traj.t_end:
@@ -894,6 +893,7 @@ class Supervisor:
         jmax = active.profile.joint_window_at(self._tau)
         # braking: the path scale falls at `rate` (1/s), each part slows at rate * its speed
         rate = brake_rate(vtop, jmax, cfg.brake_decel_mps2, cfg.brake_joint_decel)
+        up = _up_rate(cfg.scale_up_rate, rate)
         s = self._s
         if self._stale:
             s_target = 0.0
@@ -903,9 +903,9 @@ class Supervisor:
             # the scales this tick can reach: up at the ramp rate, down at the brake rate (any at rest)
             at_rest = float(self._v_inst.max()) <= 1e-6
             lo = 0.0 if at_rest or not math.isfinite(rate) else s - rate * dt
-            s_target = self._governed_scale(t, dt, s, vmax, rate, lo, s + cfg.scale_up_rate * dt)
+            s_target = self._governed_scale(t, dt, s, vmax, rate, lo, s + up * dt)
         if s_target >= s:
-            s_new = min(s_target, s + cfg.scale_up_rate * dt)
+            s_new = min(s_target, s + up * dt)
         elif float(self._v_inst.max()) <= 1e-6:
             s_new = s = s_target  # at rest: lowering the scale brakes nothing
         else:
@@ -1181,6 +1181,12 @@ class Supervisor:
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
         robot = self._robot_motion(vmax, dt, rate, hi)
         return float(_kernel_governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
+
+
+def _up_rate(scale_up_rate: float, brake_rate_per_s: float) -> float:
+    """How fast (1/s) the path scale may rise: the ramp, no faster than a brake may lower it, so that the arm
+    follows its command (a joint at 1.9 rad/s ramped at 4/s would need 7.6 rad/s^2, lag, then overshoot)."""
+    return min(scale_up_rate, brake_rate_per_s) if math.isfinite(brake_rate_per_s) else scale_up_rate
 
 
 def _ramp_distance(s: float, up_rate: float, horizon_s: float) -> float:

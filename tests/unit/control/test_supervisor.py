@@ -311,6 +311,27 @@ def test_reaches_goal_when_nobody_is_near() -> None:
     assert 0.9 < c.scale_time_s / c.moving_time_s <= 1.0
 
 
+def test_the_scale_rises_no_faster_than_a_brake_may_lower_it() -> None:
+    """The arm's joints accelerate within their limits: a scale ramped faster than the stopping model's
+    deceleration allows would leave the arm lagging its command, then overshooting it at the next brake."""
+    config = SupervisorConfig(
+        deadline_s=0.1, frame_period_s=1 / 30, brake_decel_mps2=1.0, brake_joint_decel=1.0, scale_up_rate=4.0
+    )
+    h = Harness(lambda t: person_at(FAR), config=config)
+    h.sup.set_goal("B")
+    h.run(5.0)
+    assert h.sup.take_arrival() == "B"
+    scales = np.array([s for _, _, s, _ in h.log])
+    rate = 1.0 / SPEED  # the path's 0.5 m/s braked at 1 m/s^2 and 1 rad/s^2: the scale falls at 2/s at most
+    assert np.max(np.diff(scales)) <= rate * h.dt + 1e-9
+    assert np.max(np.diff(scales)) == pytest.approx(rate * h.dt)  # and rises at that rate from rest
+    # the default (a brake at 3 m/s^2 and 3 rad/s^2 of the 0.5 m/s path: 6/s) leaves the ramp's 4/s
+    h = Harness(lambda t: person_at(FAR))
+    h.sup.set_goal("B")
+    h.run(5.0)
+    assert np.max(np.diff([s for _, _, s, _ in h.log])) == pytest.approx(4.0 * h.dt)
+
+
 def test_hold_and_scaled_view() -> None:
     hold = HoldTrajectory(np.arange(6.0), 2.0)
     assert hold.q(np.array([0.0, 5.0])).shape == (2, 6)
