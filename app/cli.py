@@ -478,7 +478,7 @@ def _viewer_port_or_fail(settings: Any) -> None:
 def _predictor_or_fail(settings: Any) -> None:
     """Stop with one line naming the file when the predictor's weights cannot be loaded (unless
     ``HRC_HMP_FALLBACK`` asks for constant velocity instead)."""
-    from app.control.headless import PredictorUnavailable, check_predictor_weights
+    from app.control.world import PredictorUnavailable, check_predictor_weights
 
     try:
         check_predictor_weights(settings)

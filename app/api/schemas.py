@@ -54,7 +54,7 @@ class HealthRead(BaseModel):
 
 
 class PredictorRead(BaseModel):
-    """The proactive method's motion predictor as it runs (``app.control.headless.PredictorInfo``)."""
+    """The proactive method's motion predictor as it runs (``app.control.world.PredictorInfo``)."""
 
     kind: str = Field(description="what forecasts: graphmixer, or constant_velocity when the weights failed")
     weights: str | None = Field(description="the network's weights file")

@@ -436,18 +436,19 @@ def make_human_source(
     params: OperatorParams | None = None,
     noise: bool = True,
 ) -> HumanSource:
-    """The source ``settings.human_source`` selects (``sim``, ``replay`` with ``settings.replay_clip``,
-    ``stream``). Simulated and replayed frames start at ``t0``; ``noise=False``: the simulated operator
-    without tracking noise (the truth behind a tracker model).
+    """The source ``settings.human_source`` selects (``sim``, a participant of ``settings.population``
+    drawn from ``seed`` unless ``params`` are given; ``replay`` with ``settings.replay_clip``; ``stream``).
+    Simulated and replayed frames start at ``t0``; ``noise=False``: the simulated operator without tracking
+    noise (the truth behind a tracker model).
 
     Raises:
         ValueError: ``replay`` without a clip, or an unknown source.
     """
     kind = settings.human_source
     if kind == "sim":
-        return SimulatedOperator(
-            cell, params if params is not None else OperatorParams.draw(seed), seed=seed, t0=t0, noise=noise
-        )
+        if params is None:
+            params = OperatorParams.draw(seed, OperatorParams.population(settings.population))
+        return SimulatedOperator(cell, params, seed=seed, t0=t0, noise=noise)
     if kind == "replay":
         if settings.replay_clip is None:
             raise ValueError("HRC_HUMAN_SOURCE=replay needs HRC_REPLAY_CLIP (an .npz clip)")

@@ -15,15 +15,15 @@ construction):
 Without a running trial the robot holds where it is and the frames still flow (the viewers see the person).
 ``robot.stop()`` runs in a ``finally`` of the servo thread and of :meth:`Runtime.stop`.
 
-Headless trials on the simulated clock: :func:`run_headless_trial` (re-exported from
-:mod:`app.control.headless`).
+A trial's world (person, tracker, validation, predictor, planning stack, robot) is assembled by
+:func:`app.control.world.build_trial_world`, as for headless trials on the simulated clock:
+:func:`run_headless_trial` (re-exported from :mod:`app.control.headless`).
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import dataclasses
 import logging
 import math
 import queue
@@ -41,25 +41,11 @@ from app.cell.robot import RobotBackend, RobotConnectionError
 from app.cell.validation import REJECT_REASONS, ValidatedSource
 from app.config import Settings, WorkCell
 from app.control.backup import BackupComputer, BackupRequest, PlanOutcome
-from app.control.engine import (
-    EngineOptions,
-    PlanningStack,
-    Snapshot,
-    TrialEngine,
-    TrialFrames,
-    TrialResult,
-    make_validated_source,
-)
-from app.control.headless import (
-    PredictorInfo,
-    PredictorUnavailable,
-    fallback_message,
-    make_predictor,
-    predictor_info,
-    run_headless_trial,
-)
+from app.control.engine import EngineOptions, PlanningStack, Snapshot, TrialEngine, TrialFrames, TrialResult
+from app.control.headless import run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
 from app.control.supervisor import SupervisorConfig
+from app.control.world import PredictorInfo, TrialWorld, build_trial_world, predictor_info
 from app.planning.collision import ROBOT_LINKS
 from app.prediction.forecast import HumanForecast
 
@@ -309,9 +295,9 @@ class Runtime:
         settings: Application settings (robot and human source, D, F, workers).
         cell: The work cell (default: ``settings.load_workcell()``).
         robot: A robot backend (default: :func:`app.cell.backends.make_robot` at :meth:`start`).
-        source: A human source (default by ``settings.human_source``: a simulated operator, re-seeded for
-            every trial; a replayed clip; or a :class:`~app.cell.human.StreamSource` fed by
-            :meth:`ingest`).
+        source: A human source (default by ``settings.human_source``: a simulated participant of
+            ``settings.population``, re-seeded for every trial; a replayed clip; or a
+            :class:`~app.cell.human.StreamSource` fed by :meth:`ingest`).
         predictor: The proactive method's predictor (default: the shipped one, loaded at :meth:`start`).
         clock: The clock (default :class:`WallClock`).
         servo_rate_hz: Robot command rate (Hz).
@@ -347,9 +333,9 @@ class Runtime:
         self._lock = threading.RLock()
         self._engine: TrialEngine | None = None
         self._trial_id: int | None = None
+        self._world: TrialWorld | None = None
         self._source: ValidatedSource | None = None
         self._sim_source = False
-        self._truth: Any = None  # the true person's pose at any time (simulated sources), for the monitor
         self._stream: Any | None = None
         self._threads: list[threading.Thread] = []
         self._stop = threading.Event()
@@ -379,6 +365,11 @@ class Runtime:
     def robot(self) -> RobotBackend | None:
         return self._robot
 
+    @property
+    def world(self) -> TrialWorld | None:
+        """The world of the current (or the next) trial (after :meth:`start`)."""
+        return self._world
+
     def start(self) -> None:
         """Build what the cell needs (planning stack, robot, source, predictor) and start the threads.
 
@@ -388,23 +379,8 @@ class Runtime:
         with self._lock:
             if self._started:
                 return
-            if self._stack is None:
-                t_r = self.settings.reaction_time_s(1.0 / self.servo_rate_hz)
-                self._stack = PlanningStack.for_cell(self.cell, t_reaction_s=t_r)
-            if self._predictor is None:  # before the robot: a predictor that cannot run stops the start
-                predictor = make_predictor(
-                    "proactive", self.settings, tracking_margin_m=self.options.tracking_margin_m
-                )
-                reason = getattr(predictor, "fallback_reason", None)
-                if reason is not None and not self.settings.hmp_fallback:
-                    raise PredictorUnavailable(fallback_message(reason))
-                self._predictor = predictor
+            self._open_world(seed=0)  # a predictor that cannot run stops the start before the robot is made
             self.predictor_info = predictor_info(self._predictor)
-            if self._robot is None:
-                from app.cell.backends import make_robot
-
-                self._robot = make_robot(self.settings, self.clock, q0=np.asarray(self.cell.robot.home_q))
-            self._open_source(seed=0)
             if not _warm_up_compiled(
                 self.settings, self.cell, self._stack, self._predictor, servo_rate_hz=self.servo_rate_hz
             ):
@@ -472,33 +448,32 @@ class Runtime:
     def _frame_period(self) -> float:
         return float(self.settings.frame_period_s)
 
-    def _open_source(self, *, seed: int) -> None:
-        """(Re)build the human source behind validation. A simulated operator is re-seeded per trial."""
-        given = self._source_given
-        if given is not None:
-            if self._source is None:
-                self._stream = given if hasattr(given, "push") else None
-                self._source = make_validated_source(
-                    _LockedSource(given), self.cell, stale_timeout_s=self.settings.stale_timeout_s
-                )
-            return
-        kind = self.settings.human_source
-        if kind == "sim" or self._source is None:
-            from app.cell.human import make_human_source
-            from app.cell.tracker import TrackedSource
+    def _open_world(self, *, seed: int) -> None:
+        """(Re)build the trial's world (:func:`~app.control.world.build_trial_world`). The planning stack,
+        the predictor, the robot and a source that is not simulated are made once; a simulated operator is
+        re-seeded for every trial."""
+        from app.cell.backends import make_robot
 
-            t0 = self.clock.now()
-            src = make_human_source(self.settings, self.cell, seed=seed, t0=t0, noise=False)
-            self._sim_source = kind == "sim"
-            self._stream = src if kind == "stream" else None
-            self._truth = None
-            if kind in ("sim", "replay"):  # the simulated world: the truth, seen through the tracker model
-                locked = _LockedSource(src)
-                self._truth = locked.pose_at
-                src = TrackedSource(locked, self.settings.tracker_model(), seed=seed, t0=t0)
-            self._source = make_validated_source(
-                _LockedSource(src), self.cell, stale_timeout_s=self.settings.stale_timeout_s
-            )
+        clock, settings = self.clock, self.settings
+        world = build_trial_world(
+            settings,
+            self.cell,
+            seed=seed,
+            t0=clock.now(),
+            human=self._source_given,
+            share=_LockedSource,
+            predictor=self._predictor,
+            require_weights=True,
+            stack=self._stack,
+            robot=self._robot,
+            make_robot=lambda q0: make_robot(settings, clock, q0=q0),
+            options=self.options,
+            servo_rate_hz=self.servo_rate_hz,
+        )
+        self._world = world
+        self._predictor, self._stack, self._robot = world.predictor, world.stack, world.robot
+        self._source, self._stream = world.source, world.stream
+        self._sim_source = self._source_given is None and settings.human_source == "sim"
 
     # -------------------------------------------------------------------------------------------- trials
     @property
@@ -528,25 +503,18 @@ class Runtime:
             if self._fault is not None:
                 raise RuntimeNotReady(f"the robot is lost ({self._fault}); restart the runtime")
             if self._sim_source:
-                self._open_source(seed=seed)
+                self._open_world(seed=seed)
             elif self._source is not None:
                 self._source.reset_counters()  # the trial counts its own frames and rejections
-            assert self._stack is not None and self._robot is not None and self._source is not None
+            assert self._world is not None
             clock = self.clock
-            self._engine = TrialEngine(
-                stack=self._stack,
-                settings=self.settings,
-                robot=self._robot,
-                source=self._source,
-                predictor=self._predictor if method == "proactive" else None,
-                jobs_factory=lambda computer, cfg: _pool_jobs(computer, cfg, clock),
+            self._engine = self._world.engine(
                 method=method,
                 duration_s=duration_s,
-                seed=seed,
                 t0=clock.now(),
-                options=dataclasses.replace(self.options, servo_period_s=1.0 / self.servo_rate_hz),
+                jobs_factory=lambda computer, cfg: _pool_jobs(computer, cfg, clock),
                 on_event=lambda ev, tid=trial_id: self._post_event(tid, ev),
-                truth=self._truth,
+                seed=seed,
             )
             self._trial_id = trial_id
         log.info("trial %d started (%s, %.0f s, seed %d)", trial_id, method, duration_s, seed)
@@ -580,29 +548,14 @@ class Runtime:
 
     def _end_trial(self) -> None:
         with self._lock:
-            engine, trial_id = self._engine, self._trial_id
-            if engine is None or engine.running or trial_id is None:
+            engine, trial_id, world = self._engine, self._trial_id, self._world
+            if engine is None or engine.running or trial_id is None or world is None:
                 return
             self._engine = None
             self._trial_id = None
-        status, reason = engine.finished or ("aborted", "unknown")
-        metrics = engine.metrics()
-        events = list(engine.events)
-        safety = None if engine.monitor is None else engine.monitor.totals()
-        latency = self.settings.tracker_latency_s if self._truth is not None else None
-        budget, by_goal = engine.time_budget()
-        self.last_result = TrialResult(
-            metrics,
-            events,
-            engine.frames(),
-            status,
-            reason,
-            safety=safety,
-            tracker_latency_s=latency,
-            time_budget_s=budget,
-            arrival_error_s=engine.arrival_error(),
-            time_budget_by_goal_s=by_goal,
-        )
+        result = world.result(engine)
+        self.last_result = result
+        status, reason, metrics, events = result.status, result.reason, result.metrics, result.events
         if reason == "robot_fault":
             self._fault = "robot connection lost"
         log.info("trial %d ended: %s (%s), %d tasks", trial_id, status, reason, metrics.completed_tasks)

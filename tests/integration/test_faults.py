@@ -13,7 +13,8 @@ import pytest
 from app.cell.robot import RobotConnectionError, RobotState, SimRobot
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions, PlanningStack, TrialEngine
-from app.control.headless import make_operator, run_headless_trial
+from app.control.headless import run_headless_trial
+from app.control.world import make_operator
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS
 

@@ -18,12 +18,13 @@ import pytest
 
 import app.control.anticipation as anticipation
 import app.control.headless as headless
+import app.control.world as world
 from app.config import Settings, load_workcell
 
 EXAMPLE_CELL = Path(__file__).resolve().parents[2] / "examples" / "workcell_stations_moved.toml"
 DURATION_S = 120.0
 SEED = 12  # a report seed whose operator fetches twice in the first 120 s
-_MAKE_OPERATOR = headless.make_operator
+_MAKE_OPERATOR = world.make_operator
 
 
 def _fetches_stopped(monkeypatch: pytest.MonkeyPatch) -> tuple[int, int]:
@@ -34,7 +35,7 @@ def _fetches_stopped(monkeypatch: pytest.MonkeyPatch) -> tuple[int, int]:
         operators.append(_MAKE_OPERATOR(*args, **kwargs))
         return operators[-1]
 
-    monkeypatch.setattr(headless, "make_operator", keep)
+    monkeypatch.setattr(world, "make_operator", keep)
     res = headless.run_headless_trial(
         settings=Settings(pfl=False),
         cell=load_workcell(EXAMPLE_CELL),

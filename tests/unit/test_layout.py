@@ -6,13 +6,14 @@
 - No import circles between the modules of ``app`` (every import counts, also those inside functions:
   a circle through a lazy import is still one concept split in the wrong place).
 - Nothing that decides (planner, predictor, safety function, supervisor, anticipation, trial engine)
-  imports the simulated operator: it is the simulated *world*.
+  imports the simulated operator: it is the simulated *world*. In ``app.control`` only the assembly of a
+  trial's world (``app.control.world``, :data:`WORLD`) creates it.
 - A numba kernel takes at most 12 parameters (pass NamedTuples of arrays instead of dozens of arrays).
 - The plain-NumPy references that check the compiled kernels live in ``reference`` modules that only tests
   and benchmarks import.
 - No module of ``app`` is longer than 1,200 lines.
 
-Every rule holds for every module: there is no list of exceptions.
+Every other rule holds for every module: there is no list of exceptions.
 """
 
 from __future__ import annotations
@@ -34,8 +35,8 @@ ABOVE_THE_CELL = ("control", "study", "api", "ui", "bench", "commands", "cli")
 SIMULATOR = "app.cell.operator_sim"
 # the modules that make decisions: none of them may know the simulated operator
 DECIDERS = ("app.planning", "app.prediction", "app.safety", "app.control")
-# the modules that set up the simulated world (they may create a simulated operator)
-WORLD = {"app.control.headless"}
+# the assembly of a trial's world, for the live and the headless runs (it may create a simulated operator)
+WORLD = {"app.control.world"}
 
 
 def _check(rule: str, offenders: dict[str, str]) -> None:

@@ -67,7 +67,7 @@ def test_interrupted_trials_are_aborted_at_start(
 def test_info_and_the_trial_record_name_the_predictor_that_runs(
     make_client: Any, settings: Settings, auth: dict[str, str], runtime: Any
 ) -> None:
-    from app.control.headless import make_predictor, predictor_info
+    from app.control.world import make_predictor, predictor_info
     from app.prediction.predictor import DEFAULT_WEIGHTS
 
     runtime.predictor_info = predictor_info(make_predictor("proactive", settings))  # as Runtime.start sets it

@@ -22,6 +22,7 @@ from app.cell.human import (
     save_clip,
 )
 from app.cell.operator_sim import OracleForecaster
+from app.cell.population import DEFAULT_POPULATION_PATH
 from app.cell.stream_protocol import make_message, message_from_zed_body, parse_message, send_messages
 from app.cell.validation import CellVolume, FrameRejected, FrameValidator
 from app.config import Settings, load_workcell
@@ -431,7 +432,17 @@ def test_stream_queue_is_bounded_and_drops_the_oldest() -> None:
 
 
 def test_make_human_source_follows_settings(tmp_path: Path) -> None:
-    assert isinstance(make_human_source(Settings(human_source="sim"), CELL, seed=2), SimulatedOperator)
+    sim = make_human_source(Settings(human_source="sim"), CELL, seed=2)
+    assert isinstance(sim, SimulatedOperator) and sim.params == OperatorParams.draw(2)
+    population = tmp_path / "tall.toml"  # the participant is one of the settings' population
+    population.write_text(
+        DEFAULT_POPULATION_PATH.read_text().replace(
+            "normal = { mean = 1.72, sd = 0.09, lo = 1.52, hi = 1.95 }", "uniform = { lo = 1.9, hi = 2.0 }"
+        )
+    )
+    tall = make_human_source(Settings(human_source="sim", population=population), CELL, seed=2)
+    assert tall.params == OperatorParams.draw(2, OperatorParams.population(population))
+    assert 1.9 <= tall.params.height_m <= 2.0
     clip = _sim_clip(tmp_path, 0.5)
     src = make_human_source(Settings(human_source="replay", replay_clip=clip), CELL)
     assert isinstance(src, ReplaySource)

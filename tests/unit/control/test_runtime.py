@@ -217,7 +217,7 @@ def test_a_simulated_trial_is_not_stale_before_its_first_frame(stack: PlanningSt
 def test_corrupt_predictor_weights_stop_the_start_unless_the_fallback_is_asked_for(
     stack: PlanningStack, tmp_path: Path
 ) -> None:
-    from app.control.headless import PredictorUnavailable, make_predictor, predictor_info
+    from app.control.world import PredictorUnavailable, make_predictor, predictor_info
 
     weights = tmp_path / "corrupt.pt"
     weights.write_bytes(b"\x00garbage" * 100)
@@ -503,7 +503,7 @@ def test_geometry_parts_and_directed_speeds(stack: PlanningStack) -> None:
 
 
 def test_one_predictor_for_every_human_source_unless_the_settings_say_otherwise(tmp_path) -> None:
-    from app.control.headless import forecast_model
+    from app.control.world import forecast_model
 
     assert not list(DEFAULT_WEIGHTS.parent.glob("hmp_graphmixer.*.pt"))  # one shipped network
     plain = Settings(_env_file=None)

@@ -1,0 +1,105 @@
+"""One assembly of a trial's world: the live runtime and the headless runner build the same world from the
+same settings, and the live simulated operator is a participant of the settings' population."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from app.cell.operator_sim import OperatorParams
+from app.cell.population import DEFAULT_POPULATION_PATH
+from app.config import Settings, load_workcell
+from app.control.engine import PlanningStack, TrialEngine
+from app.control.headless import run_headless_trial
+from app.control.runtime import Runtime
+from app.control.world import TrialWorld, predictor_info
+
+SEED = 5
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> PlanningStack:
+    from app.planning.roadmap import RoadmapConfig
+
+    return PlanningStack.build(
+        load_workcell(),
+        roadmap_config=RoadmapConfig(num_nodes=250),
+        t_reaction_s=Settings().reaction_time_s(1 / 125),
+        cache_dir=tmp_path_factory.mktemp("roadmaps"),
+    )
+
+
+@pytest.fixture
+def slow_population(tmp_path: Path) -> Path:
+    """A population whose participants react in 2-2.5 s (the shipped one: 0.3-1.2 s)."""
+    text = DEFAULT_POPULATION_PATH.read_text().replace(
+        "[reaction_s]\nuniform = { lo = 0.3, hi = 1.2 }", "[reaction_s]\nuniform = { lo = 2.0, hi = 2.5 }"
+    )
+    path = tmp_path / "slow.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture
+def worlds(monkeypatch: pytest.MonkeyPatch) -> list[tuple[TrialWorld, TrialEngine]]:
+    """Every world that a trial's engine is made of, with the engine, in order."""
+    built: list[tuple[TrialWorld, TrialEngine]] = []
+    engine = TrialWorld.engine
+
+    def record(self: TrialWorld, **kwargs: Any) -> TrialEngine:
+        built.append((self, engine(self, **kwargs)))
+        return built[-1][1]
+
+    monkeypatch.setattr(TrialWorld, "engine", record)
+    return built
+
+
+def _live_worlds(settings: Settings, stack: PlanningStack, seeds: list[int]) -> list[TrialWorld]:
+    """The worlds of live proactive trials with ``seeds`` (each stopped as soon as it started)."""
+    out = []
+    with Runtime(settings, stack=stack) as rt:
+        for k, seed in enumerate(seeds):
+            rt.start_trial(trial_id=k + 1, method="proactive", duration_s=5.0, seed=seed)
+            assert rt.world is not None and rt.world.seed == seed
+            out.append(rt.world)
+            rt.stop_trial()
+    return out
+
+
+def test_the_live_and_the_headless_runs_build_the_same_world(
+    stack: PlanningStack, slow_population: Path, worlds: list[tuple[TrialWorld, TrialEngine]]
+) -> None:
+    settings = Settings(human_source="sim", robot="sim", planner_workers=1, population=slow_population)
+    (live,) = _live_worlds(settings, stack, [SEED])
+    live_engine = next(e for w, e in worlds if w is live)
+    run_headless_trial(
+        settings=settings, method="proactive", duration_s=0.2, seed=SEED, stack=stack, fixed_compute_s=0.01
+    )
+    headless, headless_engine = worlds[-1]
+    assert headless is not live and headless.seed == SEED
+    # the same participant (drawn from the settings' population), behaviour seed and tracker
+    assert live.person.params == headless.person.params
+    assert live.person.params == OperatorParams.draw(SEED, OperatorParams.population(slow_population))
+    assert (live.seed, live.participant_seed) == (headless.seed, headless.participant_seed) == (SEED, SEED)
+    assert live.tracker is not None and live.tracker == headless.tracker == settings.tracker_model()
+    assert live.truth is not None and headless.truth is not None
+    # the same settings, predictor, supervisor and servo period
+    assert live.settings == headless.settings
+    assert predictor_info(live.predictor) == predictor_info(headless.predictor)
+    assert live.supervisor_config("proactive") == headless.supervisor_config("proactive")
+    assert live_engine.config == headless_engine.config
+    assert live.options.servo_period_s == headless.options.servo_period_s
+    assert live_engine.seed == headless_engine.seed == SEED
+
+
+def test_the_live_simulated_operator_is_a_participant_of_the_population_file(
+    stack: PlanningStack, slow_population: Path
+) -> None:
+    settings = Settings(human_source="sim", robot="sim", planner_workers=1, population=slow_population)
+    seeds = [1, 2, 3]
+    slow = OperatorParams.population(slow_population)
+    for seed, world in zip(seeds, _live_worlds(settings, stack, seeds), strict=True):
+        assert world.person.params == OperatorParams.draw(seed, slow)
+        assert 2.0 <= world.person.params.reaction_s <= 2.5  # the shipped population's: 0.3-1.2 s
