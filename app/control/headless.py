@@ -241,9 +241,9 @@ def run_headless_trial(
         forecast: The proactive method's forecast: ``model`` (the motion predictor) or ``oracle`` (the
             simulated operator's own future, :class:`~app.cell.operator_sim.OracleForecaster`: the bound
             of what proactive planning can gain; ``source="sim"`` only).
-        tracker: The tracker between the true person and the runtime (default: the settings'
-            :meth:`~app.config.Settings.tracker_model`). Not applied to a ``human`` given by the caller,
-            whose frames the runtime sees as they are.
+        tracker: The tracker between the true person and the runtime (default: the settings', by
+            :meth:`~app.cell.tracker.TrackerModel.from_settings`). Not applied to a ``human`` given by the
+            caller, whose frames the runtime sees as they are.
 
     The true person (the simulated operator without noise, or the clip) is what the ground-truth monitor
     judges the robot against; the runtime sees them only through the tracker model.
@@ -259,7 +259,7 @@ def run_headless_trial(
     options = options or EngineOptions()
     tracker_model = None
     if human is None:
-        from app.cell.tracker import TrackedSource
+        from app.cell.tracker import TrackedSource, TrackerModel
 
         truth = make_operator(
             cell,
@@ -270,7 +270,7 @@ def run_headless_trial(
             population=settings.population,
             noise=False,
         )
-        tracker_model = tracker if tracker is not None else settings.tracker_model()
+        tracker_model = tracker if tracker is not None else TrackerModel.from_settings(settings)
         if (
             tracker is not None
         ):  # what the runtime assumes of its tracker (T_r, the timing's noise) is this one

@@ -485,7 +485,7 @@ class Runtime:
         kind = self.settings.human_source
         if kind == "sim" or self._source is None:
             from app.cell.human import make_human_source
-            from app.cell.tracker import TrackedSource
+            from app.cell.tracker import TrackedSource, TrackerModel
 
             t0 = self.clock.now()
             src = make_human_source(self.settings, self.cell, seed=seed, t0=t0, noise=False)
@@ -495,7 +495,7 @@ class Runtime:
             if kind in ("sim", "replay"):  # the simulated world: the truth, seen through the tracker model
                 locked = _LockedSource(src)
                 self._truth = locked.pose_at
-                src = TrackedSource(locked, self.settings.tracker_model(), seed=seed, t0=t0)
+                src = TrackedSource(locked, TrackerModel.from_settings(self.settings), seed=seed, t0=t0)
             self._source = make_validated_source(
                 _LockedSource(src), self.cell, stale_timeout_s=self.settings.stale_timeout_s
             )
