@@ -83,17 +83,20 @@ from app.control.trajectory_views import (
 )
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
-from app.safety._kernels import PartSeparation, PFLLevels, RobotMotion, ServoGovernor
-from app.safety._kernels import governed_scale as _kernel_governed_scale
 from app.safety.governor import (
     BRAKE_INSTANTS,
     NO_LAW,
     SCALE_GRID,
+    PartSeparation,
     PathClosing,
+    PFLLevels,
+    RobotMotion,
     SeparationModel,
+    ServoGovernor,
     SpeedScaleLaw,
     brake_rate,
     directed_pairs,
+    governed_scale,
     nearest_approach,
     ssm_alone,
 )
@@ -1176,11 +1179,11 @@ class Supervisor:
         self, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
     ) -> float:
         """The governor's target scale for the tick from ``t`` to ``t + dt`` (compiled:
-        :func:`app.safety._kernels.governed_scale`; the tests compare it with a NumPy reference in
+        :func:`app.safety.governor.governed_scale`; the tests compare it with a NumPy reference in
         ``tests/governor_reference.py``). Caller holds the lock."""
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
         robot = self._robot_motion(vmax, dt, rate, hi)
-        return float(_kernel_governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
+        return float(governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
 
 
 def _ramp_distance(s: float, up_rate: float, horizon_s: float) -> float:
