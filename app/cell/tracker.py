@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from app.cell.source import HumanSource
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 
 if TYPE_CHECKING:
@@ -105,7 +106,7 @@ class TrackerModel:
         return cls(rate_hz=rate_hz, latency_s=0.0, noise_m=0.0, drop_p=0.0, burst_p=0.0, max_burst_s=0.0)
 
 
-class TrackedSource:
+class TrackedSource(HumanSource):
     """The frames a tracker with :class:`TrackerModel` delivers of a true human source.
 
     Args:

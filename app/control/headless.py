@@ -22,6 +22,7 @@ from typing import Any, Literal
 import numpy as np
 
 from app.cell.clock import SimClock
+from app.cell.source import HumanSource
 from app.config import Settings, WorkCell
 from app.control.backup import InlinePlanJobs
 from app.control.engine import (
@@ -32,6 +33,7 @@ from app.control.engine import (
     make_validated_source,
 )
 from app.control.metrics import Method
+from app.prediction.forecast import Predictor
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +74,9 @@ def forecast_model(settings: Settings) -> tuple[Path | None, Path | None]:
     return weights, quantiles
 
 
-def make_predictor(method: Method, settings: Settings, *, tracking_margin_m: float = 0.02) -> Any | None:
+def make_predictor(
+    method: Method, settings: Settings, *, tracking_margin_m: float = 0.02
+) -> Predictor | None:
     """The predictor of a method: for ``proactive`` the Graph-Mixer of :func:`forecast_model` (constant
     velocity with a warning if the weights are missing), arbitrated online with the baselines and with
     adaptive conformal margins at ``Settings.forecast_coverage`` when ``Settings.forecast_arbitration`` says
@@ -134,15 +138,15 @@ def file_sha256(path: str | Path) -> str | None:
     return digest.hexdigest()
 
 
-def predictor_info(predictor: Any) -> PredictorInfo:
+def predictor_info(predictor: Predictor) -> PredictorInfo:
     """What ``predictor`` (a :class:`~app.prediction.predictor.MotionPredictor` or another) runs."""
-    weights = getattr(predictor, "weights_path", None)
+    weights = predictor.weights_path
     return PredictorInfo(
-        kind=str(getattr(predictor, "effective_kind", type(predictor).__name__)),
+        kind=predictor.effective_kind,
         weights=None if weights is None else str(weights),
         weights_sha256=None if weights is None else file_sha256(weights),
-        arbitrated=getattr(predictor, "arbiter", None) is not None,
-        fallback_reason=getattr(predictor, "fallback_reason", None),
+        arbitrated=predictor.arbitrated,
+        fallback_reason=predictor.fallback_reason,
     )
 
 
@@ -180,7 +184,7 @@ def make_operator(
     clip: str | Path | None = None,
     population: str | Path | None = None,
     noise: bool = True,
-) -> Any:
+) -> HumanSource:
     """The person of a headless trial: a simulated participant (``participant_seed`` draws their body and
     habits from ``population``, a TOML file or None for the shipped one; ``seed`` their moment-to-moment
     behaviour and noise) or a recorded clip, played forth and back. ``noise=False``: the simulated
@@ -211,8 +215,8 @@ def run_headless_trial(
     servo_rate_hz: float = 125.0,
     options: EngineOptions | None = None,
     stack: PlanningStack | None = None,
-    predictor: Any | None = None,
-    human: Any | None = None,
+    predictor: Predictor | None = None,
+    human: HumanSource | None = None,
     fixed_compute_s: float | None = None,
     observer: Observer | None = None,
     robot_factory: Callable[[SimClock, np.ndarray], Any] | None = None,
@@ -279,7 +283,6 @@ def run_headless_trial(
         human = TrackedSource(truth, tracker_model, seed=seed)
     else:
         truth = human
-    truth_fn = getattr(truth, "pose_at", None)
     if forecast not in ("model", "oracle"):
         raise ValueError(f"forecast must be 'model' or 'oracle', got {forecast!r}")
     if forecast == "oracle":
@@ -305,6 +308,7 @@ def run_headless_trial(
     q0 = np.asarray(cell.robot.home_q, dtype=np.float64)
     robot = SimRobot(clock, q0=q0) if robot_factory is None else robot_factory(clock, q0)
     vsource = make_validated_source(human, cell, stale_timeout_s=settings.stale_timeout_s)
+    truth_fn = truth.ground_truth()
     wall0 = time.perf_counter()
     engine = TrialEngine(
         stack=stack,
