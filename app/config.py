@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import (
@@ -26,9 +26,6 @@ from pydantic import (
     model_validator,
 )
 from pydantic_settings import BaseSettings, SettingsConfigDict
-
-if TYPE_CHECKING:
-    from app.cell.tracker import TrackerModel
 
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
@@ -465,19 +462,6 @@ class Settings(BaseSettings):
         if value is not None and not value.is_file():
             raise ValueError(f"{info.field_name} file {value} does not exist")
         return value
-
-    def tracker_model(self) -> TrackerModel:
-        """The tracker model of these settings (its rate is the camera's, ``1 / frame_period_s``)."""
-        from app.cell.tracker import TrackerModel
-
-        return TrackerModel(
-            rate_hz=1.0 / self.frame_period_s,
-            latency_s=self.tracker_latency_s,
-            noise_m=self.tracker_noise_m,
-            drop_p=self.tracker_drop_p,
-            burst_p=self.tracker_burst_p,
-            max_burst_s=self.tracker_max_burst_s,
-        )
 
     @model_validator(mode="after")
     def _iso_person_never_slower(self) -> Settings:

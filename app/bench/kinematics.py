@@ -105,7 +105,7 @@ def _fcl_pairs(model: Any, q: np.ndarray, joints: np.ndarray) -> Callable[[], np
     """python-fcl minimum distance for each (q[k], joints[k]); returns a closure that computes all of them."""
     import fcl
 
-    from app.planning.collision import _rotation_z_to
+    from app.planning.collision import rotation_z_to
 
     a, b, r = model.robot_capsules(q)
     ha, hb, hr = model.human_capsules(joints)
@@ -121,7 +121,7 @@ def _fcl_pairs(model: Any, q: np.ndarray, joints: np.ndarray) -> Callable[[], np
     ]
     robot_tf = [
         [
-            fcl.Transform(_rotation_z_to((b[k, i] - a[k, i]) / lengths[i]), 0.5 * (a[k, i] + b[k, i]))
+            fcl.Transform(rotation_z_to((b[k, i] - a[k, i]) / lengths[i]), 0.5 * (a[k, i] + b[k, i]))
             if lengths[i] > 1e-12
             else fcl.Transform(a[k, i])
             for i in range(L)
@@ -135,7 +135,7 @@ def _fcl_pairs(model: Any, q: np.ndarray, joints: np.ndarray) -> Callable[[], np
             (
                 float(hr[m]),
                 float(h_len[k, m]),
-                _rotation_z_to((hb[k, m] - ha[k, m]) / h_len[k, m]),
+                rotation_z_to((hb[k, m] - ha[k, m]) / h_len[k, m]),
                 0.5 * (ha[k, m] + hb[k, m]),
             )
             if h_len[k, m] > 1e-12

@@ -59,7 +59,7 @@ def _throughput(executor: Any, jobs: list[Any]) -> tuple[float, int]:
 def run(*, quick: bool = False, progress: bool = True, duration_s: float | None = None) -> dict[str, Any]:
     """Measure the three engines on ``2 x cores`` trials (``quick``: 4 s simulated each, else 60 s: a
     study's trials are 300 s, and with short ones the workers' start-up and imports dominate)."""
-    from app.study.runner import _InlineExecutor, make_executor
+    from app.study.runner import InlineExecutor, make_executor
 
     workers = os.cpu_count() or 1
     duration = duration_s if duration_s is not None else (4.0 if quick else 60.0)
@@ -68,7 +68,7 @@ def run(*, quick: bool = False, progress: bool = True, duration_s: float | None 
     rates: dict[str, float] = {}
     failed: dict[str, int] = {}
 
-    rates["inline"], failed["inline"] = _throughput(_InlineExecutor(), jobs)
+    rates["inline"], failed["inline"] = _throughput(InlineExecutor(), jobs)
     if progress:
         log.info("inline: %.2f trials/min", rates["inline"])
     pool = make_executor("process", workers)

@@ -17,7 +17,7 @@ import logging
 import math
 import threading
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -148,7 +148,7 @@ def place_clip(joints: np.ndarray, cell: WorkCell, *, yaw_offset: float = 0.0) -
     return out
 
 
-class ReplaySource:
+class ReplaySource(HumanSource):
     """Replays a clip as the operator, played forth and back (or held on its last frame).
 
     A looped clip that jumped back to its first frame would make the person teleport every pass (a real
@@ -243,11 +243,15 @@ class ReplaySource:
     def notify_block_placed(self, station: str, t: float) -> None:
         """A recorded person does not react to the robot: ignored."""
 
+    def ground_truth(self) -> Callable[[float], np.ndarray]:
+        """The recorded person is the truth: :meth:`pose_at`."""
+        return self.pose_at
+
 
 # ---------------------------------------------------------------------------------------------------------
 # Stream
 # ---------------------------------------------------------------------------------------------------------
-class StreamSource:
+class StreamSource(HumanSource):
     """Frames pushed by an external tracker (thread-safe; :meth:`push` from the server, :meth:`frame_at`
     from the runtime).
 

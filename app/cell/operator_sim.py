@@ -27,6 +27,7 @@ import functools
 import logging
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
@@ -35,7 +36,8 @@ import numpy as np
 
 from app.cell._kernels import body_pose
 from app.cell.population import Population, load_population
-from app.prediction.forecast import HumanForecast
+from app.cell.source import HumanSource
+from app.prediction.forecast import HumanForecast, Predictor
 from app.prediction.profiles import min_jerk
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
 
@@ -354,7 +356,7 @@ class OperatorAction:
     target_world: tuple[float, float, float] | None = None
 
 
-class SimulatedOperator:
+class SimulatedOperator(HumanSource):
     """A simulated person working across the table (a :class:`~app.cell.source.HumanSource`).
 
     Args:
@@ -464,6 +466,10 @@ class SimulatedOperator:
             raise ValueError(f"pose_at({t}): poses older than {self._oldest_t:.3f} s were discarded")
         self._plan_until(t)
         return self.to_world(self._pose_body(t))
+
+    def ground_truth(self) -> Callable[[float], np.ndarray]:
+        """The simulated person is the truth: :meth:`pose_at`."""
+        return self.pose_at
 
     def _noise(self, k: int) -> np.ndarray:
         """The tracking noise (J, 3) (m) of frame ``k``: drawn per block of frames from a generator seeded
@@ -614,7 +620,7 @@ class SimulatedOperator:
         return [s for _, s in self._pending]
 
 
-class OracleForecaster:
+class OracleForecaster(Predictor):
     """The simulated operator's own future as the forecast: the bound of what proactive planning can gain
     in a cell, whatever the predictor (an analysis tool; there is no such thing for a real person).
 
@@ -626,8 +632,8 @@ class OracleForecaster:
     ``max_margin_m``, as with the predictor (the oracle does not see further either; a headless trial passes
     the predictor's values).
 
-    It has the interface of :class:`app.prediction.predictor.MotionPredictor` that the trial engine uses
-    (``update``, ``reset``). A copy costs a few milliseconds: an oracle trial runs about three times slower
+    A :class:`~app.prediction.forecast.Predictor`, as :class:`app.prediction.predictor.MotionPredictor` is.
+    A copy costs a few milliseconds: an oracle trial runs about three times slower
     than one with the predictor.
 
     Args:
@@ -660,6 +666,7 @@ class OracleForecaster:
     #: Its forecast is exact over its horizon (the trial engine's fetch anticipation then adds only what lies
     #: beyond it: :class:`app.control.anticipation.FetchAnticipation`'s ``exact_horizon``).
     exact_within_horizon = True
+    effective_kind = "OracleForecaster"
 
     def reset(self) -> None:
         """Nothing to forget: the forecast comes from the operator itself."""

@@ -28,11 +28,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from app.cell.source import HumanSource
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
+
+if TYPE_CHECKING:
+    from app.config import Settings
 
 __all__ = ["TrackedSource", "TrackerModel"]
 
@@ -85,12 +89,24 @@ class TrackerModel:
         return 1.0 / self.rate_hz
 
     @classmethod
+    def from_settings(cls, settings: Settings) -> TrackerModel:
+        """The tracker model of ``settings`` (its rate is the camera's, ``1 / frame_period_s``)."""
+        return cls(
+            rate_hz=1.0 / settings.frame_period_s,
+            latency_s=settings.tracker_latency_s,
+            noise_m=settings.tracker_noise_m,
+            drop_p=settings.tracker_drop_p,
+            burst_p=settings.tracker_burst_p,
+            max_burst_s=settings.tracker_max_burst_s,
+        )
+
+    @classmethod
     def ideal(cls, rate_hz: float = 30.0) -> TrackerModel:
         """A tracker that delivers the truth at once, every frame, without noise."""
         return cls(rate_hz=rate_hz, latency_s=0.0, noise_m=0.0, drop_p=0.0, burst_p=0.0, max_burst_s=0.0)
 
 
-class TrackedSource:
+class TrackedSource(HumanSource):
     """The frames a tracker with :class:`TrackerModel` delivers of a true human source.
 
     Args:

@@ -43,7 +43,7 @@ from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.task import TaskExecutive
 from app.planning.collision import reach_fingertips
 from app.planning.ssm_timing import part_speeds
-from app.prediction.forecast import HumanForecast
+from app.prediction.forecast import HumanForecast, Predictor
 from app.prediction.skeleton import HumanFrame
 from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw, directed_approach
 from app.safety.modes import PartMode, binding_part, mode_text, region_text
@@ -639,7 +639,7 @@ class TrialEngine:
         settings: Settings,
         robot: RobotBackend,
         source: ValidatedSource,
-        predictor: Any | None,
+        predictor: Predictor | None,
         jobs_factory: Callable[[BackupComputer, SupervisorConfig], PlanJobs],
         method: Method,
         duration_s: float,
@@ -666,9 +666,8 @@ class TrialEngine:
         self.duration_s = float(duration_s)
         self.seed = int(seed)
         self.t0 = float(t0)
-        expect = getattr(source, "expect_frames_from", None)
-        if expect is not None:  # not stale before the first frame can have arrived (the tracker's latency)
-            expect(self.t0)
+        # not stale before the first frame can have arrived (the tracker's latency)
+        source.expect_frames_from(self.t0)
         self.options = options or EngineOptions()
         self.on_event = on_event
         self.events: list[TrialEvent] = []
@@ -735,7 +734,7 @@ class TrialEngine:
             self.anticipation = FetchAnticipation(
                 self._stations,
                 FetchAnticipationParams(reaction_s=settings.fetch_reaction_s),
-                exact_horizon=bool(getattr(predictor, "exact_within_horizon", False)),
+                exact_horizon=predictor is not None and predictor.exact_within_horizon,
             )
         self.monitor: GroundTruthMonitor | None = None
         if self.options.monitor:
@@ -768,7 +767,7 @@ class TrialEngine:
         self._frames_sk: list[np.ndarray] = []
         self.decide_s: list[float] = []
         self.frame_to_decision_s = 0.0
-        if predictor is not None and hasattr(predictor, "reset"):
+        if predictor is not None:
             predictor.reset()
         self._emit_abs(t0, "trial_started", {"method": method, "seed": self.seed})
         self.supervisor.begin(t0)
@@ -872,7 +871,7 @@ class TrialEngine:
         self._emit_abs(t, "intrusion", {"speed_mps": speed})
         self.supervisor.intrusion(t)
         self._recent.clear()
-        if self.predictor is not None and hasattr(self.predictor, "reset"):
+        if self.predictor is not None:
             self.predictor.reset()
 
     def _judge(self, t: float, state: RobotState) -> None:

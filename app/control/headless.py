@@ -22,11 +22,13 @@ from typing import Any, Literal
 import numpy as np
 
 from app.cell.clock import SimClock
+from app.cell.source import HumanSource
 from app.config import Settings, WorkCell
 from app.control.backup import InlinePlanJobs
 from app.control.engine import EngineOptions, PlanningStack, TrialEngine, TrialResult
 from app.control.metrics import Method
 from app.control.world import build_trial_world
+from app.prediction.forecast import Predictor
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +49,8 @@ def run_headless_trial(
     servo_rate_hz: float = 125.0,
     options: EngineOptions | None = None,
     stack: PlanningStack | None = None,
-    predictor: Any | None = None,
-    human: Any | None = None,
+    predictor: Predictor | None = None,
+    human: HumanSource | None = None,
     fixed_compute_s: float | None = None,
     observer: Observer | None = None,
     robot_factory: Callable[[SimClock, np.ndarray], Any] | None = None,
@@ -77,9 +79,9 @@ def run_headless_trial(
         forecast: The proactive method's forecast: ``model`` (the motion predictor) or ``oracle`` (the
             simulated operator's own future, :class:`~app.cell.operator_sim.OracleForecaster`: the bound
             of what proactive planning can gain; ``source="sim"`` only).
-        tracker: The tracker between the true person and the runtime (default: the settings'
-            :meth:`~app.config.Settings.tracker_model`). Not applied to a ``human`` given by the caller,
-            whose frames the runtime sees as they are.
+        tracker: The tracker between the true person and the runtime (default: the settings', by
+            :meth:`~app.cell.tracker.TrackerModel.from_settings`). Not applied to a ``human`` given by the
+            caller, whose frames the runtime sees as they are.
 
     The true person (the simulated operator without noise, or the clip) is what the ground-truth monitor
     judges the robot against; the runtime sees them only through the tracker model.

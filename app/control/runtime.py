@@ -38,6 +38,7 @@ import numpy as np
 
 from app.cell.clock import Clock, RateLoop, WallClock
 from app.cell.robot import RobotBackend, RobotConnectionError
+from app.cell.source import HumanSource
 from app.cell.validation import REJECT_REASONS, ValidatedSource
 from app.config import Settings, WorkCell
 from app.control.backup import BackupComputer, BackupRequest, PlanOutcome
@@ -47,7 +48,7 @@ from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
 from app.control.supervisor import SupervisorConfig
 from app.control.world import PredictorInfo, TrialWorld, build_trial_world, predictor_info
 from app.planning.collision import ROBOT_LINKS
-from app.prediction.forecast import HumanForecast
+from app.prediction.forecast import HumanForecast, Predictor
 
 log = logging.getLogger(__name__)
 
@@ -234,39 +235,41 @@ class PoolPlanJobs:
 # --------------------------------------------------------------------------------------------------------
 
 
-class _LockedSource:
+class _LockedSource(HumanSource):
     """A human source shared by the frame thread (``frame_at``) and the servo thread (``notify``).
 
     A source that validates its own frames (the stream source) stays one behind the lock: its frames are not
     validated twice, and its counters (every rejection of a pushed message) are the ones reported."""
 
-    def __init__(self, source: Any) -> None:
+    def __init__(self, source: HumanSource) -> None:
         self.source = source
         self._lock = threading.Lock()
-        self.validates_frames = bool(getattr(source, "validates_frames", False))
+        self.validates_frames = bool(source.validates_frames)
+        self._truth = source.ground_truth()
 
     @property
     def counters(self) -> dict[str, int]:
-        return dict(self.source.counters)
+        return dict(self.source.counters)  # type: ignore[attr-defined]  # a source that validates_frames
 
     def reset_counters(self) -> None:
-        reset = getattr(self.source, "reset_counters", None)
-        if reset is not None:
-            reset()
+        self.source.reset_counters()
 
     def frame_at(self, t: float) -> Any:
         with self._lock:
             return self.source.frame_at(t)
 
-    def pose_at(self, t: float) -> Any:
+    def pose_at(self, t: float) -> np.ndarray:
+        """The inner source's true pose at ``t`` (a simulated or recorded person's)."""
+        assert self._truth is not None, "the inner source has no ground truth"
         with self._lock:
-            return self.source.pose_at(t)
+            return self._truth(t)
+
+    def ground_truth(self) -> Callable[[float], np.ndarray] | None:
+        return None if self._truth is None else self.pose_at
 
     def notify_block_placed(self, station: str, t: float) -> None:
-        notify = getattr(self.source, "notify_block_placed", None)
-        if notify is not None:
-            with self._lock:
-                notify(station, t)
+        with self._lock:
+            self.source.notify_block_placed(station, t)
 
 
 @dataclass
@@ -311,8 +314,8 @@ class Runtime:
         *,
         cell: WorkCell | None = None,
         robot: RobotBackend | None = None,
-        source: Any | None = None,
-        predictor: Any | None = None,
+        source: HumanSource | None = None,
+        predictor: Predictor | None = None,
         clock: Clock | None = None,
         servo_rate_hz: float = 125.0,
         options: EngineOptions | None = None,
@@ -844,7 +847,12 @@ _COMPILED_LOCK = threading.Lock()
 
 
 def _warm_up_compiled(
-    settings: Settings, cell: WorkCell, stack: Any, predictor: Any, *, servo_rate_hz: float = 125.0
+    settings: Settings,
+    cell: WorkCell,
+    stack: Any,
+    predictor: Predictor | None,
+    *,
+    servo_rate_hz: float = 125.0,
 ) -> bool:
     """Load the compiled inner loops (numba kernels of the speed governor, the simulated arm and operator,
     the planner's checks, the monitor and the forecast) before the runtime's threads start: a 2-s headless
@@ -877,16 +885,16 @@ def _warm_up_compiled(
         except Exception:
             log.exception("warm-up of the compiled loops failed; their first calls may stall the loops")
         finally:
-            if predictor is not None and hasattr(predictor, "reset"):
+            if predictor is not None:
                 predictor.reset()
         _COMPILED_READY = True
         log.info("compiled control loops ready in %.1f s", time.perf_counter() - t0)
         return ran
 
 
-def _warm_up(predictor: Any, cell: WorkCell) -> None:
+def _warm_up(predictor: Predictor | None, cell: WorkCell) -> None:
     """Run the predictor on a few still frames (the first inference of a network is slow), then reset it."""
-    if predictor is None or not hasattr(predictor, "update"):
+    if predictor is None:
         return
     from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 
@@ -898,5 +906,4 @@ def _warm_up(predictor: Any, cell: WorkCell) -> None:
     except Exception:
         log.exception("predictor warm-up failed; the first frames may be slow")
     finally:
-        if hasattr(predictor, "reset"):
-            predictor.reset()
+        predictor.reset()

@@ -79,17 +79,20 @@ from app.control.trajectory_views import (
 )
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
-from app.safety._kernels import PartSeparation, PFLLevels, RobotMotion, ServoGovernor
-from app.safety._kernels import governed_scale as _kernel_governed_scale
 from app.safety.governor import (
     BRAKE_INSTANTS,
     NO_LAW,
     SCALE_GRID,
+    PartSeparation,
     PathClosing,
+    PFLLevels,
+    RobotMotion,
     SeparationModel,
+    ServoGovernor,
     SpeedScaleLaw,
     brake_rate,
     directed_pairs,
+    governed_scale,
     nearest_approach,
     ssm_alone,
 )
@@ -119,7 +122,7 @@ class SupervisorConfig:
         planner_workers: Workers per plan (parallel A*).
         brake_decel_mps2: Deceleration of the robot's fastest point when braking (m/s^2).
         brake_joint_decel: Largest joint deceleration when braking (rad/s^2).
-        scale_up_rate: Largest increase of the speed scale per second (1/s).
+        scale_up_rate: Largest increase of the speed scale per second (1/s), at most the brake's rate.
         tracking_margin_m: Tracking error of a frame: subtracted from measured separations and used as the
             margin of the held pose (reactive forecast, emergency plan).
         human_speed_window_s: Window (s) over which the person's speed is measured.
@@ -130,17 +133,14 @@ class SupervisorConfig:
             forecast predicts no violation anywhere along it (timed at ``check_min_scale``); else the robot
             stays at rest and plans again after ``retry_after_s``. False: only a violation before
             ``T_i + D`` forbids it, as for a backup that replaces a plan in execution.
-        resume_travel_m: After a stop & replan, the robot counts as under way again (a new encounter can
-            stop it again) once it has moved this far (m).
+        resume_travel_m: After a stop & replan, the robot is under way again (a new encounter can stop it
+            again) once it has moved this far (m).
         check_dt_s: Time step of the checks of a plan against a forecast (s).
-        check_min_scale: Scale floor used to time the plan in execution for checks when the robot is slowed
-            or stopped (the robot is assumed to go at least this fast when it resumes).
+        check_min_scale: Least scale at which a slowed or stopped robot's plan is timed for the checks.
         profile_window_s: Look-ahead of the speed governor along the path (s).
-        robot_toward: The governor takes each robot part's speed *toward* the person (ISO/TS 15066
-            5.5.4.2.3's directed ``v_r``, measured at every frame along the path ahead against the person
-            as seen: :func:`app.safety.governor.closing_bound`) instead of its whole speed, so a part
-            moving sideways or away is not slowed as if it approached. False: the whole speed (the robot
-            judged as if it moved straight at the person).
+        robot_toward: The governor takes each part's speed *toward* the person (ISO/TS 15066's directed
+            ``v_r``, measured at every frame along the path ahead: :func:`app.safety.governor.closing_bound`),
+            not its whole speed (False: as if it moved straight at the person).
         toward_horizon_s: How far along the path (path time, s) the directed speed is measured at each
             frame; the governor falls back to the whole speed where a brake could end beyond it (or on a
             plan switched to since the frame).
@@ -1176,11 +1176,11 @@ class Supervisor:
         self, t: float, dt: float, s: float, vmax: np.ndarray, rate: float, lo: float, hi: float
     ) -> float:
         """The governor's target scale for the tick from ``t`` to ``t + dt`` (compiled:
-        :func:`app.safety._kernels.governed_scale`; the tests compare it with a NumPy reference in
+        :func:`app.safety.governor.governed_scale`; the tests compare it with a NumPy reference in
         ``tests/governor_reference.py``). Caller holds the lock."""
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
         robot = self._robot_motion(vmax, dt, rate, hi)
-        return float(_kernel_governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
+        return float(governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
 
 
 def _up_rate(scale_up_rate: float, brake_rate_per_s: float) -> float:

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from app.cell.robot import RobotBackend
+from app.cell.source import HumanSource
 from app.cell.validation import ValidatedSource
 from app.config import Settings, WorkCell
 from app.control.backup import BackupComputer, PlanJobs
@@ -37,8 +38,10 @@ from app.control.engine import (
 )
 from app.control.metrics import Method
 from app.control.supervisor import SupervisorConfig
+from app.prediction.forecast import Predictor
 
 if TYPE_CHECKING:
+    from app.cell.human import StreamSource
     from app.cell.tracker import TrackerModel
 
 #: Beyond the forecast's horizon (1 s) the last predicted pose is held and its margin grows this fast, up
@@ -82,7 +85,9 @@ def forecast_model(settings: Settings) -> tuple[Path | None, Path | None]:
     return weights, quantiles
 
 
-def make_predictor(method: Method, settings: Settings, *, tracking_margin_m: float = 0.02) -> Any | None:
+def make_predictor(
+    method: Method, settings: Settings, *, tracking_margin_m: float = 0.02
+) -> Predictor | None:
     """The predictor of a method: for ``proactive`` the Graph-Mixer of :func:`forecast_model` (constant
     velocity with a warning if the weights are missing), arbitrated online with the baselines and with
     adaptive conformal margins at ``Settings.forecast_coverage`` when ``Settings.forecast_arbitration`` says
@@ -144,15 +149,15 @@ def file_sha256(path: str | Path) -> str | None:
     return digest.hexdigest()
 
 
-def predictor_info(predictor: Any) -> PredictorInfo:
+def predictor_info(predictor: Predictor) -> PredictorInfo:
     """What ``predictor`` (a :class:`~app.prediction.predictor.MotionPredictor` or another) runs."""
-    weights = getattr(predictor, "weights_path", None)
+    weights = predictor.weights_path
     return PredictorInfo(
-        kind=str(getattr(predictor, "effective_kind", type(predictor).__name__)),
+        kind=predictor.effective_kind,
         weights=None if weights is None else str(weights),
         weights_sha256=None if weights is None else file_sha256(weights),
-        arbitrated=getattr(predictor, "arbiter", None) is not None,
-        fallback_reason=getattr(predictor, "fallback_reason", None),
+        arbitrated=predictor.arbitrated,
+        fallback_reason=predictor.fallback_reason,
     )
 
 
@@ -196,7 +201,7 @@ def make_operator(
     population: str | Path | None = None,
     noise: bool = True,
     t0: float = 0.0,
-) -> Any:
+) -> HumanSource:
     """The person of a simulated trial: a simulated participant (``participant_seed`` draws their body and
     habits from ``population``, a TOML file or None for the shipped one; ``seed`` their moment-to-moment
     behaviour and noise) or a recorded clip, played forth and back; their frames start at ``t0``.
@@ -261,12 +266,12 @@ class TrialWorld:
     settings: Settings
     seed: int
     participant_seed: int
-    person: Any | None
+    person: HumanSource | None
     truth: Callable[[float], np.ndarray] | None
     tracker: TrackerModel | None
     source: ValidatedSource
-    stream: Any | None
-    predictor: Any | None
+    stream: StreamSource | None
+    predictor: Predictor | None
     stack: PlanningStack
     robot: RobotBackend
     options: EngineOptions
@@ -329,7 +334,7 @@ class TrialWorld:
         )
 
 
-def _as_is(source: Any) -> Any:
+def _as_is(source: HumanSource) -> HumanSource:
     return source
 
 
@@ -342,12 +347,12 @@ def build_trial_world(
     t0: float = 0.0,
     source: Literal["sim", "replay"] | None = None,
     clip: str | Path | None = None,
-    human: Any | None = None,
+    human: HumanSource | None = None,
     tracker: TrackerModel | None = None,
-    share: Callable[[Any], Any] = _as_is,
+    share: Callable[[HumanSource], HumanSource] = _as_is,
     method: Method | None = None,
     forecast: Literal["model", "oracle"] = "model",
-    predictor: Any | None = None,
+    predictor: Predictor | None = None,
     require_weights: bool = False,
     stack: PlanningStack | None = None,
     robot: RobotBackend | None = None,
@@ -369,7 +374,7 @@ def build_trial_world(
             runtime sees through the tracker model.
         clip: The clip of ``replay`` (default ``settings.replay_clip``).
         human: A ready human source instead of ``source``, read as it is (no tracker model); the truth where
-            it tells its pose at any time (``pose_at``).
+            it tells its pose at any time (:meth:`~app.cell.source.HumanSource.ground_truth`).
         tracker: The tracker model (default: the settings'); the settings take its latency and noise (what
             the runtime assumes of its tracker: ``T_r``, the timing's noise).
         share: Wraps each source that more than one thread reads (the live runtime's lock).
@@ -396,10 +401,18 @@ def build_trial_world(
     person = truth_fn = tracker_model = stream = None
     if robot is None and make_robot is None:
         raise ValueError("build_trial_world needs a robot or make_robot")
+    if forecast not in ("model", "oracle"):
+        raise ValueError(f"forecast must be 'model' or 'oracle', got {forecast!r}")
+    if forecast == "oracle" and predictor is not None:
+        raise ValueError("the oracle forecast is for the proactive method, instead of its predictor")
     if human is not None:
+        if forecast == "oracle":  # before the source is read: the oracle needs the simulated operator
+            predictor = _oracle(human, method, options)
         person, vsource = human, share(human)
-        truth_fn = vsource.pose_at if hasattr(human, "pose_at") else None
-        stream = human if hasattr(human, "push") else None
+        from app.cell.human import StreamSource
+
+        truth_fn = vsource.ground_truth()
+        stream = human if isinstance(human, StreamSource) else None
     else:
         kind = settings.human_source if source is None else source
         if kind == "stream":
@@ -408,7 +421,7 @@ def build_trial_world(
             stream = make_human_source(settings, cell)
             vsource = share(stream)
         else:
-            from app.cell.tracker import TrackedSource
+            from app.cell.tracker import TrackedSource, TrackerModel
 
             person = make_operator(
                 cell,
@@ -420,22 +433,18 @@ def build_trial_world(
                 noise=False,
                 t0=t0,
             )
-            tracker_model = tracker if tracker is not None else settings.tracker_model()
+            tracker_model = tracker if tracker is not None else TrackerModel.from_settings(settings)
             if tracker is not None:  # what the runtime assumes of its tracker (T_r, the timing's noise)
                 update = {"tracker_latency_s": tracker.latency_s, "tracker_noise_m": tracker.noise_m}
                 settings = settings.model_copy(update=update)
             shared = share(person)
-            truth_fn = shared.pose_at
+            truth_fn = shared.ground_truth()
             vsource = share(TrackedSource(shared, tracker_model, seed=seed, t0=t0))
-    if forecast not in ("model", "oracle"):
-        raise ValueError(f"forecast must be 'model' or 'oracle', got {forecast!r}")
-    if forecast == "oracle":
-        if predictor is not None:
-            raise ValueError("the oracle forecast is for the proactive method, instead of its predictor")
+    if forecast == "oracle" and human is None:
         predictor = _oracle(person, method, options)
     if predictor is None and method in (None, "proactive"):
         predictor = make_predictor("proactive", settings, tracking_margin_m=options.tracking_margin_m)
-        reason = getattr(predictor, "fallback_reason", None)
+        reason = None if predictor is None else predictor.fallback_reason
         if require_weights and reason is not None and not settings.hmp_fallback:
             raise PredictorUnavailable(fallback_message(reason))
     if stack is None:  # after the tracker's latency is known: T_r of the planner's clearance

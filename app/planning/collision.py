@@ -57,6 +57,7 @@ __all__ = [
     "fcl_box",
     "fcl_capsule",
     "joint_axis_segments",
+    "rotation_z_to",
     "segment_box_distance",
     "segment_distance",
 ]
@@ -373,7 +374,7 @@ def _segment_box_depth(p: np.ndarray, d: np.ndarray, h: np.ndarray, inv_d: np.nd
 # ---------------------------------------------------------------------------------------------- fcl helpers
 
 
-def _rotation_z_to(u: np.ndarray) -> np.ndarray:
+def rotation_z_to(u: np.ndarray) -> np.ndarray:
     """A rotation (3, 3) whose z column is the unit vector u."""
     helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(helper, u)
@@ -391,7 +392,7 @@ def fcl_capsule(p: np.ndarray, q: np.ndarray, radius: float) -> fcl.CollisionObj
     center = 0.5 * (p + q)
     if length < 1e-12:
         return fcl.CollisionObject(fcl.Sphere(float(radius)), fcl.Transform(center))
-    R = _rotation_z_to((q - p) / length)
+    R = rotation_z_to((q - p) / length)
     return fcl.CollisionObject(fcl.Capsule(float(radius), length), fcl.Transform(R, center))
 
 

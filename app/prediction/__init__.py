@@ -14,6 +14,7 @@ _EXPORTS: dict[str, str] = {
     "NUM_JOINTS": "app.prediction.skeleton",
     "HumanFrame": "app.prediction.skeleton",
     "HumanForecast": "app.prediction.forecast",
+    "Predictor": "app.prediction.forecast",
     "from_zed34": "app.prediction.adapters",
     "from_zed38": "app.prediction.adapters",
     "from_cmu38": "app.prediction.adapters",

@@ -1,8 +1,11 @@
-"""The forecast of a person's motion that the planner checks plans against."""
+"""The forecast of a person's motion that the planner checks plans against, and the protocol of what makes
+one (:class:`Predictor`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -133,3 +136,40 @@ def half_step_grid(
     m = np.empty(2 * H + 1)
     m[0::2], m[1::2] = margins, half_margins
     return t, j, m
+
+
+class Predictor(Protocol):
+    """A motion predictor as the trial engine and the runtime use it: the network
+    (:class:`~app.prediction.predictor.MotionPredictor`), the simulated operator's oracle
+    (:class:`~app.cell.operator_sim.OracleForecaster`) or a stand-in.
+
+    The predictors subclass this protocol for the defaults of what most of them do not have, so that the
+    callers ask for it instead of probing.
+
+    Attributes:
+        effective_kind: What forecasts: the network's kind, what runs instead of it, or for another
+            predictor its class's name.
+        weights_path: The network's weights file (None, the default: no file is involved).
+        fallback_reason: Why a fallback runs instead of the network that was asked for (None, the default:
+            it runs what was asked).
+        exact_within_horizon: The forecast is exact over its horizon (the oracle's; False, the default): the
+            fetch anticipation then adds only what lies beyond it.
+    """
+
+    effective_kind: str
+    weights_path: Path | None = None
+    fallback_reason: str | None = None
+    exact_within_horizon: bool = False
+
+    @property
+    def arbitrated(self) -> bool:
+        """The forecast is arbitrated online with the baselines (False, the default)."""
+        return False
+
+    def reset(self) -> None:
+        """Forget the frames seen (a new trial, or another person)."""
+        ...
+
+    def update(self, frame: HumanFrame) -> HumanForecast:
+        """Take the newest frame and return the forecast from it."""
+        ...

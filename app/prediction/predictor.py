@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from app.prediction.baselines import constant_velocity, zero_velocity
-from app.prediction.forecast import HumanForecast, half_step_grid
+from app.prediction.forecast import HumanForecast, Predictor, half_step_grid
 from app.prediction.skeleton import MIN_JOINT_CONFIDENCE, NUM_JOINTS, PARENTS, HumanFrame
 
 if TYPE_CHECKING:
@@ -166,7 +166,7 @@ def _tree_fill(joints: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return out
 
 
-class MotionPredictor:
+class MotionPredictor(Predictor):
     """Forecasts one person's motion from a bounded history of frames.
 
     Args:
@@ -359,6 +359,11 @@ class MotionPredictor:
     def margins_for(self, kind: str) -> np.ndarray:
         """Margins (H + 1,) in metres used with forecasts of ``kind``."""
         return self._margins[kind].copy()
+
+    @property
+    def arbitrated(self) -> bool:
+        """The forecast is arbitrated online with the baselines (:attr:`arbiter`)."""
+        return self.arbiter is not None
 
     # ---------------------------------------------------------------- history
     def reset(self) -> None:

@@ -25,6 +25,7 @@ __all__ = [
     "PartSeparation",
     "RobotMotion",
     "ServoGovernor",
+    "approach",
     "governed_scale",
     "law_scale",
     "max_scale",
@@ -105,7 +106,7 @@ class ServoGovernor(NamedTuple):
 
 
 @jit(inline="always")
-def _approach(v0: float, dt: float, v_max_h: float, accel: float) -> tuple[float, float]:
+def approach(v0: float, dt: float, v_max_h: float, accel: float) -> tuple[float, float]:
     """Worst-case approach distance (m) and speed (m/s) of a person ``dt`` (s) after moving at ``v0``."""
     if dt < 0.0:
         dt = 0.0
@@ -163,7 +164,7 @@ def _scale_ok(
         vh_i = min(vh[i], v_lv[i, lv])
         for k in range(env_u.shape[0]):
             t = env_u[k] * sc / r
-            x_h, v_h = _approach(vh_i, t, v_max_h, accel)
+            x_h, v_h = approach(vh_i, t, v_max_h, accel)
             travel = v * t - 0.5 * a * t * t
             s_t = sc - rate * t
             need = _sp(s_t * vp[i], s_t / r, v_h, s0, t_r)
@@ -205,7 +206,7 @@ def max_scale(
     t_b = hi / max(rate, 1e-6)
     quick = True
     for i in range(n):
-        x_b, v_b = _approach(vh[i], t_b, v_max_h, accel)
+        x_b, v_b = approach(vh[i], t_b, v_max_h, accel)
         # (a part moving away gains separation over the brake, but none at its start)
         worst = _sp(hi * vp[i], t_b, v_b, s0, t_r) + x_b + hi * max(vp[i], 0.0) * t_b
         if not (d[i] >= worst):
@@ -317,7 +318,7 @@ def governed_scale(
             if math.isnan(dt_h):
                 sep_lb, v_h = sep_m[i], v_max_h
             else:
-                x1, v_h = _approach(v_h0[i], dt_h, v_max_h, accel)
+                x1, v_h = approach(v_h0[i], dt_h, v_max_h, accel)
                 sep_lb = sep_m[i] - (x1 - x_h0[i]) - closed[i]
             d[k] = sep_lb - s * toward[i] * dt
             vh[k] = v_h

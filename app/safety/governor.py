@@ -1,6 +1,10 @@
 """The speed governor of ISO/TS 15066 speed and separation monitoring, per servo tick: the protective
 separation and the braking envelope built on it (:class:`SeparationModel`), and the standard's constant-speed
-scaling law (:class:`SpeedScaleLaw`). Their compiled loops are in :mod:`app.safety._kernels`."""
+scaling law (:class:`SpeedScaleLaw`). Their compiled loops are in :mod:`app.safety._kernels`; this module is
+their public face for the other packages: the kernels' inputs (:class:`PartSeparation`, :class:`PFLLevels`,
+:class:`RobotMotion`, :class:`ServoGovernor`), the servo tick's scale (:func:`governed_scale`), the envelope
+and the law (:func:`max_scale`, :func:`law_scale`) and the person's worst-case approach (:func:`approach`),
+which compiled code elsewhere (the SSM-aware timing) inlines as the governor does."""
 
 from __future__ import annotations
 
@@ -10,9 +14,42 @@ from typing import Any
 
 import numpy as np
 
-from app.safety._kernels import PFLLevels, RobotMotion
+from app.safety._kernels import (
+    PartSeparation,
+    PFLLevels,
+    RobotMotion,
+    ServoGovernor,
+    approach,
+    governed_scale,
+    law_scale,
+    max_scale,
+)
 from app.safety._kernels import max_scale as _kernel_max_scale
 from app.safety.ssm import max_safe_speed, required_separation
+
+__all__ = [
+    "BRAKE_INSTANTS",
+    "NO_LAW",
+    "SCALE_GRID",
+    "GovernorModel",
+    "PFLLevels",
+    "PartSeparation",
+    "PathClosing",
+    "RobotMotion",
+    "SeparationModel",
+    "ServoGovernor",
+    "SpeedScaleLaw",
+    "approach",
+    "brake_rate",
+    "closing_bound",
+    "directed_approach",
+    "directed_pairs",
+    "governed_scale",
+    "law_scale",
+    "max_scale",
+    "nearest_approach",
+    "ssm_alone",
+]
 
 # ----------------------------------------------------------------------------------------------------
 # Speed governor: ISO/TS 15066 separation at every servo tick

@@ -264,7 +264,7 @@ def make_executor(engine: str, workers: int, *, address: str | None = None) -> E
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}")
     if engine == "inline" or workers == 0:
-        return _InlineExecutor()
+        return InlineExecutor()
     if engine == "process":
         return _make_executor(workers)
     return _RayExecutor(address=address, num_cpus=workers)
@@ -278,7 +278,7 @@ def _ray_errors() -> tuple[type[BaseException], ...]:
     return (ray_exc.RayError,)
 
 
-class _InlineExecutor(Executor):
+class InlineExecutor(Executor):
     """Runs each job in the calling process at submit time (``max_workers=0``: debugging and tests)."""
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:

@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from app.cell.robot import RobotConnectionError, RobotState, SimRobot
+from app.cell.source import HumanSource
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions, PlanningStack, TrialEngine
 from app.control.headless import run_headless_trial
 from app.control.world import make_operator
-from app.prediction.forecast import HumanForecast
+from app.prediction.forecast import HumanForecast, Predictor
 from app.prediction.skeleton import NUM_JOINTS
 
 SEED = 4
@@ -48,7 +49,7 @@ def _run(stack: PlanningStack, **kw: Any):
     return run_headless_trial(**args)
 
 
-class _Gap:
+class _Gap(HumanSource):
     """The operator's frames, with no new frame in [t0, t1) (the tracker lost the person)."""
 
     def __init__(self, inner: Any, t0: float, t1: float) -> None:
@@ -87,7 +88,9 @@ def _phantom_predictor(box: dict[str, TrialEngine]) -> Any:
     """A predictor that announces, from t = 1.5 s, a person standing on the robot's path one second
     ahead (a violation predicted after T + D: an online replan is due)."""
 
-    class Phantom:
+    class Phantom(Predictor):
+        effective_kind = "phantom"
+
         def reset(self) -> None: ...
 
         def update(self, frame: Any) -> HumanForecast:

@@ -17,7 +17,7 @@ import numpy as np
 from app.config import Settings, load_workcell
 from app.control.engine import EngineOptions
 from app.control.headless import run_headless_trial
-from app.prediction.forecast import HumanForecast
+from app.prediction.forecast import HumanForecast, Predictor
 
 EXAMPLE_CELL = Path(__file__).resolve().parents[2] / "examples" / "workcell_stations_moved.toml"
 
@@ -66,9 +66,11 @@ def test_proactive_and_reactive_differ_only_in_the_forecast() -> None:
     assert np.all(held.joints == held.joints[0])  # the current pose, held still
 
 
-class _HeldPose:
+class _HeldPose(Predictor):
     """A predictor that forecasts what the reactive baseline assumes: the current pose, held still, with the
     tracking margin."""
+
+    effective_kind = "held_pose"
 
     def __init__(self, margin_m: float) -> None:
         self.margin_m = margin_m

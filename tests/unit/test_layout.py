@@ -2,7 +2,13 @@
 
 - Imports point one way: ``api, ui -> control, study -> cell -> planning, prediction, safety``. The pure
   core (``planning``, ``prediction``, ``safety``) imports nothing from the runtime or the web, nor the web,
-  database or viewer libraries; ``cell`` imports nothing from ``control``, ``study``, ``api``, ``ui``.
+  database or viewer libraries; ``cell`` imports nothing from ``control``, ``study``, ``api``, ``ui``; the
+  bottom (``config``, ``jit``: the settings, the kernel compiler) imports nothing from ``cell`` or above.
+- A package's private parts stay its own: no module imports a ``_``-module or a ``_``-name of another
+  top-level package of ``app`` (each package re-exports what the others need from a public module).
+- The control code asks the predictor and the human source for what they do (their protocols,
+  :class:`app.prediction.forecast.Predictor` and :class:`app.cell.source.HumanSource`) and never probes
+  them with ``hasattr``/``getattr``.
 - No import circles between the modules of ``app`` (every import counts, also those inside functions:
   a circle through a lazy import is still one concept split in the wrong place).
 - Nothing that decides (planner, predictor, safety function, supervisor, anticipation, trial engine)
@@ -32,6 +38,10 @@ CORE = ("planning", "prediction", "safety")
 RUNTIME_AND_WEB = ("control", "cell", "study", "api", "ui", "bench", "cli", "commands")
 WEB_DB_VIEW_LIBS = ("fastapi", "starlette", "sqlalchemy", "alembic", "viser", "uvicorn", "multiprocessing")
 ABOVE_THE_CELL = ("control", "study", "api", "ui", "bench", "commands", "cli")
+# the bottom of the layout: the settings and the kernel compiler, below the cell and all above it
+BOTTOM = ("app.config", "app.jit")
+# in the control code, what names the predictor or the human source (never probed)
+PROBED_NAMES = ("predictor", "source", "human", "truth")
 SIMULATOR = "app.cell.operator_sim"
 # the modules that make decisions: none of them may know the simulated operator
 DECIDERS = ("app.planning", "app.prediction", "app.safety", "app.control")
@@ -62,20 +72,24 @@ def _modules() -> dict[str, tuple[Path, ast.Module]]:
     return out
 
 
+def _from_module(name: str, node: ast.ImportFrom) -> str:
+    """The absolute name of the module of ``from ... import`` in module ``name`` (relative ones resolved)."""
+    if not node.level:
+        return node.module or ""
+    package = name if _modules()[name][0].name == "__init__.py" else name.rpartition(".")[0]
+    base = package.split(".")
+    base = base[: len(base) - node.level + 1]
+    return ".".join([*base, node.module] if node.module else base)
+
+
 def _imports(name: str, tree: ast.Module) -> set[str]:
     """Every module that ``name`` imports, at module level or inside functions (``TYPE_CHECKING`` too)."""
     got: set[str] = set()
-    package = name if _modules()[name][0].name == "__init__.py" else name.rpartition(".")[0]
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             got.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[: len(base) - node.level + 1]
-                mod = ".".join([*base, node.module] if node.module else base)
-            else:
-                mod = node.module or ""
+            mod = _from_module(name, node)
             got.add(mod)
             # ``from app.planning import _kernels`` imports the submodule
             got.update(f"{mod}.{a.name}" for a in node.names if f"{mod}.{a.name}" in _modules())
@@ -127,6 +141,63 @@ def test_the_cell_imports_nothing_from_the_runtime_the_studies_or_the_web() -> N
         if mod.split(".")[:2]
         in (["app", p] for p in ("control", "study", "api", "ui", "bench", "commands", "cli"))
     ]
+    assert not bad, "\n".join(bad)
+
+
+def test_the_bottom_imports_nothing_from_the_cell_or_above() -> None:
+    bad = [
+        f"{name} imports {mod}"
+        for name, (_, tree) in _modules().items()
+        if name in BOTTOM or name.startswith(tuple(f"{b}." for b in BOTTOM))
+        for mod in _imports(name, tree)
+        if mod.split(".")[:2] in (["app", p] for p in ("cell", *ABOVE_THE_CELL))
+    ]
+    assert not bad, "\n".join(bad)
+
+
+def _private(part: str) -> bool:
+    return part.startswith("_") and not (part.startswith("__") and part.endswith("__"))
+
+
+def test_no_module_imports_another_packages_private_parts() -> None:
+    """``import app.x._mod``, ``from app.x._mod import ...``, ``from app.x import _mod`` or ``_name`` from a
+    module of another top-level package are all refused; within a package they are its own business."""
+    bad = []
+    for name, (_, tree) in _modules().items():
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                got = [(a.name, None) for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                got = [(_from_module(name, node), a.name) for a in node.names]
+            else:
+                continue
+            for mod, imported in got:
+                parts = mod.split(".")
+                if parts[0] != "app" or len(parts) < 2 or _package(mod) == _package(name):
+                    continue
+                if any(_private(p) for p in parts[1:]) or (imported is not None and _private(imported)):
+                    what = mod if imported is None else f"{imported} from {mod}"
+                    bad.append(f"{name} imports {what}")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_control_code_never_probes_the_predictor_or_the_source() -> None:
+    """No ``hasattr(x, ...)`` or ``getattr(x, ...)`` in ``app.control`` on an ``x`` that names the predictor
+    or the human source: what they can do is part of their protocol."""
+    bad = []
+    for name, (path, tree) in _modules().items():
+        if _package(name) != "control":
+            continue
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Name)
+                and node.func.id in ("hasattr", "getattr")
+                and node.args
+            ):
+                target = ast.unparse(node.args[0])
+                if any(word in target.lower() for word in PROBED_NAMES):
+                    bad.append(f"{path.relative_to(APP.parent)}:{node.lineno}: {ast.unparse(node)}")
     assert not bad, "\n".join(bad)
 
 

@@ -5,8 +5,8 @@ path, asks the forecast where the person will be when the robot gets to each poi
 depends on every scale before it, so the walk is sequential), measures the separation, the person's
 directed speed and each part's speed toward the person (at the points of :func:`toward_steps`) as the
 supervisor would, and applies the governor's model (:meth:`app.safety.governor.GovernorModel.scale`, with
-the governor's own compiled envelope and law, :func:`app.safety._kernels.max_scale` and
-:func:`app.safety._kernels.law_scale`). The NumPy loop it replaces
+the governor's own compiled envelope and law, :func:`app.safety.governor.max_scale` and
+:func:`app.safety.governor.law_scale`). The NumPy loop it replaces
 is kept with the tests (``tests/governor_reference.py``), which compare the two.
 """
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from app.jit import jit
 from app.planning._kernels.base import _seg_dist
-from app.safety._kernels import _approach, law_scale, max_scale
+from app.safety.governor import approach, law_scale, max_scale
 
 __all__ = ["TimingGovernor", "TimingPath", "TimingPerson", "predicted_scales", "toward_steps"]
 
@@ -216,8 +216,8 @@ def predicted_scales(
                 vh0[p] = v_h
                 sep_now[p] = sep
                 toward[p] = -np.inf if gov.misc[9] > 0.0 else vp[p]
-                x0, _ = _approach(vh0[p], half, v_max_h, accel)
-                x1, v_1 = _approach(vh0[p], half + age, v_max_h, accel)
+                x0, _ = approach(vh0[p], half, v_max_h, accel)
+                x1, v_1 = approach(vh0[p], half + age, v_max_h, accel)
                 sep_lb[p] = sep - margin - (x1 - x0)
                 v1[p] = v_1
             steps = toward_steps(i, n, ahead)

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from app.cell.human import StreamSource
+from app.cell.source import HumanSource
 from app.cell.stream_protocol import make_message
 from app.cell.tracker import TrackerModel
 from app.cell.validation import FrameRejected, FrameValidator
@@ -519,7 +520,7 @@ def test_one_predictor_for_every_human_source_unless_the_settings_say_otherwise(
         Settings(_env_file=None, hmp_weights=tmp_path / "nothere.pt")
 
 
-class _Appearing:
+class _Appearing(HumanSource):
     """A noise-free simulated operator who jumps by ``jump`` (m) at ``t_jump``: someone appearing."""
 
     def __init__(self, inner, t_jump: float, jump: np.ndarray) -> None:
@@ -535,6 +536,9 @@ class _Appearing:
 
     def pose_at(self, t: float) -> np.ndarray:
         return self.inner.pose_at(t) + (self.jump if t >= self.t_jump else 0.0)
+
+    def ground_truth(self):
+        return self.pose_at
 
     def notify_block_placed(self, station: str, t: float) -> None:
         self.inner.notify_block_placed(station, t)

@@ -23,8 +23,13 @@ from app.control.supervisor import Supervisor, SupervisorConfig, _ramp_distance
 from app.control.trajectory_views import HoldTrajectory, ScaledView, SpeedProfile
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
-from app.safety import _kernels
-from app.safety.governor import PathClosing, SeparationModel, SpeedScaleLaw, ssm_alone
+from app.safety.governor import (
+    PartSeparation,
+    PathClosing,
+    SeparationModel,
+    SpeedScaleLaw,
+    ssm_alone,
+)
 from app.safety.ssm import SSMParams
 
 R_HUMAN = 0.1  # radius of the point person (m)
@@ -774,7 +779,7 @@ def test_the_compiled_governor_equals_the_numpy_reference() -> None:
         v_h0 = rng.uniform(-0.5, 2.5, L)
         sup._v_h_t = float(rng.uniform(-0.1, 0.0)) if measured else -math.inf
         x_h0 = np.asarray(SSM.human_approach(v_h0, -sup._v_h_t if measured else 0.0)[0])
-        sup._parts = _kernels.PartSeparation(sep_m, x_h0, v_h0, ssm_alone(L))
+        sup._parts = PartSeparation(sep_m, x_h0, v_h0, ssm_alone(L))
         sup._travel = rng.uniform(0.0, 0.05, L)
         vmax = rng.uniform(0.0, 1.5, L) * (rng.uniform(size=L) > 0.2)
         # the closing along the path measured at the frame (a part moving away: negative), where it covers

@@ -10,6 +10,7 @@ import pytest
 
 from app.cell.operator_sim import OperatorParams
 from app.cell.population import DEFAULT_POPULATION_PATH
+from app.cell.tracker import TrackerModel
 from app.config import Settings, load_workcell
 from app.control.engine import PlanningStack, TrialEngine
 from app.control.headless import run_headless_trial
@@ -83,7 +84,8 @@ def test_the_live_and_the_headless_runs_build_the_same_world(
     assert live.person.params == headless.person.params
     assert live.person.params == OperatorParams.draw(SEED, OperatorParams.population(slow_population))
     assert (live.seed, live.participant_seed) == (headless.seed, headless.participant_seed) == (SEED, SEED)
-    assert live.tracker is not None and live.tracker == headless.tracker == settings.tracker_model()
+    assert live.tracker is not None
+    assert live.tracker == headless.tracker == TrackerModel.from_settings(settings)
     assert live.truth is not None and headless.truth is not None
     # the same settings, predictor, supervisor and servo period
     assert live.settings == headless.settings
