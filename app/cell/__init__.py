@@ -29,7 +29,7 @@ _EXPORTS: dict[str, str] = {
     "ReplaySource": "app.cell.human",
     "StreamSource": "app.cell.human",
     "make_human_source": "app.cell.human",
-    "load_clip": "app.cell.human",
+    "load_replay_clip": "app.cell.human",
     "save_clip": "app.cell.human",
     "FrameRejected": "app.cell.validation",
     "FrameValidator": "app.cell.validation",
@@ -59,7 +59,7 @@ __all__ = [
     "StreamSource",
     "ValidatedSource",
     "WallClock",
-    "load_clip",
+    "load_replay_clip",
     "make_human_source",
     "make_robot",
     "save_clip",
@@ -71,7 +71,7 @@ if TYPE_CHECKING:
     from app.cell.human import (
         ReplaySource,
         StreamSource,
-        load_clip,
+        load_replay_clip,
         make_human_source,
         save_clip,
     )
