@@ -25,8 +25,8 @@ __all__ = [
     "CapsuleBounds",
     "Clearance",
     "ForecastPoses",
-    "JointLimits",
     "KernelGeometry",
+    "KernelJointLimits",
     "Knots",
     "MotionModel",
     "Moves",
@@ -133,8 +133,9 @@ class Clearance(NamedTuple):
 
 
 # ------------------------------------------------------------------------------------ the planner's tables
-class JointLimits(NamedTuple):
-    """Joint limits (6,) each (rad)."""
+class KernelJointLimits(NamedTuple):
+    """The planner's joint position limits (6,) each (rad), as the kernels read them (the cell's are
+    :class:`app.cell.joint_tracking.JointLimits`)."""
 
     lo: np.ndarray
     hi: np.ndarray

@@ -11,7 +11,7 @@ import numpy as np
 
 from app.planning._kernels.arrays import (
     CapsuleBounds,
-    JointLimits,
+    KernelJointLimits,
     PersonForecast,
     Requirement,
     RoadmapTables,
@@ -250,7 +250,7 @@ def speculate_chain(
     max_len: int,
     nxt: np.ndarray,
     roadmap: RoadmapTables,
-    limits: JointLimits,
+    limits: KernelJointLimits,
     search: SearchContext,
     state: SearchState,
     n0: int,
@@ -260,7 +260,7 @@ def speculate_chain(
     next move, or -1), recorded from state ``n0`` on (the capacity is the caller's). ``search`` as in
     :func:`children_moves`. Returns (next free state, keys, arrival times)."""
     roadmap = RoadmapTables(*roadmap)
-    limits = JointLimits(*limits)
+    limits = KernelJointLimits(*limits)
     search = SearchContext(*search)
     state = SearchState(*state)
     indices, ord_flat, L_flat = roadmap.indices, roadmap.ord_flat, roadmap.L_flat
@@ -358,7 +358,7 @@ def check_prepare(
     batch: np.ndarray,
     state: SearchState,
     ik: np.ndarray,
-    limits: JointLimits,
+    limits: KernelJointLimits,
     tables: CapsuleBounds,
     start: CapsuleBounds,
     goal: int,
@@ -378,7 +378,7 @@ def check_prepare(
     the move is the one between the stored branch configurations (M,) (the static-check memo's
     condition)."""
     state = SearchState(*state)
-    limits = JointLimits(*limits)
+    limits = KernelJointLimits(*limits)
     tables = CapsuleBounds(*tables)
     start = CapsuleBounds(*start)
     F, I, B, q = state.F, state.I, state.B, state.q  # noqa: E741

@@ -135,7 +135,7 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
                 )
             )
             self._k_limits = pack(
-                _kernels.JointLimits(_kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max))
+                _kernels.KernelJointLimits(_kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max))
             )
             self._k_motion = pack(
                 _kernels.MotionModel(

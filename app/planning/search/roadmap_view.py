@@ -55,7 +55,7 @@ class RoadmapView:
         next_rows_k: The same rows as int64 arrays, for the compiled lookahead.
         compiled: Whether the compiled checks and bookkeeping are in use (the ``k_*`` fields are set).
         k_roadmap: :class:`app.planning._kernels.RoadmapTables`, packed (None when not ``compiled``).
-        k_limits: :class:`app.planning._kernels.JointLimits`, packed (None when not ``compiled``).
+        k_limits: :class:`app.planning._kernels.KernelJointLimits`, packed (None when not ``compiled``).
         k_tables: :class:`app.planning._kernels.CapsuleBounds` per row ``node * 8 + branch``, packed.
         k_motion: :class:`app.planning._kernels.MotionModel`, packed (None when not ``compiled``).
         k_ik: ``ik`` as the kernels take it (None when not ``compiled``).
