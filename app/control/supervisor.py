@@ -58,14 +58,14 @@ from typing import Any, Literal
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
-from app.control.counters import (
+from app.control.metrics import Method
+from app.control.supervisor_types import (
     FrameDecision,
     SupervisorCounters,
     SupervisorState,
     SupervisorStatus,
     TickCommand,
 )
-from app.control.metrics import Method
 from app.control.trajectory_views import (
     Goal,
     HoldTrajectory,

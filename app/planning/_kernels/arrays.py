@@ -204,7 +204,8 @@ class RoadmapTables(NamedTuple):
 
 # ------------------------------------------------------------------------------------------ one search
 class SearchContext(NamedTuple):
-    """The successor generation's constants of one search (:meth:`app.planning.search.run._Run._context`)."""
+    """The successor generation's constants of one search
+    (:meth:`app.planning.search.search_state._Run._context`)."""
 
     #: ``goal`` (-2: none), path acceleration, shortest move, heuristic weight, stop time (NaN: none),
     #: latest arrival, latest arrival at other nodes than the goal, cruise speed
@@ -214,7 +215,7 @@ class SearchContext(NamedTuple):
 
 
 class SearchState(NamedTuple):
-    """The records of one search (:class:`app.planning.search.run._Run`): one column per state."""
+    """The records of one search (:class:`app.planning.search.search_state._Run`): one column per state."""
 
     F: np.ndarray  #: (9, N) float fields (``REC_T`` ...)
     I: np.ndarray  #: (5, N) int64 fields (``REC_NODE`` ...)  # noqa: E741

@@ -3,8 +3,8 @@ compiled packing, the IK branches and the planner's alignment, metric, geometry 
 read-only.
 
 The :class:`~app.planning.search.planner.Planner` builds one view when it is constructed
-(``Planner.view``); every search (:class:`app.planning.search.run._Run`) reads the roadmap only through
-it, never through the planner's own attributes."""
+(``Planner.view``); every search (:class:`app.planning.search.search_state._Run`) reads the roadmap only
+through it, never through the planner's own attributes."""
 
 from __future__ import annotations
 
