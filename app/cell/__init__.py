@@ -22,7 +22,7 @@ _EXPORTS: dict[str, str] = {
     "RobotConnectionError": "app.cell.robot",
     "SimRobot": "app.cell.robot",
     "make_robot": "app.cell.backends",
-    "RtdeRobot": "app.cell.rtde_process",
+    "RtdeRobot": "app.cell.rtde.backend",
     "HumanSource": "app.cell.source",
     "OperatorParams": "app.cell.operator_sim",
     "SimulatedOperator": "app.cell.operator_sim",
@@ -78,7 +78,7 @@ if TYPE_CHECKING:
     from app.cell.joint_tracking import JointLimits
     from app.cell.operator_sim import OperatorParams, SimulatedOperator
     from app.cell.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot
-    from app.cell.rtde_process import RtdeRobot
+    from app.cell.rtde.backend import RtdeRobot
     from app.cell.source import HumanSource
     from app.cell.validation import (
         CellVolume,
