@@ -1,7 +1,7 @@
 """NumPy references of the speed governor's compiled loops, for the tests only (the product never imports
 them): the braking envelope's largest safe scale (:func:`app.safety._kernels.max_scale`), the servo tick's
 target scale (:func:`app.safety._kernels.governed_scale`) and the governor's scale predicted along a path
-(:func:`app.planning._kernels.timing.predicted_scales`)."""
+(:func:`app.planning._kernels.timing.predicted_scales_kernel`)."""
 
 from __future__ import annotations
 

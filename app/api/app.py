@@ -29,7 +29,7 @@ from fastapi.responses import JSONResponse, RedirectResponse
 
 from app.api.auth import ensure_api_token
 from app.api.deps import ApiContext
-from app.api.live import LiveHub, LiveLimits
+from app.api.live_hub import LiveHub, LiveLimits
 from app.api.recorder import Checkpoint, TrialRecorder
 from app.api.version import app_version
 from app.config import Settings

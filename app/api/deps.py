@@ -15,7 +15,7 @@ from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from app.api.auth import tokens_match
-from app.api.live import LiveHub
+from app.api.live_hub import LiveHub
 from app.api.recorder import TrialRecorder
 from app.config import Settings
 from app.control.runtime import Runtime

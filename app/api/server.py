@@ -14,7 +14,7 @@ from collections.abc import Callable
 from types import FrameType
 from typing import Any
 
-from app.api.live import LiveLimits
+from app.api.live_hub import LiveLimits
 from app.config import Settings
 
 logger = logging.getLogger(__name__)

@@ -22,14 +22,14 @@ _EXPORTS: dict[str, str] = {
     "RobotConnectionError": "app.cell.robot",
     "SimRobot": "app.cell.robot",
     "make_robot": "app.cell.backends",
-    "RtdeRobot": "app.cell.rtde_process",
+    "RtdeRobot": "app.cell.rtde.backend",
     "HumanSource": "app.cell.source",
     "OperatorParams": "app.cell.operator_sim",
     "SimulatedOperator": "app.cell.operator_sim",
     "ReplaySource": "app.cell.human",
     "StreamSource": "app.cell.human",
     "make_human_source": "app.cell.human",
-    "load_clip": "app.cell.human",
+    "load_replay_clip": "app.cell.human",
     "save_clip": "app.cell.human",
     "FrameRejected": "app.cell.validation",
     "FrameValidator": "app.cell.validation",
@@ -59,7 +59,7 @@ __all__ = [
     "StreamSource",
     "ValidatedSource",
     "WallClock",
-    "load_clip",
+    "load_replay_clip",
     "make_human_source",
     "make_robot",
     "save_clip",
@@ -71,14 +71,14 @@ if TYPE_CHECKING:
     from app.cell.human import (
         ReplaySource,
         StreamSource,
-        load_clip,
+        load_replay_clip,
         make_human_source,
         save_clip,
     )
     from app.cell.joint_tracking import JointLimits
     from app.cell.operator_sim import OperatorParams, SimulatedOperator
     from app.cell.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot
-    from app.cell.rtde_process import RtdeRobot
+    from app.cell.rtde.backend import RtdeRobot
     from app.cell.source import HumanSource
     from app.cell.validation import (
         CellVolume,

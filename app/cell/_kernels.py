@@ -20,10 +20,10 @@ import numpy as np
 
 from app.jit import jit
 
-__all__ = ["TrackerCommand", "TrackerModel", "body_pose", "track_substeps"]
+__all__ = ["JointTrackerParams", "TrackerCommand", "body_pose", "track_substeps"]
 
 
-class TrackerModel(NamedTuple):
+class JointTrackerParams(NamedTuple):
     """A joint tracker's constants as :func:`track_substeps` reads them (built once per tracker).
 
     Attributes:
@@ -74,15 +74,15 @@ def track_substeps(
     s: float,
     stopping: bool,
     command: TrackerCommand,
-    model: TrackerModel,
+    params: JointTrackerParams,
 ) -> None:
     """``n`` substeps of ``h`` (s) of the joint tracker from time ``t``, updating ``q`` and ``qd`` (6,) in
     place: tracking the ``command`` at speed scale ``s``, or braking to rest along the path when
     ``stopping``."""
     cmd_t, cmd_q, cmd_qd, has_cmd = command.t, command.q, command.qd, command.active
-    hold_after_s, kp = model.hold_after_s, model.kp
-    ref_lo, ref_hi, q_min, q_max = model.ref_lo, model.ref_hi, model.q_min, model.q_max
-    qdd_max, inv_qd_max = model.qdd_max, model.inv_qd_max
+    hold_after_s, kp = params.hold_after_s, params.kp
+    ref_lo, ref_hi, q_min, q_max = params.ref_lo, params.ref_hi, params.q_min, params.q_max
+    qdd_max, inv_qd_max = params.qdd_max, params.inv_qd_max
     q_ref = np.empty(6)
     qd_ff = np.empty(6)
     qd_new = np.empty(6)

@@ -15,7 +15,7 @@ def make_robot(settings: Settings, clock: Clock, *, q0: np.ndarray) -> RobotBack
     """The robot backend that ``settings.robot`` selects.
 
     ``"sim"``: a :class:`~app.cell.robot.SimRobot` at ``q0``. ``"rtde"``: an
-    :class:`~app.cell.rtde_process.RtdeRobot` at ``settings.robot_host``, connected before it is returned
+    :class:`~app.cell.rtde.backend.RtdeRobot` at ``settings.robot_host``, connected before it is returned
     (``q0`` is ignored: the real arm is where it is).
 
     Raises:
@@ -24,7 +24,7 @@ def make_robot(settings: Settings, clock: Clock, *, q0: np.ndarray) -> RobotBack
     if settings.robot == "sim":
         return SimRobot(clock, q0=q0)
     if settings.robot == "rtde":
-        from app.cell.rtde_process import RtdeRobot  # the RTDE worker's module only when it is used
+        from app.cell.rtde.backend import RtdeRobot  # the RTDE modules only when they are used
 
         robot = RtdeRobot(settings.robot_host, clock=clock)
         robot.connect()

@@ -33,14 +33,14 @@ if TYPE_CHECKING:
     from app.config import Settings, WorkCell
 
 __all__ = [
-    "Clip",
     "FrameRejected",
     "HumanSource",
     "OperatorParams",
+    "ReplayClip",
     "ReplaySource",
     "SimulatedOperator",
     "StreamSource",
-    "load_clip",
+    "load_replay_clip",
     "make_human_source",
     "place_clip",
     "save_clip",
@@ -56,8 +56,9 @@ ANKLE_HEIGHT_M = 0.08
 # Clips
 # ---------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
-class Clip:
-    """A recorded motion in the canonical joint set.
+class ReplayClip:
+    """A recorded motion to replay, in the canonical joint set (a training clip is
+    :class:`app.prediction.data.Clip`).
 
     Attributes:
         times: Frame times (T,), seconds from the clip's start (strictly increasing, ``times[0] == 0``).
@@ -82,7 +83,7 @@ class Clip:
             )
 
 
-def load_clip(path: str | Path, *, fps: float | None = None) -> Clip:
+def load_replay_clip(path: str | Path, *, fps: float | None = None) -> ReplayClip:
     """Read a clip for replay (:func:`app.prediction.data.read_clip_file`, the one reader of clip files:
     the shared CMU format, ``hrc export --clips`` and the app's own recordings), at its own frame times.
 
@@ -93,7 +94,7 @@ def load_clip(path: str | Path, *, fps: float | None = None) -> Clip:
     from app.prediction.data import read_clip_file
 
     f = read_clip_file(path, fps=fps)
-    return Clip(
+    return ReplayClip(
         times=f.times,
         joints=f.joints,
         confidence=f.confidence,
@@ -104,7 +105,7 @@ def load_clip(path: str | Path, *, fps: float | None = None) -> Clip:
 
 def save_clip(path: str | Path, frames: Sequence[HumanFrame], *, fps: float = 30.0) -> Path:
     """Write frames as a canonical recording (``t``, ``joints``, ``confidence``, ``joint_names``, ``parents``,
-    ``fps``): the format :func:`load_clip` and :class:`ReplaySource` read back."""
+    ``fps``): the format :func:`load_replay_clip` and :class:`ReplaySource` read back."""
     if not frames:
         raise ValueError("save_clip needs at least one frame")
     p = Path(path)
@@ -158,7 +159,7 @@ class ReplaySource(HumanSource):
     before.
 
     Args:
-        path: The clip (see :func:`load_clip`).
+        path: The clip (see :func:`load_replay_clip`).
         cell: The work cell (for the placement).
         t0: Time of the clip's first frame (s, runtime clock).
         loop: Go on after the end, backwards then forwards (ping-pong); otherwise hold the last frame (the
@@ -181,7 +182,7 @@ class ReplaySource(HumanSource):
         fps: float | None = None,
     ) -> None:
         self.path = Path(path)
-        self.clip = load_clip(self.path, fps=fps)
+        self.clip = load_replay_clip(self.path, fps=fps)
         self.joints = place_clip(self.clip.joints, cell, yaw_offset=yaw_offset) if place else self.clip.joints
         self.t0 = float(t0)
         self.loop = bool(loop)

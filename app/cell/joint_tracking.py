@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.cell._kernels import TrackerCommand, TrackerModel, track_substeps
+from app.cell._kernels import JointTrackerParams, TrackerCommand, track_substeps
 
 __all__ = ["JointLimits", "JointTracker", "ServoCommand", "warm_up_compiled"]
 
@@ -135,7 +135,7 @@ class JointTracker:
         self.qd = np.zeros(6)
         self.command: ServoCommand | None = None
         # the compiled loop's arguments (kp and hold_after_s are fixed from here on)
-        self._model = TrackerModel(
+        self._params = JointTrackerParams(
             self.hold_after_s,
             self.kp,
             self._ref_lo,
@@ -185,7 +185,7 @@ class JointTracker:
         n, h, s = self._substeps(dt_s, speed_scale)
         if n == 0:
             return
-        track_substeps(self.q, self.qd, float(t), h, n, s, bool(stopping), self._command, self._model)
+        track_substeps(self.q, self.qd, float(t), h, n, s, bool(stopping), self._command, self._params)
 
     def _substeps(self, dt_s: float, speed_scale: float) -> tuple[int, float, float]:
         """Number and length (s) of the substeps of a step of ``dt_s`` >= 0 seconds, and the speed scale

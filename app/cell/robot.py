@@ -1,11 +1,11 @@
 """Robot backends: one protocol and a simulated UR5e; the real one over RTDE is in
-:mod:`app.cell.rtde_process`, and :func:`app.cell.backends.make_robot` picks one by settings.
+:mod:`app.cell.rtde`, and :func:`app.cell.backends.make_robot` picks one by settings.
 
 - :class:`SimRobot` is a kinematic UR5e: it tracks servo set-points within the joint position, velocity
   and acceleration limits, applies a speed scale and a latched protective stop, and steps on any
   :class:`~app.cell.clock.Clock` (lazily, up to ``clock.now()``, or explicitly with :meth:`SimRobot.step`).
-- :class:`~app.cell.rtde_process.RtdeRobot` drives a real UR over ``ur_rtde`` from a worker process (see
-  :mod:`app.cell.rtde_process` for why a process and not a thread).
+- :class:`~app.cell.rtde.backend.RtdeRobot` drives a real UR over ``ur_rtde`` from a worker process (see
+  :mod:`app.cell.rtde` for why a process and not a thread).
 
 Joint positions in rad, velocities in rad/s, times in seconds on the runtime's clock.
 """

@@ -112,7 +112,7 @@ def check(
     with --suggest, where to move the drop stations that the person's work blocks."""
     import numpy as np
 
-    from app.cell.human import load_clip, place_clip
+    from app.cell.human import load_replay_clip, place_clip
     from app.cell.recording import simulated_operator_sequences
     from app.commands import fail, load_settings, load_workcell_or_fail
     from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
@@ -127,7 +127,7 @@ def check(
             if not path.is_file():
                 fail(f"--clip: clip {path} does not exist")
             try:
-                clip = load_clip(path, fps=fps)
+                clip = load_replay_clip(path, fps=fps)
             except ValueError as exc:
                 fail(f"--clip: {exc}")
             recordings.append(place_clip(clip.joints, cell) if place else np.asarray(clip.joints))

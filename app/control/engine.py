@@ -356,8 +356,8 @@ class Snapshot:
         method: Method of the running trial, or None.
         speed_scale: Speed scale along the path, 0..1.
         separation_m: The separation (m) of the part that limits the robot from the body regions it keeps
-            ``S_p`` from (:attr:`app.control.counters.SupervisorStatus.separation_m`), None when nobody
-            was seen.
+            ``S_p`` from (:attr:`app.control.supervisor_types.SupervisorStatus.separation_m`), None when
+            nobody was seen.
         required_separation_m: The separation (m) the speed governor holds that part to at its current
             speed (what it needs to move, where it is stopped).
         planning_ms: Recent backup-plan compute times (ms), oldest first.
@@ -373,8 +373,8 @@ class Snapshot:
         trial_elapsed_s: Seconds since the trial started, or None.
         trial_duration_s: The trial's planned duration, or None.
         time_budget: Where the running trial's time went so far (:meth:`TrialEngine.time_budget`: seconds
-            per part of :data:`app.control.counters.TIME_BUDGET`, and ``mean_scale_when_scaled``); empty
-            without a trial.
+            per part of :data:`app.control.supervisor_types.TIME_BUDGET`, and ``mean_scale_when_scaled``);
+            empty without a trial.
         time_budget_by_goal: The same per task pose so far (:meth:`TrialEngine.time_budget`); empty without a
             trial.
         part_modes: What limits each robot part now (:class:`app.safety.modes.PartMode`); empty without a
@@ -1047,8 +1047,8 @@ class TrialEngine:
     def time_budget(self) -> tuple[dict[str, float], dict[str, dict[str, float]]]:
         """Where the trial's time went, from one copy of the supervisor's counters (the two agree):
 
-        - seconds per :data:`app.control.counters.TIME_BUDGET` part (they sum to the trial's duration), and
-          ``mean_scale_when_scaled``, the mean speed scale over ``moving_scaled``;
+        - seconds per :data:`app.control.supervisor_types.TIME_BUDGET` part (they sum to the trial's
+          duration), and ``mean_scale_when_scaled``, the mean speed scale over ``moving_scaled``;
         - the same per task pose: for each goal the robot headed for (or waited to leave for; the gripper's
           dwell counts under the pose where it grips or releases, ``"none"`` is time without a goal), the
           seconds per part spent on it (parts with none left out) and their ``total``, the goals in order of

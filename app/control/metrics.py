@@ -78,12 +78,12 @@ class TrialMetrics:
     decision); the others came to a robot the speed governor already held still (a hand within the stop
     distance of a part its plan was about to move): they stop nothing, their cost is the replan.
 
-    ``budget_*_s`` are the trial's time budget (:data:`app.control.counters.TIME_BUDGET`: where its time went,
-    the parts summing to ``duration_s``; ``budget_stopped_s`` counts the governor's holds at scale 0 as well,
-    unlike ``time_stopped_s``, the supervisor's stopped state). ``arrivals`` counts the plans that reached
-    their goal; ``arrival_error_median_abs_s`` and ``arrival_error_bias_s`` compare their predicted arrival
-    with the executed one (median absolute error; mean of executed minus predicted, positive: late), and
-    ``median_plan_s`` is their median planned duration (all three NaN without arrivals)."""
+    ``budget_*_s`` are the trial's time budget (:data:`app.control.supervisor_types.TIME_BUDGET`: where its
+    time went, the parts summing to ``duration_s``; ``budget_stopped_s`` counts the governor's holds at scale
+    0 as well, unlike ``time_stopped_s``, the supervisor's stopped state). ``arrivals`` counts the plans that
+    reached their goal; ``arrival_error_median_abs_s`` and ``arrival_error_bias_s`` compare their predicted
+    arrival with the executed one (median absolute error; mean of executed minus predicted, positive: late),
+    and ``median_plan_s`` is their median planned duration (all three NaN without arrivals)."""
 
     method: Method = "proactive"
     duration_s: float = 0.0

@@ -58,14 +58,14 @@ from typing import Any, Literal
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
-from app.control.counters import (
+from app.control.metrics import Method
+from app.control.supervisor_types import (
     FrameDecision,
-    ServoCommand,
     SupervisorCounters,
     SupervisorState,
     SupervisorStatus,
+    TickCommand,
 )
-from app.control.metrics import Method
 from app.control.trajectory_views import (
     Goal,
     HoldTrajectory,
@@ -802,7 +802,7 @@ class Supervisor:
     # servo tick
     # ------------------------------------------------------------------------------------------------
 
-    def servo(self, t: float) -> ServoCommand:
+    def servo(self, t: float) -> TickCommand:
         """Advance execution to time ``t`` (s) and return the command for the robot."""
         with self._lock:
             dt = max(float(t) - self._t, 0.0)
@@ -812,7 +812,7 @@ class Supervisor:
                 self._v_cmd[:] = 0.0
                 self._v_inst[:] = 0.0
                 self._account(dt)
-                return ServoCommand(t, self._q_cmd.copy(), np.zeros(6), 0.0, True)
+                return TickCommand(t, self._q_cmd.copy(), np.zeros(6), 0.0, True)
             if self._brake is not None:
                 self._servo_brake(t)
             else:
@@ -826,7 +826,7 @@ class Supervisor:
             self._travel += self._v_cmd * dt
             self._q_cmd = q
             self._account(dt)
-            return ServoCommand(t, q.copy(), qd, self._s, bool(not np.any(qd)))
+            return TickCommand(t, q.copy(), qd, self._s, bool(not np.any(qd)))
 
     def _servo_brake(self, t: float) -> None:
         b = self._brake

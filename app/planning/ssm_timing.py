@@ -19,8 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from app.planning._kernels.timing import TimingGovernor, TimingPath, TimingPerson
-from app.planning._kernels.timing import predicted_scales as _kernel_predicted_scales
+from app.planning._kernels.timing import TimingGovernor, TimingPath, TimingPerson, predicted_scales_kernel
 from app.planning.trajectory import Trajectory, sample_times
 from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, GovernorModel
 
@@ -55,7 +54,8 @@ def predicted_scales(
     traj: Trajectory, forecast: Any, collision: Any, model: GovernorModel, *, step_s: float = STEP_S
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Walk along ``traj`` at the governor's predicted scale (compiled:
-    :func:`app.planning._kernels.timing.predicted_scales`; the tests compare it with a NumPy reference).
+    :func:`app.planning._kernels.timing.predicted_scales_kernel`; the tests compare it with a NumPy
+    reference).
 
     At each sample point the forecast person at the wall time the robot gets there (and a speed window
     earlier) gives each part's separation, the person's directed speed toward it
@@ -87,7 +87,7 @@ def predicted_scales(
     ha, hb, hr = collision.human_capsules(np.asarray(forecast.joints, dtype=np.float64))
     path = TimingPath(tau, _f64(ra), _f64(rb - ra), _f64(rr), _f64(v), _f64(w))
     person = TimingPerson(_f64(forecast.times), _f64(ha), _f64(hb - ha), _f64(hr))
-    t, scales = _kernel_predicted_scales(path, person, _governor_arrays(model, ahead, hr.shape[0]), float(t0))
+    t, scales = predicted_scales_kernel(path, person, _governor_arrays(model, ahead, hr.shape[0]), float(t0))
     return tau, t, scales
 
 

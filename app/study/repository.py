@@ -30,8 +30,8 @@ from sqlalchemy import Engine, delete, func, insert, select, update
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, joinedload, sessionmaker
 
-from app.control.counters import TIME_BUDGET
 from app.control.metrics import METHODS, TrialEvent, TrialMetrics
+from app.control.supervisor_types import TIME_BUDGET
 from app.study.db import session_factory
 from app.study.models import (
     METRIC_COLUMNS,

@@ -67,8 +67,8 @@ METRIC_LABELS: dict[str, str] = {
     "harmful_contacts": "Harmful contacts (ground truth)",
     "exceedance_s": "Person faster than assumed (s)",
 }
-#: The time budget's parts (:data:`app.control.counters.TIME_BUDGET`) as the trial rows store them, and their
-#: names for people (the dashboard's).
+#: The time budget's parts (:data:`app.control.supervisor_types.TIME_BUDGET`) as the trial rows store them,
+#: and their names for people (the dashboard's).
 BUDGET_LABELS: dict[str, str] = {
     "moving_full": "moving, full speed",
     "moving_scaled": "moving, slowed",

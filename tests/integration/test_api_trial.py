@@ -15,7 +15,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
-from app.api.live import WS_MESSAGE_TOO_BIG, WS_POLICY_VIOLATION, LiveLimits
+from app.api.live_hub import WS_MESSAGE_TOO_BIG, WS_POLICY_VIOLATION, LiveLimits
 from app.config import Settings
 
 TOKEN = "trial-token-0123456789abcdef"

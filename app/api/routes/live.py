@@ -1,6 +1,6 @@
 """``/api/live`` (runtime snapshots at up to 30 Hz) and ``/api/ingest`` (skeleton frames from a tracker).
 
-See :mod:`app.api.live` for the fan-out, the bounds and the message formats.
+See :mod:`app.api.live_hub` for the fan-out, the bounds and the message formats.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from app.api.auth import bearer_token, tokens_match
 from app.api.deps import ApiContext
-from app.api.live import (
+from app.api.live_hub import (
     WS_MESSAGE_TOO_BIG,
     WS_POLICY_VIOLATION,
     WS_TRY_AGAIN_LATER,

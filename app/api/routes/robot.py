@@ -11,7 +11,7 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, status
 
 from app.api.deps import RuntimeDep
-from app.api.live import finite_json, snapshot_json
+from app.api.live_hub import finite_json, snapshot_json
 from app.api.schemas import AUTH_RESPONSES, CONFLICT, RobotStatus, robot_status
 from app.control.runtime import Runtime, Snapshot
 

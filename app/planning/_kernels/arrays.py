@@ -25,8 +25,8 @@ __all__ = [
     "CapsuleBounds",
     "Clearance",
     "ForecastPoses",
-    "JointLimits",
     "KernelGeometry",
+    "KernelJointLimits",
     "Knots",
     "MotionModel",
     "Moves",
@@ -133,8 +133,9 @@ class Clearance(NamedTuple):
 
 
 # ------------------------------------------------------------------------------------ the planner's tables
-class JointLimits(NamedTuple):
-    """Joint limits (6,) each (rad)."""
+class KernelJointLimits(NamedTuple):
+    """The planner's joint position limits (6,) each (rad), as the kernels read them (the cell's are
+    :class:`app.cell.joint_tracking.JointLimits`)."""
 
     lo: np.ndarray
     hi: np.ndarray
@@ -203,7 +204,8 @@ class RoadmapTables(NamedTuple):
 
 # ------------------------------------------------------------------------------------------ one search
 class SearchContext(NamedTuple):
-    """The successor generation's constants of one search (:meth:`app.planning.search.run._Run._context`)."""
+    """The successor generation's constants of one search
+    (:meth:`app.planning.search.search_state._Run._context`)."""
 
     #: ``goal`` (-2: none), path acceleration, shortest move, heuristic weight, stop time (NaN: none),
     #: latest arrival, latest arrival at other nodes than the goal, cruise speed
@@ -213,7 +215,7 @@ class SearchContext(NamedTuple):
 
 
 class SearchState(NamedTuple):
-    """The records of one search (:class:`app.planning.search.run._Run`): one column per state."""
+    """The records of one search (:class:`app.planning.search.search_state._Run`): one column per state."""
 
     F: np.ndarray  #: (9, N) float fields (``REC_T`` ...)
     I: np.ndarray  #: (5, N) int64 fields (``REC_NODE`` ...)  # noqa: E741

@@ -1,5 +1,5 @@
-"""The search's bookkeeping, compiled: its state records (:class:`app.planning.search.run._Run`) as the
-kernels see them, successor generation and timing (children, alternatives, the lookahead chain), the
+"""The search's bookkeeping, compiled: its state records (:class:`app.planning.search.search_state._Run`) as
+the kernels see them, successor generation and timing (children, alternatives, the lookahead chain), the
 per-batch set-up and storing of the move check, and the samples of standing still."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 
 from app.planning._kernels.arrays import (
     CapsuleBounds,
-    JointLimits,
+    KernelJointLimits,
     PersonForecast,
     Requirement,
     RoadmapTables,
@@ -51,8 +51,8 @@ __all__ = [
     "wait_samples",
 ]
 
-# The search's state records (:class:`app.planning.search.run._Run`) as the kernels see them: one row per
-# field of three packed arrays (float, int, bool) and one column per state.
+# The search's state records (:class:`app.planning.search.search_state._Run`) as the kernels see them: one row
+# per field of three packed arrays (float, int, bool) and one column per state.
 REC_T, REC_U, REC_U0, REC_DEP, REC_FC, REC_L, REC_H, REC_PEAK, REC_WAIT_OK = range(9)
 REC_NODE, REC_BRANCH, REC_PARENT, REC_ROW, REC_SPEC_CHILD = range(5)
 REC_END, REC_SAME, REC_ACCEPTED, REC_QSET = range(4)
@@ -87,8 +87,8 @@ def _record_move(
     n0: int,
 ) -> int:
     """Time one move and record it as state ``n`` if it can improve its node and passes the prune (the
-    per-move body of :meth:`app.planning.search.run._Run.moves`); returns the next free state. Its key and
-    arrival time go to ``keys``/``tas`` at ``n - n0``."""
+    per-move body of :meth:`app.planning.search.search_state._Run.moves`); returns the next free state. Its
+    key and arrival time go to ``keys``/``tas`` at ``n - n0``."""
     par, node, branch, L, same = mv.parent, mv.node, mv.branch, mv.L, mv.same
     t_dep, u0, fc, alt, row = mv.t_dep, mv.u0, mv.fc, mv.alt, mv.row
     ctx, h_tab, h_pred = search.ctx, search.h_tab, search.h_pred
@@ -149,9 +149,9 @@ def children_moves(
     state: SearchState,
     n0: int,
 ) -> tuple[int, np.ndarray, np.ndarray]:
-    """:meth:`app.planning.search.run._Run.children` (then ``moves``): the moves from the states ``sids`` to
-    all roadmap neighbours (nearest branch, cruise speed ``f``; a speculative chain's move is not made
-    twice), recorded from state ``n0`` on in the same order. Returns (next free state, keys, arrival
+    """:meth:`app.planning.search.search_state._Run.children` (then ``moves``): the moves from the states
+    ``sids`` to all roadmap neighbours (nearest branch, cruise speed ``f``; a speculative chain's move is not
+    made twice), recorded from state ``n0`` on in the same order. Returns (next free state, keys, arrival
     times) of the recorded states. ``search.ctx``: ``goal`` (-2: none), path acceleration, shortest move,
     heuristic weight, stop time (NaN: none), latest arrival, latest arrival at other nodes than the goal,
     cruise speed."""
@@ -199,10 +199,10 @@ def alternative_moves(
     state: SearchState,
     n0: int,
 ) -> tuple[int, np.ndarray, np.ndarray]:
-    """:meth:`app.planning.search.run._Run.alternatives` (then ``moves``): for each failed nearest-branch move
-    the alternatives ``kinds`` (A, 4) = (kind, option, cruise speed, wait steps), alternative-major as
-    there, recorded from state ``n0`` on; the options of the start's rows (-1 - j) are ``start_b``/``start_L``
-    (branch, length). Returns as :func:`children_moves`."""
+    """:meth:`app.planning.search.search_state._Run.alternatives` (then ``moves``): for each failed
+    nearest-branch move the alternatives ``kinds`` (A, 4) = (kind, option, cruise speed, wait steps),
+    alternative-major as there, recorded from state ``n0`` on; the options of the start's rows (-1 - j) are
+    ``start_b``/``start_L`` (branch, length). Returns as :func:`children_moves`."""
     roadmap = RoadmapTables(*roadmap)
     search = SearchContext(*search)
     state = SearchState(*state)
@@ -250,17 +250,17 @@ def speculate_chain(
     max_len: int,
     nxt: np.ndarray,
     roadmap: RoadmapTables,
-    limits: JointLimits,
+    limits: KernelJointLimits,
     search: SearchContext,
     state: SearchState,
     n0: int,
 ) -> tuple[int, np.ndarray, np.ndarray]:
-    """:meth:`app.planning.search.run._Run.speculate`: the lookahead chain of up to ``max_len`` moves from the
-    unchecked state ``sid`` along ``nxt`` (per node branch, the option row of the static shortest path's
-    next move, or -1), recorded from state ``n0`` on (the capacity is the caller's). ``search`` as in
+    """:meth:`app.planning.search.search_state._Run.speculate`: the lookahead chain of up to ``max_len`` moves
+    from the unchecked state ``sid`` along ``nxt`` (per node branch, the option row of the static shortest
+    path's next move, or -1), recorded from state ``n0`` on (the capacity is the caller's). ``search`` as in
     :func:`children_moves`. Returns (next free state, keys, arrival times)."""
     roadmap = RoadmapTables(*roadmap)
-    limits = JointLimits(*limits)
+    limits = KernelJointLimits(*limits)
     search = SearchContext(*search)
     state = SearchState(*state)
     indices, ord_flat, L_flat = roadmap.indices, roadmap.ord_flat, roadmap.L_flat
@@ -358,14 +358,14 @@ def check_prepare(
     batch: np.ndarray,
     state: SearchState,
     ik: np.ndarray,
-    limits: JointLimits,
+    limits: KernelJointLimits,
     tables: CapsuleBounds,
     start: CapsuleBounds,
     goal: int,
     hold_default: bool,
 ) -> tuple[np.ndarray, ...]:
-    """The per-batch set-up of :meth:`app.planning.search.run._Run.check` for the states ``batch`` (M,)
-    (``ik``: :attr:`RoadmapTables.ik`).
+    """The per-batch set-up of :meth:`app.planning.search.search_state._Run.check` for the states ``batch``
+    (M,) (``ik``: :attr:`RoadmapTables.ik`).
 
     Returns ``target`` (M, 6): the state's branch aligned next to its parent's configuration (or its
     precomputed configuration), ``same`` (M,): the roadmap's static edge check covers the move (the record's
@@ -378,7 +378,7 @@ def check_prepare(
     the move is the one between the stored branch configurations (M,) (the static-check memo's
     condition)."""
     state = SearchState(*state)
-    limits = JointLimits(*limits)
+    limits = KernelJointLimits(*limits)
     tables = CapsuleBounds(*tables)
     start = CapsuleBounds(*start)
     F, I, B, q = state.F, state.I, state.B, state.q  # noqa: E741
@@ -460,8 +460,8 @@ def check_prepare(
 def check_store(
     batch: np.ndarray, ok: np.ndarray, target: np.ndarray, q: np.ndarray, status: np.ndarray
 ) -> None:
-    """The end of :meth:`app.planning.search.run._Run.check`: the configurations of the moves that passed and
-    every move's status (1 passed, 2 failed)."""
+    """The end of :meth:`app.planning.search.search_state._Run.check`: the configurations of the moves that
+    passed and every move's status (1 passed, 2 failed)."""
     for k in range(batch.shape[0]):
         s = batch[k]
         if ok[k]:
@@ -487,10 +487,11 @@ def wait_samples(
     forecast: PersonForecast,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The samples of standing still at each state of ``todo`` for :func:`sample_separation_ok` (as
-    :meth:`app.planning.search.run._Run._check_waits` builds them): every ``step`` s after its arrival,
-    ``n_w`` of them, at rest. Returns ``(q (S, 6), t (n_off, S), req (n_off, S), cen (S, L, 3), rad (S, L), ts
-    (n, n_w))`` with ``S = n * n_w``; ``req`` is :func:`_required` at speed 0 and the margin at each time
-    (the spheres: of the node ``tables``, the ``start``'s where the state is not at a roadmap node)."""
+    :meth:`app.planning.search.search_state._Run._check_waits` builds them): every ``step`` s after its
+    arrival, ``n_w`` of them, at rest. Returns ``(q (S, 6), t (n_off, S), req (n_off, S), cen (S, L, 3), rad
+    (S, L), ts (n, n_w))`` with ``S = n * n_w``; ``req`` is :func:`_required` at speed 0 and the margin at
+    each time (the spheres: of the node ``tables``, the ``start``'s where the state is not at a roadmap
+    node)."""
     state = SearchState(*state)
     tables = CapsuleBounds(*tables)
     start = CapsuleBounds(*start)

@@ -1,8 +1,8 @@
 """Compiled loop of the SSM-aware timing (numba): the governor's scale predicted along a path.
 
-:func:`predicted_scales` is the loop of :func:`app.planning.ssm_timing.predicted_scales`: it walks along a
-path, asks the forecast where the person will be when the robot gets to each point (the wall time there
-depends on every scale before it, so the walk is sequential), measures the separation, the person's
+:func:`predicted_scales_kernel` is the loop of :func:`app.planning.ssm_timing.predicted_scales`: it walks
+along a path, asks the forecast where the person will be when the robot gets to each point (the wall time
+there depends on every scale before it, so the walk is sequential), measures the separation, the person's
 directed speed and each part's speed toward the person (at the points of :func:`toward_steps`) as the
 supervisor would, and applies the governor's model (:meth:`app.safety.governor.GovernorModel.scale`, with
 the governor's own compiled envelope and law, :func:`app.safety.governor.max_scale` and
@@ -20,7 +20,7 @@ from app.jit import jit
 from app.planning._kernels.base import _seg_dist
 from app.safety.governor import approach, law_scale, max_scale
 
-__all__ = ["TimingGovernor", "TimingPath", "TimingPerson", "predicted_scales", "toward_steps"]
+__all__ = ["TimingGovernor", "TimingPath", "TimingPerson", "predicted_scales_kernel", "toward_steps"]
 
 
 class TimingPath(NamedTuple):
@@ -159,7 +159,7 @@ def toward_steps(i: int, n: int, ahead: int) -> np.ndarray:
 
 
 @jit
-def predicted_scales(
+def predicted_scales_kernel(
     path: TimingPath, person: TimingPerson, gov: TimingGovernor, t0: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """The wall times (N + 1,) at which the robot reaches each point of ``path`` (the first is ``t0``) and the

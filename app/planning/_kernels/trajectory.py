@@ -11,7 +11,7 @@ import numpy as np
 from app.planning._kernels.arrays import (
     Clearance,
     ForecastPoses,
-    JointLimits,
+    KernelJointLimits,
     Knots,
     PersonCapsules,
     RobotArrays,
@@ -54,7 +54,7 @@ def trajectory_first_violation(
     tq1: np.ndarray,
     eps: float,
     knots: Knots,
-    limits: JointLimits,
+    limits: KernelJointLimits,
     forecast: ForecastPoses,
     clearance: Clearance,
     robot: RobotArrays,
@@ -73,7 +73,7 @@ def trajectory_first_violation(
     checked in order and the check stops at the first failure; a NaN counts as a failure.
     """
     knots = Knots(*knots)
-    limits = JointLimits(*limits)
+    limits = KernelJointLimits(*limits)
     forecast = ForecastPoses(*forecast)
     clearance = Clearance(*clearance)
     robot = RobotArrays(*robot)

@@ -95,7 +95,7 @@ from app.planning.search.planner import Planner
 from app.planning.search.profiles import _profile_arrays as _profile_arrays
 from app.planning.search.profiles import _profile_samples as _profile_samples
 from app.planning.search.roadmap_view import RoadmapView
-from app.planning.search.run import _Run as _Run
+from app.planning.search.search_state import _Run as _Run
 from app.planning.trajectory import Plan
 
 __all__ = ["Plan", "PlanResult", "Planner", "PlannerConfig", "RoadmapView", "RobotModel"]

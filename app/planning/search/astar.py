@@ -20,7 +20,7 @@ from app.planning.search.profiles import (
     _NO_ROW,
     _profile_arrays,
 )
-from app.planning.search.run import _Run
+from app.planning.search.search_state import _Run
 from app.planning.search.separation import _Separation
 from app.planning.trajectory import Plan
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from app.planning import _kernels
 from app.planning.search.config import GOAL_BLOCKED, GOAL_WAYS_BLOCKED
-from app.planning.search.run import _Run
+from app.planning.search.search_state import _Run
 
 
 class _OpenList:

@@ -32,7 +32,7 @@ from app.planning.search.config import (
 from app.planning.search.moves import _MoveChecks
 from app.planning.search.open_list import _OpenList
 from app.planning.search.roadmap_view import RoadmapView
-from app.planning.search.run import _Run
+from app.planning.search.search_state import _Run
 from app.planning.search.separation import _Separation
 from app.planning.search.shortcut import _Shortcuts
 from app.planning.search.tables import _StaticTables
@@ -135,7 +135,7 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
                 )
             )
             self._k_limits = pack(
-                _kernels.JointLimits(_kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max))
+                _kernels.KernelJointLimits(_kernels.as_f64(self.q_min), _kernels.as_f64(self.q_max))
             )
             self._k_motion = pack(
                 _kernels.MotionModel(

@@ -3,8 +3,8 @@ compiled packing, the IK branches and the planner's alignment, metric, geometry 
 read-only.
 
 The :class:`~app.planning.search.planner.Planner` builds one view when it is constructed
-(``Planner.view``); every search (:class:`app.planning.search.run._Run`) reads the roadmap only through
-it, never through the planner's own attributes."""
+(``Planner.view``); every search (:class:`app.planning.search.search_state._Run`) reads the roadmap only
+through it, never through the planner's own attributes."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ class RoadmapView:
         next_rows_k: The same rows as int64 arrays, for the compiled lookahead.
         compiled: Whether the compiled checks and bookkeeping are in use (the ``k_*`` fields are set).
         k_roadmap: :class:`app.planning._kernels.RoadmapTables`, packed (None when not ``compiled``).
-        k_limits: :class:`app.planning._kernels.JointLimits`, packed (None when not ``compiled``).
+        k_limits: :class:`app.planning._kernels.KernelJointLimits`, packed (None when not ``compiled``).
         k_tables: :class:`app.planning._kernels.CapsuleBounds` per row ``node * 8 + branch``, packed.
         k_motion: :class:`app.planning._kernels.MotionModel`, packed (None when not ``compiled``).
         k_ik: ``ik`` as the kernels take it (None when not ``compiled``).

@@ -398,7 +398,7 @@
     }
   }
 
-  // the parts of the time budget (app.control.counters.TIME_BUDGET), in the order they are shown
+  // the parts of the time budget (app.control.supervisor_types.TIME_BUDGET), in the order they are shown
   const BUDGET_PARTS = [
     ["moving_full", "moving, full speed", "#2e7d32"],
     ["moving_scaled", "moving, slowed", "#66bb6a"],

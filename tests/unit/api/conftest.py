@@ -16,7 +16,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from app.api.app import create_app
-from app.api.live import LiveLimits
+from app.api.live_hub import LiveLimits
 from app.cell.validation import FrameRejected
 from app.config import Settings
 from app.control.metrics import TrialEvent, TrialMetrics

@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
-from app.api.live import (
+from app.api.live_hub import (
     WS_MESSAGE_TOO_BIG,
     WS_POLICY_VIOLATION,
     WS_TRY_AGAIN_LATER,

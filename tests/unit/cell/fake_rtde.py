@@ -344,7 +344,7 @@ class FakeControl:
 
 
 def fake_control_factory(host: str, rate_hz: float) -> FakeControl:
-    """``control_factory`` for :class:`~app.cell.rtde_process.RtdeRobot` (runs in the worker process)."""
+    """``control_factory`` for :class:`~app.cell.rtde.backend.RtdeRobot` (runs in the worker process)."""
     return FakeControl(host, rate_hz)
 
 

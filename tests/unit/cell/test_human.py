@@ -16,7 +16,7 @@ from app.cell.human import (
     ReplaySource,
     SimulatedOperator,
     StreamSource,
-    load_clip,
+    load_replay_clip,
     make_human_source,
     place_clip,
     save_clip,
@@ -228,7 +228,7 @@ def _sim_clip(tmp_path: Path, seconds: float = 2.0) -> Path:
 
 def test_recordings_round_trip_and_replay_forth_and_back_without_a_jump(tmp_path: Path) -> None:
     path = _sim_clip(tmp_path)
-    clip = load_clip(path)
+    clip = load_replay_clip(path)
     assert clip.source == "canonical" and clip.joints.shape == (60, NUM_JOINTS, 3)
     assert clip.period_s == pytest.approx(2.0)
     src = ReplaySource(path, CELL, t0=10.0, place=False)
@@ -256,7 +256,7 @@ def test_recordings_round_trip_and_replay_forth_and_back_without_a_jump(tmp_path
 
 def test_placement_faces_the_robot_with_feet_on_the_floor(tmp_path: Path) -> None:
     path = _sim_clip(tmp_path)
-    clip = load_clip(path)
+    clip = load_replay_clip(path)
     # turn and move the recording somewhere else, then place it back
     c, s = math.cos(1.0), math.sin(1.0)
     moved = clip.joints @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]).T + np.array([5.0, -3.0, 0.4])
@@ -289,14 +289,14 @@ def test_cmu_clip_replays_in_the_operator_area(cmu_dir: Path) -> None:
 def test_exported_clips_replay_as_recorded(tmp_path: Path) -> None:
     """The clips of ``hrc export --clips`` (canonical ``positions`` named in ``joint_names``) are read as the
     canonical recording they are, not as the CMU format (the replay source and ``hrc cell check``)."""
-    rec = load_clip(_sim_clip(tmp_path))
+    rec = load_replay_clip(_sim_clip(tmp_path))
     np.savez_compressed(
         tmp_path / "exported.npz",
         positions=rec.joints.astype(np.float32),
         fps=np.float64(30.0),
         joint_names=np.array(JOINTS),
     )
-    clip = load_clip(tmp_path / "exported.npz")
+    clip = load_replay_clip(tmp_path / "exported.npz")
     assert clip.source == "canonical" and clip.joints.shape == rec.joints.shape
     np.testing.assert_allclose(clip.joints, rec.joints, atol=1e-6)
     np.testing.assert_allclose(clip.times, rec.times)
@@ -305,15 +305,15 @@ def test_exported_clips_replay_as_recorded(tmp_path: Path) -> None:
 def test_bad_clip_files_are_explained(tmp_path: Path) -> None:
     np.savez(tmp_path / "x.npz", foo=np.zeros(3))
     with pytest.raises(ValueError, match="neither 'positions'"):
-        load_clip(tmp_path / "x.npz")
+        load_replay_clip(tmp_path / "x.npz")
     np.savez(tmp_path / "y.npz", positions=np.zeros((5, 20, 3)))
     with pytest.raises(ValueError, match=r"\(T, 38, 3\) or the canonical joints \(T, 19, 3\)"):
-        load_clip(tmp_path / "y.npz")
+        load_replay_clip(tmp_path / "y.npz")
     np.savez(tmp_path / "z.npz", positions=np.zeros((5, 19, 3)), joint_names=np.array(["a"] * 19))
     with pytest.raises(ValueError, match="named in joint_names"):
-        load_clip(tmp_path / "z.npz")  # 19 joints of another skeleton
+        load_replay_clip(tmp_path / "z.npz")  # 19 joints of another skeleton
     with pytest.raises(ValueError, match="cannot read"):
-        load_clip(tmp_path / "missing.npz")
+        load_replay_clip(tmp_path / "missing.npz")
 
 
 # -- stream -----------------------------------------------------------------------------------------------

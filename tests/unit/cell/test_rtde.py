@@ -43,7 +43,8 @@ from fake_rtde import (
 from app.cell.clock import WallClock
 from app.cell.joint_tracking import JointLimits
 from app.cell.robot import RobotBackend, RobotConnectionError
-from app.cell.rtde_process import RTDE_PORT, RtdeRobot, probe_rtde
+from app.cell.rtde.backend import RtdeRobot
+from app.cell.rtde.wire import RTDE_PORT, probe_rtde
 
 Q0 = [0.1, -1.4, 1.3, -1.5, -1.6, 0.2]
 RATE_HZ = 125.0

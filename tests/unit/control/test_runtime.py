@@ -591,7 +591,7 @@ def test_a_person_who_appears_is_an_intrusion_that_stops_the_robot_in_the_models
 def test_the_time_budget_sums_to_the_trial_and_arrivals_are_compared_with_the_plans(
     stack: PlanningStack,
 ) -> None:
-    from app.control.counters import TIME_BUDGET
+    from app.control.supervisor_types import TIME_BUDGET
 
     res = run_headless_trial(
         settings=Settings(),

@@ -483,7 +483,7 @@ def test_the_compiled_open_list_pops_in_heapq_order() -> None:
 
 
 def test_the_record_layout_matches_the_kernels(planners) -> None:  # type: ignore[no-untyped-def]
-    from app.planning.search.run import _Run
+    from app.planning.search.search_state import _Run
 
     k = _kernels
     assert _Run._FLOAT.index("t") == k.REC_T and _Run._FLOAT.index("wait_ok") == k.REC_WAIT_OK
@@ -511,7 +511,7 @@ def test_compiled_align_equals_the_numpy_align(planners) -> None:  # type: ignor
 
 @pytest.mark.parametrize("offsets", [(0.0,), (-0.05, 0.0, 0.1, 0.2)])
 def test_compiled_wait_checks_equal_the_numpy_wait_checks(cell, planners, offsets) -> None:  # type: ignore[no-untyped-def]
-    from app.planning.search.run import _Run
+    from app.planning.search.search_state import _Run
 
     rm, fast, _ = planners
     rng = np.random.default_rng(13)

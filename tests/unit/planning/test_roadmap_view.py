@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import app.planning.search.run as run_module
+import app.planning.search.search_state as search_state_module
 from app.planning.search import Planner, RoadmapView
 from tests.unit.planning.test_search import PointRobot, config, q_of, roadmap
 
@@ -34,7 +34,7 @@ def test_the_view_is_read_only_and_sees_the_heuristics_computed_after_it() -> No
 
 
 def test_a_search_reads_no_private_attribute_but_its_own() -> None:
-    tree = ast.parse(Path(run_module.__file__).read_text())
+    tree = ast.parse(Path(search_state_module.__file__).read_text())
     foreign = sorted(
         f"{ast.unparse(node.value)}.{node.attr} (line {node.lineno})"
         for node in ast.walk(tree)

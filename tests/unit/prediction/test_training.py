@@ -113,7 +113,7 @@ def test_one_reader_for_every_clip_file(tmp_path: Path) -> None:
     """Training and replay read clip files with one reader: a canonical recording with its own frame times
     (the app's recordings) trains at 30 Hz, interpolated; the replay loader sees the same joints at the
     recorded times; a recording of another skeleton is refused by both, naming the file."""
-    from app.cell.human import load_clip as load_replay
+    from app.cell.human import load_replay_clip
     from app.prediction.data import read_clip_file
 
     pos = _synthetic(1, frames=31)  # 30 Hz, 1 s
@@ -127,7 +127,7 @@ def test_one_reader_for_every_clip_file(tmp_path: Path) -> None:
     f = read_clip_file(tmp_path / "rec.npz")
     assert f.source == "canonical" and not f.uniform
     np.testing.assert_allclose(f.times, t - 5.0)
-    replay = load_replay(tmp_path / "rec.npz")
+    replay = load_replay_clip(tmp_path / "rec.npz")
     np.testing.assert_allclose(replay.times, f.times)
     np.testing.assert_allclose(replay.joints, rec)
     train_clip = load_clip(tmp_path / "rec.npz")
@@ -138,7 +138,7 @@ def test_one_reader_for_every_clip_file(tmp_path: Path) -> None:
     np.testing.assert_allclose(train_clip.positions[0], rec[0])
     np.testing.assert_allclose(train_clip.positions[-1], rec[-1])
     np.savez(tmp_path / "other.npz", t=np.arange(3) / 30, joints=np.zeros((3, 38, 3)))
-    for loader in (load_clip, load_replay, read_clip_file):
+    for loader in (load_clip, load_replay_clip, read_clip_file):
         with pytest.raises(ClipError, match=r"other\.npz: unknown joint set"):
             loader(tmp_path / "other.npz")
     np.savez(tmp_path / "back.npz", t=np.array([0.0, 0.1, 0.05]), joints=np.zeros((3, NUM_JOINTS, 3)))
@@ -147,12 +147,12 @@ def test_one_reader_for_every_clip_file(tmp_path: Path) -> None:
 
 
 def test_a_clip_in_millimetres_is_refused_by_the_one_reader(tmp_path: Path) -> None:
-    from app.cell.human import load_clip as load_replay
+    from app.cell.human import load_replay_clip
     from app.prediction.data import read_clip_file
 
     pos = _synthetic(2, frames=30)
     np.savez(tmp_path / "mm.npz", positions=pos * 1000.0, fps=30.0, joint_names=np.array(JOINTS))
-    for loader in (load_clip, load_replay, read_clip_file):
+    for loader in (load_clip, load_replay_clip, read_clip_file):
         with pytest.raises(ClipError, match=r"mm\.npz.*millimetres"):
             loader(tmp_path / "mm.npz")
     np.savez(tmp_path / "m.npz", positions=pos, fps=30.0, joint_names=np.array(JOINTS))

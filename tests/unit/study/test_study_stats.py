@@ -154,7 +154,7 @@ def test_report_files(tmp_path: Path) -> None:
 
 
 def test_the_report_says_where_the_time_went_and_whether_the_plans_said_when_the_robot_arrives() -> None:
-    from app.control.counters import TIME_BUDGET
+    from app.control.supervisor_types import TIME_BUDGET
 
     rows = _rows()
     parts = list(BUDGET_LABELS)

@@ -101,8 +101,9 @@ class SupervisorCounters:
 
 
 @dataclass(frozen=True, slots=True)
-class ServoCommand:
-    """What the robot is told at one servo tick.
+class TickCommand:
+    """What the supervisor tells the robot at one servo tick (the set-point that the robot's servo follows
+    is :class:`app.cell.joint_tracking.ServoCommand`).
 
     Attributes:
         t: Time of the tick (s).
