@@ -242,7 +242,7 @@ def count_violations(
 
 def _planner_config() -> Any:
     """The runtime's planner settings: its clearance with the ``T_r`` of the default installation
-    (:meth:`app.control.engine.PlanningStack.for_cell`)."""
+    (:meth:`app.control.stack.PlanningStack.for_cell`)."""
     from app.config import Settings
     from app.control.engine import EngineOptions
     from app.planning.search import PlannerConfig

@@ -236,17 +236,6 @@ class _Body:
         lean, twist = posture[0], posture[1]
         return _rz(twist) @ _ry(lean)
 
-    def shoulders(self, posture: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(chest, left shoulder, right shoulder) without protraction."""
-        lean, twist = posture[0], posture[1]
-        p = self.pelvis(posture)
-        spine = p + _rz(0.6 * twist) @ _ry(0.45 * lean) @ np.array([0.0, 0.0, self.l_spine])
-        R = self.torso_rotation(posture)
-        chest = spine + R @ np.array([0.0, 0.0, self.l_chest])
-        ls = chest + R @ np.array([0.0, self.sh_y, self.sh_z])
-        rs = chest + R @ np.array([0.0, -self.sh_y, self.sh_z])
-        return chest, ls, rs
-
     def wrist_target(self, shoulder: np.ndarray, hand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Wrist target and the hand's pointing direction (forward and down, like a grasp from above)."""
         u = _unit(_unit(hand - shoulder) + np.array([0.0, 0.0, -0.7]))

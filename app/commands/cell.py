@@ -115,8 +115,9 @@ def check(
     from app.cell.human import load_replay_clip, place_clip
     from app.cell.recording import simulated_operator_sequences
     from app.commands import fail, load_settings, load_workcell_or_fail
-    from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
+    from app.control.engine import EngineOptions, governor_model, supervisor_config
     from app.control.layout import DEFAULT_MAX_SHIFT_M, check_layout, suggest_stations
+    from app.control.stack import PlanningStack
 
     settings, options = load_settings(), EngineOptions()
     cell = load_workcell_or_fail(settings)

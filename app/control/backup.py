@@ -1,10 +1,13 @@
 """Plan jobs: the backup plans the supervisor asks for under the deadline D, computed by a
-:class:`BackupComputer` inline (headless runs) or by the runtime's planner threads."""
+:class:`BackupComputer` inline (:class:`InlinePlanJobs`, headless runs) or on a pool of planner threads
+(:class:`PoolPlanJobs`, the live runtime)."""
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import dataclasses
 import logging
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,6 +26,7 @@ from app.control.trajectory_views import (
 from app.prediction.forecast import HumanForecast
 
 if TYPE_CHECKING:
+    from app.cell.clock import Clock
     from app.planning.search.config import Blocked
 
 log = logging.getLogger(__name__)
@@ -234,3 +238,68 @@ class InlinePlanJobs:
 
 # ----------------------------------------------------------------------------------------------------
 # The supervisor
+
+
+class PoolPlanJobs:
+    """Live plan jobs: every frame's backup plan runs on a pool of ``ceil(D / F)`` workers (more requests
+    in flight are skipped); a result is taken at ``T_i + D`` and counts only if it was ready by then.
+
+    Args:
+        compute: The backup computer (the planner gets the deadline D).
+        max_jobs: Jobs in flight at most.
+        clock: For the in-flight bookkeeping.
+    """
+
+    def __init__(self, compute: BackupComputer, *, max_jobs: int, clock: Clock) -> None:
+        self.compute = compute
+        self.max_jobs = int(max_jobs)
+        self.clock = clock
+        self._pool = cf.ThreadPoolExecutor(max_workers=self.max_jobs, thread_name_prefix="hrc-planner")
+        self._jobs: dict[int, tuple[cf.Future[PlanOutcome], float]] = {}
+        self._lock = threading.Lock()
+        self.skipped = 0
+
+    def _in_flight(self) -> int:
+        return sum(1 for f, _ in self._jobs.values() if not f.done())
+
+    def submit(self, request: BackupRequest) -> None:
+        with self._lock:
+            if self._pool is None:
+                return
+            if self._in_flight() >= self.max_jobs:
+                self.skipped += 1
+                return
+            fut = self._pool.submit(self.compute, request)
+            self._jobs[request.key] = (fut, self.clock.now())
+            for k in sorted(self._jobs)[: max(len(self._jobs) - 4 * self.max_jobs, 0)]:
+                f, _ = self._jobs.pop(k)
+                f.cancel()
+
+    def take(self, key: int, request: BackupRequest | None = None) -> PlanOutcome:
+        with self._lock:
+            job = self._jobs.pop(key, None)
+        if job is None:
+            return PlanOutcome("skipped", reason=f"no backup job for frame {key} (no worker was free)")
+        fut, t_sub = job
+        if not fut.done():
+            fut.cancel()
+            elapsed = self.clock.now() - t_sub
+            return PlanOutcome("deadline_miss", compute_s=elapsed, reason="not ready at T_i + D")
+        return fut.result()
+
+    def peek(self, key: int) -> PlanOutcome | None:
+        with self._lock:
+            job = self._jobs.get(key)
+        if job is None or not job[0].done():
+            return None
+        return job[0].result()
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+            jobs = list(self._jobs.values())
+            self._jobs.clear()
+        for f, _ in jobs:
+            f.cancel()
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)

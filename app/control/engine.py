@@ -8,8 +8,8 @@ The proactive method's forecast also expects the person to fetch each block the 
 rate with the current time (the live runtime from its threads on the wall clock, the headless runner
 from one loop on the simulated clock).
 
-Also here: :class:`PlanningStack` (kinematics, collision model, roadmap and planner, built once per
-work cell) and :class:`CellGeometry` (the supervisor's and the monitor's view of the robot's body).
+The planning stack and the robot's body are in :mod:`app.control.stack`, what a trial produces and shows
+in :mod:`app.control.results`.
 
 Safety is judged by the ground-truth monitor (:class:`app.safety.monitor.GroundTruthMonitor`) at every
 servo tick: against the *true* person where the caller has one (``truth``: the simulated operator or a
@@ -23,13 +23,11 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -39,454 +37,25 @@ from app.config import Settings, WorkCell
 from app.control.anticipation import FetchAnticipation, FetchAnticipationParams
 from app.control.backup import BackupComputer, PlanJobs
 from app.control.metrics import Method, TrialEvent, TrialMetrics
+from app.control.results import Snapshot, TrialFrames, TrialResult, TrialStatus
+from app.control.stack import CellGeometry, PlanningStack
 from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.task import TaskExecutive
 from app.planning.collision import reach_fingertips
-from app.planning.ssm_timing import part_speeds
 from app.prediction.forecast import HumanForecast, Predictor
 from app.prediction.skeleton import HumanFrame
-from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw, directed_approach
-from app.safety.modes import PartMode, binding_part, mode_text, region_text
-from app.safety.monitor import GroundTruthMonitor, MonitorTotals, is_intrusion
+from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw
+from app.safety.monitor import GroundTruthMonitor, is_intrusion
 from app.safety.pfl import PFLModel
 from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
-
-TrialStatus = Literal["completed", "aborted"]
 
 #: The directed speed (m/s) that the supervisor measures on a still person, per metre of tracker noise per
 #: joint and axis over its speed window: for the SSM-aware timing's prediction of the governor
 #: (:class:`app.safety.governor.GovernorModel.speed_noise_mps`). Tuned on seeds 1000-1003: the median of the
 #: measured directed speed of the simulated operator at work, 0.33 m/s with 1 cm of noise over 0.1 s.
 SPEED_NOISE_GAIN = 3.3
-
-
-# --------------------------------------------------------------------------------------------------------
-# The planning stack and the robot's geometry
-# --------------------------------------------------------------------------------------------------------
-
-
-class CellGeometry:
-    """The UR5e's body as parts, one per capsule of the collision model (the supervisor's
-    :class:`~app.control.trajectory_views.RobotGeometry`).
-
-    A part's speed is that of the faster end of its capsule's axis: on a rigid link every point of the axis
-    moves no faster than that, so it bounds the speed of the capsule's whole surface.
-    """
-
-    def __init__(self, collision: Any, *, fd_step_s: float = 1e-3) -> None:
-        self.collision = collision
-        self.fd_step_s = float(fd_step_s)
-
-    def pair_distances(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
-        """(P, L, M) surface distance (m) of each robot part at ``q`` (6,) to each capsule of the person in
-        poses (P, J, 3) (:meth:`app.planning.collision.CollisionModel.pair_distances`, which checks the
-        shapes)."""
-        return self.collision.pair_distances(np.asarray(q, dtype=np.float64).reshape(6), joints)
-
-    def part_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
-        """(P, L) surface distance (m) of each robot part at ``q`` (6,) to the person in poses (P, J, 3)."""
-        return self.pair_distances(q, joints).min(axis=2)
-
-    def near_person(
-        self, q: np.ndarray, joints: np.ndarray, joints_before: np.ndarray, dt_s: float, *, band_m: float
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Each part's separation (L,) to the person at ``joints`` and the person's *directed* speed (L,)
-        toward it since ``joints_before``, ``dt_s`` earlier
-        (:func:`app.safety.governor.directed_approach`)."""
-        poses = np.stack([np.asarray(joints, dtype=np.float64), np.asarray(joints_before, dtype=np.float64)])
-        d = self.pair_distances(q, poses)  # (2, L, M)
-        return directed_approach(d[0], d[1], dt_s, band_m=band_m)
-
-    def human_static_gaps(self, joints: np.ndarray, capsules: np.ndarray | None = None) -> np.ndarray:
-        """(M,) each of the person's capsules' gap (m) to the static scene, inf but for ``capsules``
-        (:meth:`app.planning.collision.CollisionModel.human_static_gaps`)."""
-        return self.collision.human_static_gaps(joints, capsules)
-
-    def path_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
-        """(K, L) surface distance (m) of each part of the robot at each of ``q`` (K, 6) to the person at
-        ``joints`` (J, 3)."""
-        q = np.asarray(q, dtype=np.float64).reshape(-1, 6)
-        poses = np.broadcast_to(np.asarray(joints, dtype=np.float64), (q.shape[0], *np.shape(joints)))
-        segments = self.collision.robot_segments(q)
-        n_parts = segments[0].shape[0]
-        return np.stack(
-            [
-                self.collision.distance_to_human_paired(q, poses, segments=segments, links=np.array([i]))
-                for i in range(n_parts)
-            ],
-            axis=1,
-        )
-
-    def separation(self, q: np.ndarray, joints: np.ndarray) -> float:
-        """Minimum surface distance (m) robot-person for ``q`` (6,) and ``joints`` (J, 3)."""
-        return float(self.part_separations(q, np.asarray(joints)[None]).min())
-
-    def part_speeds(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-        """(K, L) speed (m/s) of each part for ``q``, ``qd`` (K, 6)
-        (:func:`app.planning.ssm_timing.part_speeds`)."""
-        return part_speeds(self.collision, q, qd, fd_step_s=self.fd_step_s)
-
-
-@dataclass(frozen=True)
-class PlanningStack:
-    """Everything that is built once per work cell: kinematics, collision model, roadmap, planner.
-
-    Build it with :meth:`for_cell` (cached per process and cell).
-    """
-
-    cell: WorkCell
-    kin: Any
-    collision: Any
-    roadmap: Any
-    planner: Any
-    geometry: CellGeometry
-    ssm: Any
-
-    @classmethod
-    def for_cell(
-        cls, cell: WorkCell, *, t_reaction_s: float | None = None, cache_dir: str | Path | None = None
-    ) -> PlanningStack:
-        """The stack of ``cell`` (roadmap from the on-disk cache, built when missing), its planner's clearance
-        with the reaction time ``t_reaction_s`` of the installation
-        (:meth:`app.config.Settings.reaction_time_s`: the ``T_r`` of the governor and the monitor; default
-        :class:`app.safety.ssm.SSMParams`'). Cached per process, cell and ``T_r``."""
-        key = (cell.fingerprint(), None if cache_dir is None else str(cache_dir), t_reaction_s)
-        with _STACK_LOCK:
-            stack = _STACKS.get(key)
-            if stack is None:
-                stack = _build_stack(cell, key[1], t_reaction_s=t_reaction_s)
-                _STACKS[key] = stack
-                while len(_STACKS) > 4:
-                    _STACKS.pop(next(iter(_STACKS)))
-            return stack
-
-    @classmethod
-    def build(
-        cls,
-        cell: WorkCell,
-        *,
-        roadmap_config: Any | None = None,
-        planner_config: Any | None = None,
-        t_reaction_s: float | None = None,
-        cache_dir: str | Path | None = None,
-    ) -> PlanningStack:
-        """A new stack (not cached in the process) with explicit roadmap and planner settings
-        (:class:`app.planning.roadmap.RoadmapConfig`, :class:`app.planning.search.PlannerConfig`);
-        ``t_reaction_s`` replaces the planner settings' ``T_r`` (see :meth:`for_cell`)."""
-        return _build_stack(
-            cell,
-            None if cache_dir is None else str(cache_dir),
-            roadmap_config=roadmap_config,
-            planner_config=planner_config,
-            t_reaction_s=t_reaction_s,
-        )
-
-    def with_reaction_time(self, t_reaction_s: float) -> PlanningStack:
-        """This stack with its planner's clearance at the reaction time ``t_reaction_s`` (``T_r``; see
-        :meth:`for_cell`): a new planner on the same roadmap and collision model, or this stack when it has
-        that ``T_r`` already."""
-        from app.planning.search import Planner
-
-        if math.isclose(self.ssm.t_reaction_s, t_reaction_s, rel_tol=0.0, abs_tol=1e-9):
-            return self  # the tolerance of TrialEngine's check of the stack's T_r
-        config = self.planner.config.with_reaction_time(t_reaction_s)
-        planner = Planner(self.roadmap, self.collision, config=config)
-        return dataclasses.replace(self, planner=planner, ssm=config.ssm)
-
-    def make_trajectory(self, plan: Any, qd0: np.ndarray | None) -> Any:
-        from app.planning.trajectory import Trajectory
-
-        return Trajectory.from_plan(plan, qd0=qd0, kin=self.kin)
-
-    def goal_names(self) -> list[str]:
-        return list(self.roadmap.station_nodes)
-
-
-_STACKS: dict[tuple[str, str | None, float | None], PlanningStack] = {}
-_STACK_LOCK = threading.Lock()
-
-
-def _build_stack(
-    cell: WorkCell,
-    cache_dir: str | None,
-    *,
-    roadmap_config: Any | None = None,
-    planner_config: Any | None = None,
-    t_reaction_s: float | None = None,
-) -> PlanningStack:
-    from app.planning.collision import CollisionModel
-    from app.planning.roadmap import load_or_build_roadmap
-    from app.planning.search import Planner, PlannerConfig
-
-    t0 = time.perf_counter()
-    collision = CollisionModel(cell)
-    roadmap = load_or_build_roadmap(cell, config=roadmap_config, cache_dir=cache_dir, collision=collision)
-    config = planner_config or PlannerConfig()
-    if t_reaction_s is not None:
-        config = config.with_reaction_time(t_reaction_s)
-    planner = Planner(roadmap, collision, config=config)
-    log.info("planning stack for cell %s ready in %.2f s", cell.name, time.perf_counter() - t0)
-    return PlanningStack(
-        cell=cell,
-        kin=collision.kin,
-        collision=collision,
-        roadmap=roadmap,
-        planner=planner,
-        geometry=CellGeometry(collision),
-        ssm=config.ssm,
-    )
-
-
-# --------------------------------------------------------------------------------------------------------
-# Messages: snapshots and trial results
-# --------------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class TrialFrames:
-    """A trial's frames at the camera rate (the study database's recorded frames).
-
-    Attributes:
-        t: (T,) seconds since the trial started.
-        q: (T, 6) robot joint positions (rad).
-        skeleton: (T, J, 3) person joints in the world frame (m), or None when none were recorded.
-    """
-
-    t: np.ndarray
-    q: np.ndarray
-    skeleton: np.ndarray | None
-
-    def __len__(self) -> int:
-        return int(self.t.shape[0])
-
-
-@dataclass(frozen=True, slots=True)
-class TrialResult:
-    """What one trial produced.
-
-    Attributes:
-        metrics: The trial's metrics.
-        events: Its events, in time order (``t`` = seconds since the trial started).
-        frames: Its frames (None when not recorded).
-        status: ``completed`` (ran its duration) or ``aborted``.
-        reason: Why it ended (``duration``, ``operator``, ``estop``, ``robot_fault``, ...).
-        wall_s: Wall-clock seconds the run took.
-        sim_speedup: Simulated seconds per wall second (headless runs; 1 live).
-        safety: The ground-truth monitor's verdict (None when the monitor was off).
-        tracker_latency_s: The tracker latency the trial ran with (s; None: unknown, a live tracker).
-        time_budget_s: Where the trial's time went (:meth:`TrialEngine.time_budget`).
-        time_budget_by_goal_s: The same per task pose (:meth:`TrialEngine.time_budget`).
-        arrival_error_s: Predicted against executed arrivals (:meth:`TrialEngine.arrival_error`).
-    """
-
-    metrics: TrialMetrics
-    events: list[TrialEvent]
-    frames: TrialFrames | None
-    status: TrialStatus = "completed"
-    reason: str = "duration"
-    wall_s: float = 0.0
-    sim_speedup: float = 1.0
-    safety: MonitorTotals | None = None
-    tracker_latency_s: float | None = None
-    time_budget_s: dict[str, float] | None = None
-    arrival_error_s: dict[str, float | int | None] | None = None
-    time_budget_by_goal_s: dict[str, dict[str, float]] | None = None
-
-    def _worst_json(self) -> dict[str, Any] | None:
-        worst = None if self.safety is None else self.safety.worst
-        return None if worst is None else worst.to_json()
-
-    def summary(self) -> dict[str, Any]:
-        """The ``hrc simulate --json`` object."""
-        m = self.metrics
-        return {
-            "method": m.method,
-            "status": self.status,
-            "duration_s": m.duration_s,
-            "completed_tasks": m.completed_tasks,
-            "avg_planning_time_s": m.avg_planning_time_s,
-            "stop_replans_per_task": m.stop_replans_per_task,
-            "online_replans_per_task": m.online_replans_per_task,
-            "stop_replans": m.stop_replans,
-            "stop_replans_moving": m.stop_replans_moving,
-            "online_replans": m.online_replans,
-            "deadline_misses": m.deadline_misses,
-            "plans_computed": m.plans_computed,
-            "min_separation_m": None if not math.isfinite(m.min_separation_m) else m.min_separation_m,
-            "violations": m.violations,
-            "contacts": m.contacts,
-            "violation_time_s": m.violation_time_s,
-            "violations_iso": m.violations_iso,
-            "violations_person_faster": m.violations_person_faster,
-            "harmful_contacts": m.harmful_contacts,
-            "violations_measured_vh": m.violations_measured_vh,
-            "exceedance_s": m.exceedance_s,
-            "max_approach_mps": m.max_approach_mps,
-            "intrusions": m.intrusions,
-            "min_separation_moving_m": (
-                None if not math.isfinite(m.min_separation_moving_m) else m.min_separation_moving_m
-            ),
-            "tracker_latency_s": self.tracker_latency_s,
-            "violations_in_intrusions": 0 if self.safety is None else self.safety.violations_in_intrusions,
-            "worst_sample": self._worst_json(),
-            "violation_episodes": (
-                [] if self.safety is None else [e.to_json() for e in self.safety.episodes]
-            ),
-            "time_budget_s": self.time_budget_s,
-            "time_budget_by_goal_s": self.time_budget_by_goal_s,
-            "arrival_error_s": self.arrival_error_s,
-            "time_stopped_s": m.time_stopped_s,
-            "time_moving_s": m.time_moving_s,
-            "mean_speed_scale": m.mean_speed_scale,
-            "sim_speedup": self.sim_speedup,
-        }
-
-
-@dataclass(frozen=True, slots=True)
-class Snapshot:
-    """An immutable view of the runtime for viewers (operator page, 3D scene, API).
-
-    Attributes:
-        t: Runtime clock (s).
-        trial_id: Running trial, or None.
-        state: Supervisor state (``idle``, ``nominal``, ``collision_avoidance``, ``stopped``, ``estop``,
-            ``fault``).
-        method: Method of the running trial, or None.
-        speed_scale: Speed scale along the path, 0..1.
-        separation_m: The separation (m) of the part that limits the robot from the body regions it keeps
-            ``S_p`` from (:attr:`app.control.supervisor_types.SupervisorStatus.separation_m`), None when
-            nobody was seen.
-        required_separation_m: The separation (m) the speed governor holds that part to at its current
-            speed (what it needs to move, where it is stopped).
-        planning_ms: Recent backup-plan compute times (ms), oldest first.
-        counters: Running counts (completed tasks, replans, deadline misses, frames, ...).
-        q: (6,) robot joint positions (rad).
-        p_world_tcp: (3,) TCP position (m, world).
-        skeleton: (J, 3) latest person pose (m, world), or None.
-        forecast: (H, J, 3) latest forecast, or None.
-        plan_tcp: (K, 3) TCP path of the plan in execution, or None.
-        backup_tcp: (K, 3) TCP path of the pending backup plan, or None.
-        stale: The human stream is stale.
-        estopped: E-stop latched.
-        trial_elapsed_s: Seconds since the trial started, or None.
-        trial_duration_s: The trial's planned duration, or None.
-        time_budget: Where the running trial's time went so far (:meth:`TrialEngine.time_budget`: seconds
-            per part of :data:`app.control.supervisor_types.TIME_BUDGET`, and ``mean_scale_when_scaled``);
-            empty without a trial.
-        time_budget_by_goal: The same per task pose so far (:meth:`TrialEngine.time_budget`); empty without a
-            trial.
-        part_modes: What limits each robot part now (:class:`app.safety.modes.PartMode`); empty without a
-            trial.
-        part_names: The robot parts' names, in the order of ``part_modes``.
-    """
-
-    t: float
-    trial_id: int | None
-    state: str
-    method: str | None
-    speed_scale: float
-    separation_m: float | None
-    required_separation_m: float | None
-    planning_ms: tuple[float, ...]
-    counters: dict[str, Any]
-    q: np.ndarray
-    p_world_tcp: np.ndarray
-    skeleton: np.ndarray | None = None
-    forecast: np.ndarray | None = None
-    plan_tcp: np.ndarray | None = None
-    backup_tcp: np.ndarray | None = None
-    stale: bool = False
-    estopped: bool = False
-    trial_elapsed_s: float | None = None
-    trial_duration_s: float | None = None
-    time_budget: dict[str, float] = field(default_factory=dict)
-    time_budget_by_goal: dict[str, dict[str, float]] = field(default_factory=dict)
-    part_modes: tuple[PartMode, ...] = ()
-    part_names: tuple[str, ...] = ()
-
-    @property
-    def limiting_part(self) -> int:
-        """Index of the part that limits the robot (:func:`app.safety.modes.binding_part`; -1: none)."""
-        return binding_part(self.part_modes)
-
-    @property
-    def mode(self) -> str | None:
-        """The robot's mode: the limiting part's (:attr:`app.safety.modes.PartMode.label`), ``stopped``
-        under an E-stop, None without a trial. The one field the operator page and the 3D view show."""
-        if self.estopped:
-            return "stopped"
-        k = self.limiting_part
-        return None if k < 0 else self.part_modes[k].label
-
-    def part_name(self, i: int) -> str:
-        return self.part_names[i] if 0 <= i < len(self.part_names) else f"part {i}"
-
-    def __post_init__(self) -> None:
-        for name in ("q", "p_world_tcp", "skeleton", "forecast", "plan_tcp", "backup_tcp"):
-            v = getattr(self, name)
-            if v is not None:
-                a = np.array(v, dtype=np.float64)
-                a.setflags(write=False)
-                object.__setattr__(self, name, a)
-        if self.q.shape != (6,) or self.p_world_tcp.shape != (3,):
-            raise ValueError(f"Snapshot q must be (6,) and p_world_tcp (3,), got {self.q.shape}")
-        object.__setattr__(self, "counters", dict(self.counters))
-
-    def to_json(self) -> dict[str, Any]:
-        """JSON-friendly dict (arrays as nested lists, non-finite floats as None)."""
-
-        def num(x: float | None) -> float | None:
-            return None if x is None or not math.isfinite(x) else float(x)
-
-        def arr(a: np.ndarray | None, nd: int = 4) -> list | None:
-            return None if a is None else np.round(a, nd).tolist()
-
-        return {
-            "t": float(self.t),
-            "trial_id": self.trial_id,
-            "state": self.state,
-            "method": self.method,
-            "speed_scale": float(self.speed_scale),
-            "separation_m": num(self.separation_m),
-            "required_separation_m": num(self.required_separation_m),
-            "planning_ms": [round(float(x), 3) for x in self.planning_ms],
-            "counters": {k: (num(v) if isinstance(v, float) else v) for k, v in self.counters.items()},
-            "q": arr(self.q, 5),
-            "p_world_tcp": arr(self.p_world_tcp),
-            "skeleton": arr(self.skeleton),
-            "forecast": arr(self.forecast),
-            "plan_tcp": arr(self.plan_tcp),
-            "backup_tcp": arr(self.backup_tcp),
-            "stale": bool(self.stale),
-            "estopped": bool(self.estopped),
-            "trial_elapsed_s": num(self.trial_elapsed_s),
-            "trial_duration_s": num(self.trial_duration_s),
-            "time_budget": {k: round(float(v), 3) for k, v in self.time_budget.items()},
-            "time_budget_by_goal": {
-                g: {k: round(float(v), 3) for k, v in parts.items()}
-                for g, parts in self.time_budget_by_goal.items()
-            },
-            "mode": self.mode,
-            "mode_text": mode_text(self.mode),
-            "limiting_part": None if self.limiting_part < 0 else self.part_name(self.limiting_part),
-            "parts": [
-                {
-                    "name": self.part_name(i),
-                    "mode": m.mode,
-                    "label": m.label,
-                    "text": m.text,
-                    "region": m.region,
-                    "held_from": m.held_from,
-                    "held_from_text": None if m.held_from is None else region_text(m.held_from),
-                    "separation_m": num(m.separation_m),
-                    "required_m": num(m.required_m),
-                    "limit_scale": round(float(m.limit_scale), 4),
-                }
-                for i, m in enumerate(self.part_modes)
-            ],
-        }
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -839,20 +408,19 @@ class TrialEngine:
         else:
             margin = self.options.tracking_margin_m + self.options.plan_margin_m
             forecast = HumanForecast.hold(body, margin_m=margin)
-        tracked, frame = frame, body
-        decision = self.supervisor.on_frame(frame, forecast, t_now=t)
+        decision = self.supervisor.on_frame(body, forecast, t_now=t)
         self.decide_s.append(decision.decide_s)
         self.frame_to_decision_s = time.perf_counter() - c0  # validation + prediction + decision
         self.last_decision = decision
         sep = decision.separation_m + self.config.tracking_margin_m
         self.min_separation_m = min(self.min_separation_m, sep)
         self.last_forecast = forecast
-        self.last_frame = frame
-        self._recent.append(frame)
+        self.last_frame = body
+        self._recent.append(body)
         if self.options.record_frames:
             self._frames_t.append(self.elapsed(t))
             self._frames_q.append(np.asarray(self.last_state.q, dtype=np.float32))
-            self._frames_sk.append(np.asarray(tracked.joints, dtype=np.float32))
+            self._frames_sk.append(np.asarray(frame.joints, dtype=np.float32))  # as tracked
         return decision
 
     def _check_intrusion(self, t: float, frame: HumanFrame) -> None:

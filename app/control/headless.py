@@ -25,8 +25,10 @@ from app.cell.clock import SimClock
 from app.cell.source import HumanSource
 from app.config import Settings, WorkCell
 from app.control.backup import InlinePlanJobs
-from app.control.engine import EngineOptions, PlanningStack, TrialEngine, TrialResult
+from app.control.engine import EngineOptions, TrialEngine
 from app.control.metrics import Method
+from app.control.results import TrialResult
+from app.control.stack import PlanningStack
 from app.control.world import build_trial_world
 from app.prediction.forecast import Predictor
 

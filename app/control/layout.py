@@ -118,7 +118,7 @@ def check_layout(
     speed_mps: float = DEFAULT_SPEED_MPS,
     chunk: int = 4096,
 ) -> LayoutReport:
-    """Check every task pose of ``stack``'s roadmap (:class:`app.control.engine.PlanningStack`) against
+    """Check every task pose of ``stack``'s roadmap (:class:`app.control.stack.PlanningStack`) against
     ``recordings``: frames (T, J, 3) of a person at work, in the cell's world frame, at ``fps``.
 
     ``governor``: the trial's :class:`GovernorModel` (:func:`app.control.engine.governor_model`); the

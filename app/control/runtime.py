@@ -8,7 +8,7 @@ construction):
 - *servo* thread, at the robot rate: advances the supervisor (path time, speed governor, switches) and
   commands the robot;
 - *planner* pool (per trial): the backup plans, at most ``ceil(D / F)`` in flight
-  (:class:`PoolPlanJobs`);
+  (:class:`~app.control.backup.PoolPlanJobs`);
 - *notifier* thread: calls the trial and event listeners (e.g. the study database) off the control threads,
   through a bounded queue.
 
@@ -22,7 +22,6 @@ A trial's world (person, tracker, validation, predictor, planning stack, robot) 
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import contextlib
 import logging
 import math
@@ -41,10 +40,12 @@ from app.cell.robot import RobotBackend, RobotConnectionError
 from app.cell.source import HumanSource
 from app.cell.validation import REJECT_REASONS, ValidatedSource
 from app.config import Settings, WorkCell
-from app.control.backup import BackupComputer, BackupRequest, PlanOutcome
-from app.control.engine import EngineOptions, PlanningStack, Snapshot, TrialEngine, TrialFrames, TrialResult
+from app.control.backup import BackupComputer, PoolPlanJobs
+from app.control.engine import EngineOptions, TrialEngine
 from app.control.headless import run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
+from app.control.results import Snapshot, TrialFrames, TrialResult
+from app.control.stack import PlanningStack
 from app.control.supervisor import SupervisorConfig
 from app.control.world import PredictorInfo, TrialWorld, build_trial_world, predictor_info
 from app.planning.collision import ROBOT_LINKS
@@ -54,7 +55,6 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "IngestUnavailable",
-    "PoolPlanJobs",
     "Runtime",
     "RuntimeNotReady",
     "Snapshot",
@@ -158,76 +158,6 @@ class Subscription:
             self._cond.notify_all()
         if self._on_close is not None:
             self._on_close(self)
-
-
-# --------------------------------------------------------------------------------------------------------
-# Backup plans on a worker pool
-# --------------------------------------------------------------------------------------------------------
-
-
-class PoolPlanJobs:
-    """Live plan jobs: every frame's backup plan runs on a pool of ``ceil(D / F)`` workers (more requests
-    in flight are skipped); a result is taken at ``T_i + D`` and counts only if it was ready by then.
-
-    Args:
-        compute: The backup computer (the planner gets the deadline D).
-        max_jobs: Jobs in flight at most.
-        clock: For the in-flight bookkeeping.
-    """
-
-    def __init__(self, compute: BackupComputer, *, max_jobs: int, clock: Clock) -> None:
-        self.compute = compute
-        self.max_jobs = int(max_jobs)
-        self.clock = clock
-        self._pool = cf.ThreadPoolExecutor(max_workers=self.max_jobs, thread_name_prefix="hrc-planner")
-        self._jobs: dict[int, tuple[cf.Future[PlanOutcome], float]] = {}
-        self._lock = threading.Lock()
-        self.skipped = 0
-
-    def _in_flight(self) -> int:
-        return sum(1 for f, _ in self._jobs.values() if not f.done())
-
-    def submit(self, request: BackupRequest) -> None:
-        with self._lock:
-            if self._pool is None:
-                return
-            if self._in_flight() >= self.max_jobs:
-                self.skipped += 1
-                return
-            fut = self._pool.submit(self.compute, request)
-            self._jobs[request.key] = (fut, self.clock.now())
-            for k in sorted(self._jobs)[: max(len(self._jobs) - 4 * self.max_jobs, 0)]:
-                f, _ = self._jobs.pop(k)
-                f.cancel()
-
-    def take(self, key: int, request: BackupRequest | None = None) -> PlanOutcome:
-        with self._lock:
-            job = self._jobs.pop(key, None)
-        if job is None:
-            return PlanOutcome("skipped", reason=f"no backup job for frame {key} (no worker was free)")
-        fut, t_sub = job
-        if not fut.done():
-            fut.cancel()
-            elapsed = self.clock.now() - t_sub
-            return PlanOutcome("deadline_miss", compute_s=elapsed, reason="not ready at T_i + D")
-        return fut.result()
-
-    def peek(self, key: int) -> PlanOutcome | None:
-        with self._lock:
-            job = self._jobs.get(key)
-        if job is None or not job[0].done():
-            return None
-        return job[0].result()
-
-    def close(self) -> None:
-        with self._lock:
-            pool, self._pool = self._pool, None
-            jobs = list(self._jobs.values())
-            self._jobs.clear()
-        for f, _ in jobs:
-            f.cancel()
-        if pool is not None:
-            pool.shutdown(wait=False, cancel_futures=True)
 
 
 # --------------------------------------------------------------------------------------------------------

@@ -69,7 +69,7 @@ class PlannerLike(Protocol):
 
 
 class RobotGeometry(Protocol):
-    """The robot's body as ``L`` parts (see :class:`app.control.engine.CellGeometry`: one per capsule)."""
+    """The robot's body as ``L`` parts (see :class:`app.control.stack.CellGeometry`: one per capsule)."""
 
     def part_separations(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
         """Surface distance (P, L) in m between each part of the robot at ``q`` (6,) and the person in each

@@ -30,13 +30,13 @@ from app.control.backup import BackupComputer, PlanJobs
 from app.control.engine import (
     EngineOptions,
     EventListener,
-    PlanningStack,
     TrialEngine,
-    TrialResult,
     make_validated_source,
     supervisor_config,
 )
 from app.control.metrics import Method
+from app.control.results import TrialResult
+from app.control.stack import PlanningStack
 from app.control.supervisor import SupervisorConfig
 from app.prediction.forecast import Predictor
 

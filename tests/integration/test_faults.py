@@ -13,8 +13,9 @@ import pytest
 from app.cell.robot import RobotConnectionError, RobotState, SimRobot
 from app.cell.source import HumanSource
 from app.config import Settings, load_workcell
-from app.control.engine import EngineOptions, PlanningStack, TrialEngine
+from app.control.engine import EngineOptions, TrialEngine
 from app.control.headless import run_headless_trial
+from app.control.stack import PlanningStack
 from app.control.world import make_operator
 from app.prediction.forecast import HumanForecast, Predictor
 from app.prediction.skeleton import NUM_JOINTS

@@ -13,8 +13,9 @@ from __future__ import annotations
 import pytest
 
 from app.config import Settings, load_workcell
-from app.control.engine import EngineOptions, PlanningStack
+from app.control.engine import EngineOptions
 from app.control.headless import run_headless_trial
+from app.control.stack import PlanningStack
 
 pytestmark = pytest.mark.slow
 

@@ -314,6 +314,7 @@ def test_the_dead_names_are_gone() -> None:
     import app.study.repository as repository
     import app.study.runner as runner
     import app.study.schemas as schemas
+    from app.cell.operator_sim import _Body
     from app.safety.ssm import SSMParams
 
     gone = [
@@ -325,5 +326,6 @@ def test_the_dead_names_are_gone() -> None:
         (repository, "metrics_from_read"),
         (schemas, "TrialFinish"),
         (runner, "jobs_by_participant"),
+        (_Body, "shoulders"),
     ]
     assert [name for owner, name in gone if hasattr(owner, name)] == []

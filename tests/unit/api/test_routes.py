@@ -425,7 +425,7 @@ def test_the_robot_status_carries_the_mode_the_live_snapshot_has() -> None:
     import numpy as np
 
     from app.api.schemas import robot_status
-    from app.control.engine import Snapshot
+    from app.control.results import Snapshot
     from app.safety.modes import PartMode
 
     modes = (

@@ -17,8 +17,9 @@ from typer.testing import CliRunner
 
 from app.cli import app as cli_app
 from app.config import Settings, load_workcell
-from app.control.engine import EngineOptions, PlanningStack, governor_model, supervisor_config
+from app.control.engine import EngineOptions, governor_model, supervisor_config
 from app.control.layout import check_layout, suggest_stations
+from app.control.stack import PlanningStack
 from app.planning.collision import HUMAN_CAPSULES
 from app.prediction.skeleton import JOINT_INDEX, JOINTS
 from tests.unit.planning.test_collision import _standing_person

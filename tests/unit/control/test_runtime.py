@@ -19,8 +19,9 @@ from app.cell.stream_protocol import make_message
 from app.cell.tracker import TrackerModel
 from app.cell.validation import FrameRejected, FrameValidator
 from app.config import Settings, load_workcell
-from app.control.engine import EngineOptions, PlanningStack, Snapshot
+from app.control.engine import EngineOptions
 from app.control.metrics import TrialMetrics
+from app.control.results import Snapshot
 from app.control.runtime import (
     IngestUnavailable,
     Runtime,
@@ -29,6 +30,7 @@ from app.control.runtime import (
     TrialAlreadyRunning,
     run_headless_trial,
 )
+from app.control.stack import PlanningStack
 from app.planning.collision import ROBOT_LINKS
 from app.prediction.predictor import DEFAULT_WEIGHTS
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame

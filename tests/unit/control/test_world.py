@@ -12,9 +12,10 @@ from app.cell.operator_sim import OperatorParams
 from app.cell.population import DEFAULT_POPULATION_PATH
 from app.cell.tracker import TrackerModel
 from app.config import Settings, load_workcell
-from app.control.engine import PlanningStack, TrialEngine
+from app.control.engine import TrialEngine
 from app.control.headless import run_headless_trial
 from app.control.runtime import Runtime
+from app.control.stack import PlanningStack
 from app.control.world import TrialWorld, predictor_info
 
 SEED = 5

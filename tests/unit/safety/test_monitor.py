@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from app.config import load_workcell
-from app.control.engine import CellGeometry
+from app.control.stack import CellGeometry
 from app.planning.collision import HUMAN_CAPSULES, ROBOT_LINKS, CollisionModel
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS
 from app.safety.monitor import GroundTruthMonitor

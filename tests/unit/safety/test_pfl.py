@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from app.config import Settings, load_workcell
-from app.control.engine import CellGeometry, approach_floors, pfl_model
+from app.control.engine import approach_floors, pfl_model
+from app.control.stack import CellGeometry
 from app.planning.collision import HUMAN_CAPSULES, CollisionModel
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS
 from app.safety.governor import SeparationModel, directed_pairs

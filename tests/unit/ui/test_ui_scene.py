@@ -357,7 +357,7 @@ def test_texts_refresh_on_state_change_and_at_most_a_few_times_a_second(server: 
 
 def test_the_runtimes_own_snapshot_and_subscription_drive_the_scene(cell: Any) -> None:
     """Contract check against SUP's real ``Snapshot`` and ``Subscription`` (not the doubles above)."""
-    from app.control.engine import Snapshot
+    from app.control.results import Snapshot
     from app.control.runtime import Subscription
 
     def snap(t: float, x: float, **kw: Any) -> Snapshot:
@@ -498,7 +498,7 @@ def test_the_robot_is_coloured_by_each_parts_mode_and_the_label_says_what_the_pa
 ) -> None:
     """Each capsule in its part's mode's colour; the label and the status panel show the state, the mode and
     the speed of the same snapshot, in the words of the operator page (the snapshot's ``mode_text``)."""
-    from app.control.engine import Snapshot
+    from app.control.results import Snapshot
     from app.ui.scene import MODE_COLORS, headline
 
     view = CellView(server, cell, robot_capsules=fake_capsules)

@@ -1,0 +1,264 @@
+"""What a trial produces and shows: :class:`TrialFrames` (its frames at the camera rate),
+:class:`TrialResult` (its metrics, events, frames and the judge's verdict) and :class:`Snapshot` (the live
+state the operator's screens draw)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from app.control.metrics import TrialEvent, TrialMetrics
+from app.safety.modes import PartMode, binding_part, mode_text, region_text
+from app.safety.monitor import MonitorTotals
+
+__all__ = ["Snapshot", "TrialFrames", "TrialResult", "TrialStatus"]
+
+TrialStatus = Literal["completed", "aborted"]
+
+
+@dataclass(frozen=True, slots=True)
+class TrialFrames:
+    """A trial's frames at the camera rate (the study database's recorded frames).
+
+    Attributes:
+        t: (T,) seconds since the trial started.
+        q: (T, 6) robot joint positions (rad).
+        skeleton: (T, J, 3) person joints in the world frame (m), or None when none were recorded.
+    """
+
+    t: np.ndarray
+    q: np.ndarray
+    skeleton: np.ndarray | None
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+
+@dataclass(frozen=True, slots=True)
+class TrialResult:
+    """What one trial produced.
+
+    Attributes:
+        metrics: The trial's metrics.
+        events: Its events, in time order (``t`` = seconds since the trial started).
+        frames: Its frames (None when not recorded).
+        status: ``completed`` (ran its duration) or ``aborted``.
+        reason: Why it ended (``duration``, ``operator``, ``estop``, ``robot_fault``, ...).
+        wall_s: Wall-clock seconds the run took.
+        sim_speedup: Simulated seconds per wall second (headless runs; 1 live).
+        safety: The ground-truth monitor's verdict (None when the monitor was off).
+        tracker_latency_s: The tracker latency the trial ran with (s; None: unknown, a live tracker).
+        time_budget_s: Where the trial's time went (:meth:`TrialEngine.time_budget`).
+        time_budget_by_goal_s: The same per task pose (:meth:`TrialEngine.time_budget`).
+        arrival_error_s: Predicted against executed arrivals (:meth:`TrialEngine.arrival_error`).
+    """
+
+    metrics: TrialMetrics
+    events: list[TrialEvent]
+    frames: TrialFrames | None
+    status: TrialStatus = "completed"
+    reason: str = "duration"
+    wall_s: float = 0.0
+    sim_speedup: float = 1.0
+    safety: MonitorTotals | None = None
+    tracker_latency_s: float | None = None
+    time_budget_s: dict[str, float] | None = None
+    arrival_error_s: dict[str, float | int | None] | None = None
+    time_budget_by_goal_s: dict[str, dict[str, float]] | None = None
+
+    def _worst_json(self) -> dict[str, Any] | None:
+        worst = None if self.safety is None else self.safety.worst
+        return None if worst is None else worst.to_json()
+
+    def summary(self) -> dict[str, Any]:
+        """The ``hrc simulate --json`` object."""
+        m = self.metrics
+        return {
+            "method": m.method,
+            "status": self.status,
+            "duration_s": m.duration_s,
+            "completed_tasks": m.completed_tasks,
+            "avg_planning_time_s": m.avg_planning_time_s,
+            "stop_replans_per_task": m.stop_replans_per_task,
+            "online_replans_per_task": m.online_replans_per_task,
+            "stop_replans": m.stop_replans,
+            "stop_replans_moving": m.stop_replans_moving,
+            "online_replans": m.online_replans,
+            "deadline_misses": m.deadline_misses,
+            "plans_computed": m.plans_computed,
+            "min_separation_m": None if not math.isfinite(m.min_separation_m) else m.min_separation_m,
+            "violations": m.violations,
+            "contacts": m.contacts,
+            "violation_time_s": m.violation_time_s,
+            "violations_iso": m.violations_iso,
+            "violations_person_faster": m.violations_person_faster,
+            "harmful_contacts": m.harmful_contacts,
+            "violations_measured_vh": m.violations_measured_vh,
+            "exceedance_s": m.exceedance_s,
+            "max_approach_mps": m.max_approach_mps,
+            "intrusions": m.intrusions,
+            "min_separation_moving_m": (
+                None if not math.isfinite(m.min_separation_moving_m) else m.min_separation_moving_m
+            ),
+            "tracker_latency_s": self.tracker_latency_s,
+            "violations_in_intrusions": 0 if self.safety is None else self.safety.violations_in_intrusions,
+            "worst_sample": self._worst_json(),
+            "violation_episodes": (
+                [] if self.safety is None else [e.to_json() for e in self.safety.episodes]
+            ),
+            "time_budget_s": self.time_budget_s,
+            "time_budget_by_goal_s": self.time_budget_by_goal_s,
+            "arrival_error_s": self.arrival_error_s,
+            "time_stopped_s": m.time_stopped_s,
+            "time_moving_s": m.time_moving_s,
+            "mean_speed_scale": m.mean_speed_scale,
+            "sim_speedup": self.sim_speedup,
+        }
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """An immutable view of the runtime for viewers (operator page, 3D scene, API).
+
+    Attributes:
+        t: Runtime clock (s).
+        trial_id: Running trial, or None.
+        state: Supervisor state (``idle``, ``nominal``, ``collision_avoidance``, ``stopped``, ``estop``,
+            ``fault``).
+        method: Method of the running trial, or None.
+        speed_scale: Speed scale along the path, 0..1.
+        separation_m: The separation (m) of the part that limits the robot from the body regions it keeps
+            ``S_p`` from (:attr:`app.control.supervisor_types.SupervisorStatus.separation_m`), None when
+            nobody was seen.
+        required_separation_m: The separation (m) the speed governor holds that part to at its current
+            speed (what it needs to move, where it is stopped).
+        planning_ms: Recent backup-plan compute times (ms), oldest first.
+        counters: Running counts (completed tasks, replans, deadline misses, frames, ...).
+        q: (6,) robot joint positions (rad).
+        p_world_tcp: (3,) TCP position (m, world).
+        skeleton: (J, 3) latest person pose (m, world), or None.
+        forecast: (H, J, 3) latest forecast, or None.
+        plan_tcp: (K, 3) TCP path of the plan in execution, or None.
+        backup_tcp: (K, 3) TCP path of the pending backup plan, or None.
+        stale: The human stream is stale.
+        estopped: E-stop latched.
+        trial_elapsed_s: Seconds since the trial started, or None.
+        trial_duration_s: The trial's planned duration, or None.
+        time_budget: Where the running trial's time went so far (:meth:`TrialEngine.time_budget`: seconds
+            per part of :data:`app.control.supervisor_types.TIME_BUDGET`, and ``mean_scale_when_scaled``);
+            empty without a trial.
+        time_budget_by_goal: The same per task pose so far (:meth:`TrialEngine.time_budget`); empty without a
+            trial.
+        part_modes: What limits each robot part now (:class:`app.safety.modes.PartMode`); empty without a
+            trial.
+        part_names: The robot parts' names, in the order of ``part_modes``.
+    """
+
+    t: float
+    trial_id: int | None
+    state: str
+    method: str | None
+    speed_scale: float
+    separation_m: float | None
+    required_separation_m: float | None
+    planning_ms: tuple[float, ...]
+    counters: dict[str, Any]
+    q: np.ndarray
+    p_world_tcp: np.ndarray
+    skeleton: np.ndarray | None = None
+    forecast: np.ndarray | None = None
+    plan_tcp: np.ndarray | None = None
+    backup_tcp: np.ndarray | None = None
+    stale: bool = False
+    estopped: bool = False
+    trial_elapsed_s: float | None = None
+    trial_duration_s: float | None = None
+    time_budget: dict[str, float] = field(default_factory=dict)
+    time_budget_by_goal: dict[str, dict[str, float]] = field(default_factory=dict)
+    part_modes: tuple[PartMode, ...] = ()
+    part_names: tuple[str, ...] = ()
+
+    @property
+    def limiting_part(self) -> int:
+        """Index of the part that limits the robot (:func:`app.safety.modes.binding_part`; -1: none)."""
+        return binding_part(self.part_modes)
+
+    @property
+    def mode(self) -> str | None:
+        """The robot's mode: the limiting part's (:attr:`app.safety.modes.PartMode.label`), ``stopped``
+        under an E-stop, None without a trial. The one field the operator page and the 3D view show."""
+        if self.estopped:
+            return "stopped"
+        k = self.limiting_part
+        return None if k < 0 else self.part_modes[k].label
+
+    def part_name(self, i: int) -> str:
+        return self.part_names[i] if 0 <= i < len(self.part_names) else f"part {i}"
+
+    def __post_init__(self) -> None:
+        for name in ("q", "p_world_tcp", "skeleton", "forecast", "plan_tcp", "backup_tcp"):
+            v = getattr(self, name)
+            if v is not None:
+                a = np.array(v, dtype=np.float64)
+                a.setflags(write=False)
+                object.__setattr__(self, name, a)
+        if self.q.shape != (6,) or self.p_world_tcp.shape != (3,):
+            raise ValueError(f"Snapshot q must be (6,) and p_world_tcp (3,), got {self.q.shape}")
+        object.__setattr__(self, "counters", dict(self.counters))
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-friendly dict (arrays as nested lists, non-finite floats as None)."""
+
+        def num(x: float | None) -> float | None:
+            return None if x is None or not math.isfinite(x) else float(x)
+
+        def arr(a: np.ndarray | None, nd: int = 4) -> list | None:
+            return None if a is None else np.round(a, nd).tolist()
+
+        return {
+            "t": float(self.t),
+            "trial_id": self.trial_id,
+            "state": self.state,
+            "method": self.method,
+            "speed_scale": float(self.speed_scale),
+            "separation_m": num(self.separation_m),
+            "required_separation_m": num(self.required_separation_m),
+            "planning_ms": [round(float(x), 3) for x in self.planning_ms],
+            "counters": {k: (num(v) if isinstance(v, float) else v) for k, v in self.counters.items()},
+            "q": arr(self.q, 5),
+            "p_world_tcp": arr(self.p_world_tcp),
+            "skeleton": arr(self.skeleton),
+            "forecast": arr(self.forecast),
+            "plan_tcp": arr(self.plan_tcp),
+            "backup_tcp": arr(self.backup_tcp),
+            "stale": bool(self.stale),
+            "estopped": bool(self.estopped),
+            "trial_elapsed_s": num(self.trial_elapsed_s),
+            "trial_duration_s": num(self.trial_duration_s),
+            "time_budget": {k: round(float(v), 3) for k, v in self.time_budget.items()},
+            "time_budget_by_goal": {
+                g: {k: round(float(v), 3) for k, v in parts.items()}
+                for g, parts in self.time_budget_by_goal.items()
+            },
+            "mode": self.mode,
+            "mode_text": mode_text(self.mode),
+            "limiting_part": None if self.limiting_part < 0 else self.part_name(self.limiting_part),
+            "parts": [
+                {
+                    "name": self.part_name(i),
+                    "mode": m.mode,
+                    "label": m.label,
+                    "text": m.text,
+                    "region": m.region,
+                    "held_from": m.held_from,
+                    "held_from_text": None if m.held_from is None else region_text(m.held_from),
+                    "separation_m": num(m.separation_m),
+                    "required_m": num(m.required_m),
+                    "limit_scale": round(float(m.limit_scale), 4),
+                }
+                for i, m in enumerate(self.part_modes)
+            ],
+        }
