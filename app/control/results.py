@@ -14,7 +14,7 @@ from app.control.metrics import TrialEvent, TrialMetrics
 from app.safety.modes import PartMode, binding_part, mode_text, region_text
 from app.safety.monitor import MonitorTotals
 
-__all__ = ["Snapshot", "TrialFrames", "TrialResult", "TrialStatus"]
+__all__ = ["ShownSpeed", "Snapshot", "TrialFrames", "TrialResult", "TrialStatus"]
 
 TrialStatus = Literal["completed", "aborted"]
 
@@ -155,6 +155,8 @@ class Snapshot:
         part_modes: What limits each robot part now (:class:`app.safety.modes.PartMode`); empty without a
             trial.
         part_names: The robot parts' names, in the order of ``part_modes``.
+        speed_shown: The speed scale the operator's screens print (:class:`ShownSpeed`); None: print
+            ``speed_scale``.
     """
 
     t: float
@@ -180,6 +182,7 @@ class Snapshot:
     time_budget_by_goal: dict[str, dict[str, float]] = field(default_factory=dict)
     part_modes: tuple[PartMode, ...] = ()
     part_names: tuple[str, ...] = ()
+    speed_shown: float | None = None
 
     @property
     def limiting_part(self) -> int:
@@ -224,6 +227,7 @@ class Snapshot:
             "state": self.state,
             "method": self.method,
             "speed_scale": float(self.speed_scale),
+            "speed_shown": float(self.speed_scale if self.speed_shown is None else self.speed_shown),
             "separation_m": num(self.separation_m),
             "required_separation_m": num(self.required_separation_m),
             "planning_ms": [round(float(x), 3) for x in self.planning_ms],
@@ -262,3 +266,28 @@ class Snapshot:
                 for i, m in enumerate(self.part_modes)
             ],
         }
+
+
+class ShownSpeed:
+    """The speed the operator's screens print, one number for the page and the 3D view alike.
+
+    Each draws the newest snapshot at its own rate (the page at its animation frames, the 3D view's texts
+    when they change), so a number that changes with every snapshot would differ between the two for as long
+    as one lags. The shown speed is the snapshot's own where the state or the mode changed, else it is
+    refreshed on a grid of ``rate_hz`` of the snapshot clock and held in between: both screens print it from
+    whichever snapshot they draw and change it within a frame of each other.
+    """
+
+    def __init__(self, rate_hz: float = 4.0) -> None:
+        if not rate_hz > 0:
+            raise ValueError(f"ShownSpeed.rate_hz must be > 0, got {rate_hz}")
+        self.rate_hz = float(rate_hz)
+        self._held: tuple[Any, int, float] | None = None
+
+    def __call__(self, t: float, key: Any, speed: float) -> float:
+        """The speed to print for the snapshot at ``t`` (s) with the state and mode ``key`` and the speed
+        scale ``speed``."""
+        slot = math.floor(float(t) * self.rate_hz)
+        if self._held is None or self._held[0] != key or self._held[1] != slot:
+            self._held = (key, slot, float(speed))
+        return self._held[2]

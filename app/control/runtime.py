@@ -23,6 +23,7 @@ A trial's world (person, tracker, validation, predictor, planning stack, robot) 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import queue
@@ -44,7 +45,7 @@ from app.control.backup import BackupComputer, PoolPlanJobs
 from app.control.engine import EngineOptions, TrialEngine
 from app.control.headless import run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
-from app.control.results import Snapshot, TrialFrames, TrialResult
+from app.control.results import ShownSpeed, Snapshot, TrialFrames, TrialResult
 from app.control.stack import PlanningStack
 from app.control.supervisor import SupervisorConfig
 from app.control.world import PredictorInfo, TrialWorld, build_trial_world, predictor_info
@@ -282,6 +283,7 @@ class Runtime:
         self._notify_q: queue.Queue[Callable[[], None] | None] = queue.Queue(maxsize=10000)
         self._tcp_cache: dict[int, np.ndarray] = {}
         self._last_frame: Any | None = None
+        self._shown_speed = ShownSpeed()  # the one speed the page and the 3D view print
         self.last_result: TrialResult | None = None
         #: The proactive method's predictor as it runs (after :meth:`start`).
         self.predictor_info: PredictorInfo | None = None
@@ -738,7 +740,7 @@ class Runtime:
         fc = engine.last_forecast
         times = engine.supervisor.counters.planning_times_s[-20:]
         budget, by_goal = engine.time_budget()
-        return Snapshot(
+        snap = Snapshot(
             trial_id=trial_id,
             state="estop" if self._estopped else st.state,
             method=engine.method,
@@ -758,6 +760,8 @@ class Runtime:
             part_names=ROBOT_LINKS if len(st.modes) == len(ROBOT_LINKS) else (),
             **base,
         )
+        shown = self._shown_speed(t, (snap.state, snap.mode), snap.speed_scale)
+        return dataclasses.replace(snap, speed_shown=shown)
 
 
 def _shown_forecast(fc: HumanForecast, period_s: float) -> np.ndarray:

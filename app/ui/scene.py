@@ -645,10 +645,12 @@ class CellView:
                 self._has["separation"] = False
                 sphere.visible = False
 
-            # Text re-renders the client's GUI: refresh it when the state or the mode changes, else at most
-            # TEXT_RATE_HZ (on the snapshots' own clock, so that replays and tests behave the same).
+            # Text re-renders the client's GUI: refresh it when the state, the mode or the runtime's shown
+            # speed (the number the page prints too, itself refreshed a few times a second) changes, else at
+            # most TEXT_RATE_HZ (on the snapshots' own clock, so that replays and tests behave the same)
             t = float(getattr(snap, "t", 0.0))
-            key = f"{text}|{getattr(snap, 'mode', None)}"
+            shown = getattr(snap, "speed_shown", None)
+            key = f"{text}|{getattr(snap, 'mode', None)}|{'' if shown is None else _speed_text(snap)}"
             if key != self._last_text or not (0.0 <= t - self._last_text_t < 1.0 / TEXT_RATE_HZ):
                 self._last_text, self._last_text_t = key, t
                 h["state_label"].text = headline(snap, text)
@@ -662,8 +664,12 @@ def _fmt_m(v: Any) -> str:
 
 
 def _speed_text(snap: Any) -> str:
-    """The speed scale in per cent, rounded as the page rounds it (``Math.round``: halves up)."""
-    speed = getattr(snap, "speed_scale", None)
+    """The speed in per cent that the screens print (the snapshot's ``speed_shown``, held between the
+    refreshes that the page shares, else its ``speed_scale``), rounded as the page rounds it
+    (``Math.round``: halves up)."""
+    speed = getattr(snap, "speed_shown", None)
+    if speed is None:
+        speed = getattr(snap, "speed_scale", None)
     if speed is None or not np.isfinite(speed):
         return "–"
     return f"{math.floor(100.0 * float(speed) + 0.5)}%"

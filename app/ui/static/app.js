@@ -285,7 +285,8 @@
     big.dataset.estopped = s.estopped ? "true" : "false";
     $("estop-button").classList.toggle("latched", !!s.estopped);
     $("live-method").textContent = s.method ? `method: ${s.method}` : "–";
-    const speed = Number(s.speed_scale);
+    // the speed both screens print (held between shared refreshes: the 3D view shows the same number)
+    const speed = Number(s.speed_shown ?? s.speed_scale);
     $("speed-meter").value = Number.isFinite(speed) ? speed : 0;
     $("speed-scale").textContent = Number.isFinite(speed) ? `${Math.floor(speed * 100 + 0.5)}%` : "–";
     big.dataset.t = Number.isFinite(Number(s.t)) ? Number(s.t).toFixed(3) : "";

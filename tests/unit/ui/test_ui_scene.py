@@ -537,3 +537,9 @@ def test_the_robot_is_coloured_by_each_parts_mode_and_the_label_says_what_the_pa
     # without modes (a replay, no trial) the arm keeps its grey and the label the state and speed alone
     view.apply(FakeSnapshot(t=4.0, speed_scale=0.25))
     assert h["state_label"].text == "NOMINAL · speed 25%"
+    # the speed the page prints (the runtime's shown speed, held between refreshes) is the one the label
+    # prints, and a new one shows at once, whatever the time since the last refresh of the texts
+    view.apply(replace(snap, t=5.0, estopped=False, speed_scale=0.61, speed_shown=0.5))
+    assert h["state_label"].text.endswith("speed 50%") and snap.to_json()["speed_shown"] == 0.0
+    view.apply(replace(snap, t=5.01, estopped=False, speed_scale=0.64, speed_shown=0.64))
+    assert h["state_label"].text.endswith("speed 64%") and "**Speed:** 64%" in h["gui_status"].content
