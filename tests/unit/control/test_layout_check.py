@@ -27,18 +27,6 @@ from tests.unit.planning.test_ssm_timing import governor
 
 
 @pytest.fixture(scope="module")
-def stack(tmp_path_factory: pytest.TempPathFactory) -> PlanningStack:
-    from app.planning.roadmap import RoadmapConfig
-
-    return PlanningStack.build(
-        load_workcell(),
-        roadmap_config=RoadmapConfig(num_nodes=250),
-        t_reaction_s=Settings().reaction_time_s(1 / 125),
-        cache_dir=tmp_path_factory.mktemp("roadmaps"),
-    )
-
-
-@pytest.fixture(scope="module")
 def model(stack: PlanningStack):
     settings, options = Settings(), EngineOptions()
     return governor_model(settings, stack.ssm, supervisor_config(settings, "proactive", options), options)

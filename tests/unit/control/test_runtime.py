@@ -37,19 +37,6 @@ from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
 from app.safety.ssm import SSMParams
 
 
-@pytest.fixture(scope="module")
-def stack(tmp_path_factory: pytest.TempPathFactory) -> PlanningStack:
-    from app.planning.roadmap import RoadmapConfig
-
-    cache = tmp_path_factory.mktemp("roadmaps")
-    return PlanningStack.build(
-        load_workcell(),
-        roadmap_config=RoadmapConfig(num_nodes=250),
-        t_reaction_s=Settings().reaction_time_s(1 / 125),
-        cache_dir=cache,
-    )
-
-
 def _for_tracker(stack: PlanningStack, tracker: TrackerModel) -> PlanningStack:
     """``stack`` with the planner's ``T_r`` of a system with ``tracker``."""
     return stack.with_reaction_time(Settings(tracker_latency_s=tracker.latency_s).reaction_time_s(1 / 125))

@@ -11,7 +11,7 @@ import pytest
 from app.cell.operator_sim import OperatorParams
 from app.cell.population import DEFAULT_POPULATION_PATH
 from app.cell.tracker import TrackerModel
-from app.config import Settings, load_workcell
+from app.config import Settings
 from app.control.engine import TrialEngine
 from app.control.headless import run_headless_trial
 from app.control.runtime import Runtime
@@ -19,18 +19,6 @@ from app.control.stack import PlanningStack
 from app.control.world import TrialWorld, predictor_info
 
 SEED = 5
-
-
-@pytest.fixture(scope="module")
-def stack(tmp_path_factory: pytest.TempPathFactory) -> PlanningStack:
-    from app.planning.roadmap import RoadmapConfig
-
-    return PlanningStack.build(
-        load_workcell(),
-        roadmap_config=RoadmapConfig(num_nodes=250),
-        t_reaction_s=Settings().reaction_time_s(1 / 125),
-        cache_dir=tmp_path_factory.mktemp("roadmaps"),
-    )
 
 
 @pytest.fixture
