@@ -14,7 +14,7 @@ from app.control.metrics import TrialEvent, TrialMetrics
 from app.safety.modes import PartMode, binding_part, mode_text, region_text
 from app.safety.monitor import MonitorTotals
 
-__all__ = ["ShownSpeed", "Snapshot", "TrialFrames", "TrialResult", "TrialStatus"]
+__all__ = ["ShownSpeed", "Snapshot", "TrialFrames", "TrialResult", "TrialStatus", "robot_mode"]
 
 TrialStatus = Literal["completed", "aborted"]
 
@@ -193,10 +193,7 @@ class Snapshot:
     def mode(self) -> str | None:
         """The robot's mode: the limiting part's (:attr:`app.safety.modes.PartMode.label`), ``stopped``
         under an E-stop, None without a trial. The one field the operator page and the 3D view show."""
-        if self.estopped:
-            return "stopped"
-        k = self.limiting_part
-        return None if k < 0 else self.part_modes[k].label
+        return robot_mode(self.part_modes, estopped=self.estopped)
 
     def part_name(self, i: int) -> str:
         return self.part_names[i] if 0 <= i < len(self.part_names) else f"part {i}"
@@ -291,3 +288,12 @@ class ShownSpeed:
         if self._held is None or self._held[0] != key or self._held[1] != slot:
             self._held = (key, slot, float(speed))
         return self._held[2]
+
+
+def robot_mode(part_modes: tuple[PartMode, ...], *, estopped: bool) -> str | None:
+    """The robot's mode (:attr:`Snapshot.mode`): its limiting part's label, ``stopped`` under an E-stop,
+    None without parts (no trial)."""
+    if estopped:
+        return "stopped"
+    k = binding_part(part_modes)
+    return None if k < 0 else part_modes[k].label

@@ -23,7 +23,6 @@ A trial's world (person, tracker, validation, predictor, planning stack, robot) 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import logging
 import math
 import queue
@@ -45,7 +44,7 @@ from app.control.backup import BackupComputer, PoolPlanJobs
 from app.control.engine import EngineOptions, TrialEngine
 from app.control.headless import run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
-from app.control.results import ShownSpeed, Snapshot, TrialFrames, TrialResult
+from app.control.results import ShownSpeed, Snapshot, TrialFrames, TrialResult, robot_mode
 from app.control.stack import PlanningStack
 from app.control.supervisor import SupervisorConfig
 from app.control.world import PredictorInfo, TrialWorld, build_trial_world, predictor_info
@@ -740,9 +739,11 @@ class Runtime:
         fc = engine.last_forecast
         times = engine.supervisor.counters.planning_times_s[-20:]
         budget, by_goal = engine.time_budget()
-        snap = Snapshot(
+        state = "estop" if self._estopped else st.state
+        key = (state, robot_mode(st.modes, estopped=self._estopped))
+        return Snapshot(
             trial_id=trial_id,
-            state="estop" if self._estopped else st.state,
+            state=state,
             method=engine.method,
             speed_scale=st.scale,
             separation_m=st.separation_m if math.isfinite(st.separation_m) else None,
@@ -758,10 +759,9 @@ class Runtime:
             time_budget_by_goal=by_goal,
             part_modes=st.modes,
             part_names=ROBOT_LINKS if len(st.modes) == len(ROBOT_LINKS) else (),
+            speed_shown=self._shown_speed(t, key, st.scale),
             **base,
         )
-        shown = self._shown_speed(t, (snap.state, snap.mode), snap.speed_scale)
-        return dataclasses.replace(snap, speed_shown=shown)
 
 
 def _shown_forecast(fc: HumanForecast, period_s: float) -> np.ndarray:
