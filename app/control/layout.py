@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from app.safety.governor import GovernorModel, directed_approach
+from app.safety.governor import GovernorModel, nearest_approach
 
 __all__ = ["LayoutReport", "PoseReport", "StationMove", "check_layout", "suggest_stations"]
 
@@ -423,9 +423,9 @@ def _measure(
     """The separation (N, L, M) of each part of the robot at ``q`` from each capsule of the person in every
     frame of ``recordings`` after its first ``lag``, and the person's directed speed toward the part: per
     capsule, how fast that distance shrank since the frame ``lag`` (``dt`` seconds) earlier, for a
-    capsule within ``band_m`` of the part's nearest at least the fastest of those (the supervisor's
-    :func:`directed_approach`, so a limb beside the nearest one counts as it does for the governor). Each
-    frame's distances are computed once."""
+    capsule within ``band_m`` of the part's nearest the fastest of those (the supervisor's
+    :func:`~app.safety.governor.nearest_approach`: a limb beside the nearest one counts as it does for the
+    governor). Each frame's distances are computed once."""
     seps, speeds = [], []
     for rec in recordings:
         d = np.concatenate(
@@ -433,10 +433,9 @@ def _measure(
         )
         d_now, d_before = d[lag:], d[:-lag]
         v_pairs = np.maximum(d_before - d_now, 0.0) / dt
-        _, v_near = directed_approach(d_now, d_before, dt, band_m=band_m)
-        near = d_now <= d_now.min(axis=-1, keepdims=True) + band_m
+        sep, v_near = nearest_approach(d_now, v_pairs, band_m=band_m)  # the fastest of the near capsules
         seps.append(d_now)
-        speeds.append(np.where(near, np.maximum(v_pairs, v_near[..., None]), v_pairs))
+        speeds.append(np.where(d_now <= sep[..., None] + band_m, v_near[..., None], v_pairs))
     return np.concatenate(seps), np.concatenate(speeds)
 
 
