@@ -405,43 +405,43 @@ def build_trial_world(
         raise ValueError(f"forecast must be 'model' or 'oracle', got {forecast!r}")
     if forecast == "oracle" and predictor is not None:
         raise ValueError("the oracle forecast is for the proactive method, instead of its predictor")
+    kind = None if human is not None else (settings.human_source if source is None else source)
     if human is not None:
-        if forecast == "oracle":  # before the source is read: the oracle needs the simulated operator
-            predictor = _oracle(human, method, options)
-        person, vsource = human, share(human)
+        person = human
+    elif kind != "stream":
+        person = make_operator(
+            cell,
+            source=kind,
+            seed=seed,
+            participant_seed=p_seed,
+            clip=clip if clip is not None else settings.replay_clip,
+            population=settings.population,
+            noise=False,
+            t0=t0,
+        )
+    if forecast == "oracle":  # before any source is read: the oracle needs the simulated operator
+        predictor = _oracle(person, method, options)
+    if human is not None:
         from app.cell.human import StreamSource
 
+        vsource = share(human)
         truth_fn = vsource.ground_truth()
         stream = human if isinstance(human, StreamSource) else None
-    else:
-        kind = settings.human_source if source is None else source
-        if kind == "stream":
-            from app.cell.human import make_human_source
+    elif person is None:  # a tracker's stream
+        from app.cell.human import make_human_source
 
-            stream = make_human_source(settings, cell)
-            vsource = share(stream)
-        else:
-            from app.cell.tracker import TrackedSource, TrackerModel
+        stream = make_human_source(settings, cell)
+        vsource = share(stream)
+    else:  # the simulated world: the truth, seen through the tracker model
+        from app.cell.tracker import TrackedSource, TrackerModel
 
-            person = make_operator(
-                cell,
-                source=kind,
-                seed=seed,
-                participant_seed=p_seed,
-                clip=clip if clip is not None else settings.replay_clip,
-                population=settings.population,
-                noise=False,
-                t0=t0,
-            )
-            tracker_model = tracker if tracker is not None else TrackerModel.from_settings(settings)
-            if tracker is not None:  # what the runtime assumes of its tracker (T_r, the timing's noise)
-                update = {"tracker_latency_s": tracker.latency_s, "tracker_noise_m": tracker.noise_m}
-                settings = settings.model_copy(update=update)
-            shared = share(person)
-            truth_fn = shared.ground_truth()
-            vsource = share(TrackedSource(shared, tracker_model, seed=seed, t0=t0))
-    if forecast == "oracle" and human is None:
-        predictor = _oracle(person, method, options)
+        tracker_model = tracker if tracker is not None else TrackerModel.from_settings(settings)
+        if tracker is not None:  # what the runtime assumes of its tracker (T_r, the timing's noise)
+            update = {"tracker_latency_s": tracker.latency_s, "tracker_noise_m": tracker.noise_m}
+            settings = settings.model_copy(update=update)
+        shared = share(person)
+        truth_fn = shared.ground_truth()
+        vsource = share(TrackedSource(shared, tracker_model, seed=seed, t0=t0))
     if predictor is None and method in (None, "proactive"):
         predictor = make_predictor("proactive", settings, tracking_margin_m=options.tracking_margin_m)
         reason = None if predictor is None else predictor.fallback_reason
