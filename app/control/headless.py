@@ -17,7 +17,7 @@ import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -31,6 +31,9 @@ from app.control.results import TrialResult
 from app.control.stack import PlanningStack
 from app.control.world import build_trial_world
 from app.prediction.forecast import Predictor
+
+if TYPE_CHECKING:
+    from app.cell.tracker import TrackerModel
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +60,7 @@ def run_headless_trial(
     observer: Observer | None = None,
     robot_factory: Callable[[SimClock, np.ndarray], Any] | None = None,
     forecast: Literal["model", "oracle"] = "model",
-    tracker: Any | None = None,
+    tracker: TrackerModel | None = None,
 ) -> TrialResult:
     """Run one trial on the simulated clock and return its metrics, events and frames.
 
