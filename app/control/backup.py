@@ -50,6 +50,12 @@ class BackupRequest:
         goal: Roadmap goal (station name or node index).
         forecast: The forecast of frame ``key``.
         deadline_s: Compute-time budget of this plan: D, or the start deadline for a robot at rest.
+        candidate: The reactive method's forecast of the same frame (the person held still where they are
+            now): the plan the reactive method would take from the same state is a candidate too
+            (:meth:`BackupComputer.compute_raw`). None, or ``forecast`` itself (the reactive method): no
+            candidate.
+        sets_off: The plan would set a robot at rest moving (a start or a resume), not branch off a plan
+            under way.
     """
 
     key: int
@@ -60,7 +66,18 @@ class BackupRequest:
     goal: Goal
     forecast: HumanForecast
     deadline_s: float | None = None
+    candidate: HumanForecast | None = None
+    sets_off: bool = False
 
+    @property
+    def has_candidate(self) -> bool:
+        return self.candidate is not None and self.candidate is not self.forecast
+
+
+#: Which plan a decision with a candidate took: its own forecast's (``forecast``), the reactive method's
+#: that arrives earlier under that forecast (``reactive``), or the reactive method's where the forecast's
+#: search found none (``reactive_only``).
+PlanChoice = Literal["forecast", "reactive", "reactive_only"]
 
 OutcomeStatus = Literal["ok", "failed", "deadline_miss", "error", "skipped"]
 
@@ -82,6 +99,11 @@ class PlanOutcome:
         blocked: Of a ``failed`` plan, where the person as forecast was in the way: ``start`` (the robot
             could not leave where it stood) or ``goal`` (occupied); None where the planner found no plan for
             another reason (:attr:`app.planning.search.PlanResult.blocked`).
+        chosen: Of a request with a candidate, which plan this is (:data:`PlanChoice`); None without one.
+        gain_s: Of a ``reactive`` choice, how much earlier it arrives than the forecast's plan (s).
+        admitted_until: Of a ``reactive_only`` choice, its first violation of the forecast at the predicted
+            timing (None: none): it was admitted because that comes after the switch's ``T_i + D``, the
+            stop rule of a plan under way, which then watches it as it watches every plan in execution.
     """
 
     status: OutcomeStatus
@@ -92,6 +114,9 @@ class PlanOutcome:
     reason: str = ""
     arrival_s: float | None = None
     blocked: Blocked | None = None
+    chosen: PlanChoice | None = None
+    gain_s: float = 0.0
+    admitted_until: float | None = None
 
 
 class PlanJobs(Protocol):
@@ -141,17 +166,65 @@ class BackupComputer:
         return self.judge(self.compute_raw(req), None, deadline_s=req.deadline_s)
 
     def compute_raw(self, req: BackupRequest) -> PlanOutcome:
-        """The plan with its measured compute time, not yet judged against the deadline."""
+        """The plan with its measured compute time, not yet judged against the deadline.
+
+        With a candidate (:attr:`BackupRequest.candidate`, the proactive method's requests) the plan the
+        reactive method would take from the same state is planned too, with what is left of the deadline,
+        and judged under the request's own forecast at the timing the governor is predicted to give it
+        (:meth:`PlannerLike.predicted_check`). It is taken where it passes that check and arrives earlier
+        than the forecast's plan (``reactive``), or where the forecast's search found no plan and it passes
+        the check too, or, setting a robot at rest moving, is clear of the forecast until the switch's
+        ``T_i + D`` (``reactive_only``: what the supervisor's stop rule asks of a plan under way; it watches
+        it from then on as it watches every plan in execution). So the proactive method can always do what
+        the reactive method would, and does where that arrives earlier.
+        """
         t0 = self.timer()
+        budget = (req.deadline_s or self.deadline_s) if self.enforce_deadline else None
+        own = self._plan_one(req, req.forecast, budget, t0)
+        if not req.has_candidate or own.status == "error":
+            return own
+        # (what is left of the budget, less a tenth of it for judging the candidate)
+        left = None if budget is None else 0.9 * budget - (self.timer() - t0)
+        if left is not None and left <= 0.0:
+            return own
+        assert req.candidate is not None
+        rival = self._plan_one(req, req.candidate, left, self.timer())
+        if rival.status != "ok":
+            return _kept(own, self.timer() - t0)
+        assert rival.traj is not None
+        try:
+            t_v, arrival = self.planner.predicted_check(rival.traj, req.forecast, timing=self.timing)
+        except Exception:  # a candidate that cannot be judged is not taken
+            log.exception("judging the reactive candidate of frame %d raised", req.key)
+            return _kept(own, self.timer() - t0)
+        dt = self.timer() - t0
+        if own.status == "ok":
+            mine = own.arrival_s if own.arrival_s is not None else own.traj.t_end  # type: ignore[union-attr]
+            if t_v is None and arrival < mine:
+                return dataclasses.replace(
+                    rival, compute_s=dt, arrival_s=arrival, chosen="reactive", gain_s=float(mine - arrival)
+                )
+            return _kept(own, dt)
+        if t_v is None or (req.sets_off and t_v > req.t_start + self.deadline_s):
+            return dataclasses.replace(
+                rival, compute_s=dt, arrival_s=arrival, chosen="reactive_only", admitted_until=t_v
+            )
+        return _kept(own, dt)
+
+    def _plan_one(
+        self, req: BackupRequest, forecast: HumanForecast, budget: float | None, t0: float
+    ) -> PlanOutcome:
+        """One planner call for ``req`` against ``forecast`` within ``budget`` (s), its trajectory and
+        speed profile; the compute time counted from ``t0``."""
         extra = {} if self.timing is None else {"timing": self.timing}
         try:
             res = self.planner.plan(
                 q_start=req.q_start,
                 t_start=req.t_start,
                 goal=req.goal,
-                forecast=req.forecast,
+                forecast=forecast,
                 workers=self.workers,
-                deadline_s=(req.deadline_s or self.deadline_s) if self.enforce_deadline else None,
+                deadline_s=budget,
                 qd0=req.qd_start,
                 **extra,
             )
@@ -187,6 +260,11 @@ class BackupComputer:
         if out.status in ("ok", "failed") and (c > limit or out.reason == "deadline"):
             return PlanOutcome("deadline_miss", compute_s=c, reason=f"{c * 1e3:.1f} ms > D ({out.reason})")
         return dataclasses.replace(out, compute_s=c)
+
+
+def _kept(own: PlanOutcome, compute_s: float) -> PlanOutcome:
+    """The forecast's own outcome after a candidate was weighed against it (both compute times counted)."""
+    return dataclasses.replace(own, compute_s=compute_s, chosen="forecast" if own.status == "ok" else None)
 
 
 class InlinePlanJobs:

@@ -397,6 +397,11 @@ class TrialEngine:
         # the body as the geometry sees it: the hand capsules out to the fingertips (the predictor keeps the
         # tracked joints it was trained on)
         body = dataclasses.replace(frame, joints=reach_fingertips(frame.joints))
+        # the reactive method's forecast: the person held still where they are now; the proactive method
+        # weighs the plan it gives as a candidate against its own at every backup
+        margin = self.options.tracking_margin_m + self.options.plan_margin_m
+        held = HumanForecast.hold(body, margin_m=margin)
+        forecast = held
         if self.method == "proactive":
             forecast = self.predictor.update(frame)
             if self.anticipation is not None:
@@ -405,10 +410,7 @@ class TrialEngine:
             if self.options.plan_margin_m > 0:
                 extra = self.options.plan_margin_m
                 forecast = dataclasses.replace(forecast, margins=forecast.margins + extra)
-        else:
-            margin = self.options.tracking_margin_m + self.options.plan_margin_m
-            forecast = HumanForecast.hold(body, margin_m=margin)
-        decision = self.supervisor.on_frame(body, forecast, t_now=t)
+        decision = self.supervisor.on_frame(body, forecast, t_now=t, candidate=held)
         self.decide_s.append(decision.decide_s)
         self.frame_to_decision_s = time.perf_counter() - c0  # validation + prediction + decision
         self.last_decision = decision
@@ -607,6 +609,10 @@ class TrialEngine:
             arrival_error_median_abs_s=_nan_if_none(arrivals["median_abs"]),
             arrival_error_bias_s=_nan_if_none(arrivals["bias"]),
             median_plan_s=_nan_if_none(arrivals["median_plan_s"]),
+            plans_forecast=c.plan_choices["forecast"],
+            plans_reactive=c.plan_choices["reactive"],
+            plans_reactive_only=c.plan_choices["reactive_only"],
+            reactive_gain_s=round(c.reactive_gain_s, 6),
             stale_stops=c.stale_stops,
             frames_received=int(counters.get("accepted", 0)) + int(counters.get("rejected", 0)),
             frames_rejected=int(counters.get("rejected", 0)),

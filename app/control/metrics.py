@@ -83,7 +83,13 @@ class TrialMetrics:
     0 as well, unlike ``time_stopped_s``, the supervisor's stopped state). ``arrivals`` counts the plans that
     reached their goal; ``arrival_error_median_abs_s`` and ``arrival_error_bias_s`` compare their predicted
     arrival with the executed one (median absolute error; mean of executed minus predicted, positive: late),
-    and ``median_plan_s`` is their median planned duration (all three NaN without arrivals)."""
+    and ``median_plan_s`` is their median planned duration (all three NaN without arrivals).
+
+    ``plans_forecast``, ``plans_reactive`` and ``plans_reactive_only`` count the plans executed after the
+    reactive method's plan was weighed as a candidate against the method's own (the proactive method;
+    :data:`app.control.backup.PlanChoice`): its own won, the reactive one arrived earlier (by
+    ``reactive_gain_s`` in all, as predicted), or its own search found none. The reactive method weighs no
+    candidate: all 0."""
 
     method: Method = "proactive"
     duration_s: float = 0.0
@@ -127,6 +133,10 @@ class TrialMetrics:
     arrival_error_median_abs_s: float = math.nan
     arrival_error_bias_s: float = math.nan
     median_plan_s: float = math.nan
+    plans_forecast: int = 0
+    plans_reactive: int = 0
+    plans_reactive_only: int = 0
+    reactive_gain_s: float = 0.0
     stale_stops: int = 0
     frames_received: int = 0
     frames_rejected: int = 0

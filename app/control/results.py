@@ -112,6 +112,12 @@ class TrialResult:
             "time_budget_s": self.time_budget_s,
             "time_budget_by_goal_s": self.time_budget_by_goal_s,
             "arrival_error_s": self.arrival_error_s,
+            "plan_choices": {
+                "forecast": m.plans_forecast,
+                "reactive": m.plans_reactive,
+                "reactive_only": m.plans_reactive_only,
+                "reactive_gain_s": m.reactive_gain_s,
+            },
             "time_stopped_s": m.time_stopped_s,
             "time_moving_s": m.time_moving_s,
             "mean_speed_scale": m.mean_speed_scale,

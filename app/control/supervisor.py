@@ -58,9 +58,9 @@ from typing import Any, Literal
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
-from app.control.metrics import Method
 from app.control.supervisor_types import (
     FrameDecision,
+    SupervisorConfig,
     SupervisorCounters,
     SupervisorState,
     SupervisorStatus,
@@ -98,7 +98,6 @@ from app.safety.governor import (
 )
 from app.safety.modes import PartMode, RegionMap, binding_part, part_modes
 from app.safety.pfl import PFLModel, pfl_levels
-from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
 
@@ -107,89 +106,6 @@ SwitchReason = Literal["online_replan", "start", "resume"]
 _EPS_SCALE = 1e-6
 
 # ----------------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class SupervisorConfig:
-    """Parameters of the state machine. D, F and the workers come from :class:`app.config.Settings`.
-
-    Attributes:
-        method: ``proactive`` (the predictor's forecast) or ``reactive`` (the current pose held).
-        deadline_s: D, the backup-plan deadline (s).
-        start_deadline_s: Deadline of a plan that starts the robot from rest (default 3 D): the robot stands
-            still until the plan starts, so a longer search costs waiting time only, not safety.
-        frame_period_s: F, the camera frame period (s).
-        planner_workers: Workers per plan (parallel A*).
-        brake_decel_mps2: Deceleration of the robot's fastest point when braking (m/s^2).
-        brake_joint_decel: Largest joint deceleration when braking (rad/s^2).
-        scale_up_rate: Largest increase of the speed scale per second (1/s), at most the brake's rate.
-        tracking_margin_m: Tracking error of a frame: subtracted from measured separations and used as the
-            margin of the held pose (reactive forecast, emergency plan).
-        human_speed_window_s: Window (s) over which the person's speed is measured.
-        near_band_m: The person's parts within this much of being the nearest to a robot part count for
-            the speed of the person near that part (m).
-        retry_after_s: After a failed plan to start (or resume) moving, the next attempt waits this long (s).
-        clear_start: A plan that starts the robot from rest (or resumes it) is executed only if the latest
-            forecast predicts no violation anywhere along it (timed at ``check_min_scale``); else the robot
-            stays at rest and plans again after ``retry_after_s``. False: only a violation before
-            ``T_i + D`` forbids it, as for a backup that replaces a plan in execution.
-        resume_travel_m: After a stop & replan, the robot is under way again (a new encounter can stop it
-            again) once it has moved this far (m).
-        check_dt_s: Time step of the checks of a plan against a forecast (s).
-        check_min_scale: Least scale at which a slowed or stopped robot's plan is timed for the checks.
-        profile_window_s: Look-ahead of the speed governor along the path (s).
-        robot_toward: The governor takes each part's speed *toward* the person (ISO/TS 15066's directed
-            ``v_r``, measured at every frame along the path ahead: :func:`app.safety.governor.closing_bound`),
-            not its whole speed (False: as if it moved straight at the person).
-        toward_horizon_s: How far along the path (path time, s) the directed speed is measured at each
-            frame; the governor falls back to the whole speed where a brake could end beyond it (or on a
-            plan switched to since the frame).
-        emergency_horizon_s: Horizon of the emergency plan; default F + D.
-    """
-
-    method: Method = "proactive"
-    deadline_s: float = 0.1
-    start_deadline_s: float | None = None
-    frame_period_s: float = 1.0 / 30.0
-    planner_workers: int = 1
-    brake_decel_mps2: float = UR5E_STOP.decel_mps2
-    brake_joint_decel: float = UR5E_STOP.joint_decel_radps2
-    scale_up_rate: float = 4.0
-    tracking_margin_m: float = 0.02
-    human_speed_window_s: float = 0.1
-    near_band_m: float = 0.25
-    retry_after_s: float = 0.2
-    clear_start: bool = True
-    resume_travel_m: float = 0.03
-    check_dt_s: float = 0.04
-    check_min_scale: float = 0.5
-    profile_window_s: float = 0.6
-    robot_toward: bool = True
-    toward_horizon_s: float = 0.9
-    emergency_horizon_s: float | None = None
-
-    def __post_init__(self) -> None:
-        if self.method not in ("proactive", "reactive"):
-            raise ValueError(f"method must be 'proactive' or 'reactive', got {self.method!r}")
-        if self.deadline_s <= 0 or self.frame_period_s <= 0:
-            raise ValueError("deadline_s and frame_period_s must be positive")
-        if not (math.isfinite(self.toward_horizon_s) and self.toward_horizon_s > 0):
-            raise ValueError(f"toward_horizon_s must be a finite number > 0, got {self.toward_horizon_s!r}")
-
-    @property
-    def max_jobs(self) -> int:
-        """Backup jobs in flight at most: ceil(D / F)."""
-        return max(1, math.ceil(self.deadline_s / self.frame_period_s - 1e-9))
-
-    @property
-    def start_deadline(self) -> float:
-        return 3.0 * self.deadline_s if self.start_deadline_s is None else self.start_deadline_s
-
-    @property
-    def emergency_horizon(self) -> float:
-        if self.emergency_horizon_s is not None:
-            return self.emergency_horizon_s
-        return self.frame_period_s + self.deadline_s
 
 
 @dataclass
@@ -461,9 +377,17 @@ class Supervisor:
     # frames: backup request, checks, decision
     # ------------------------------------------------------------------------------------------------
 
-    def on_frame(self, frame: HumanFrame, forecast: HumanForecast, *, t_now: float) -> FrameDecision:
+    def on_frame(
+        self,
+        frame: HumanFrame,
+        forecast: HumanForecast,
+        *,
+        t_now: float,
+        candidate: HumanForecast | None = None,
+    ) -> FrameDecision:
         """Process a new frame ``frame`` (validated) with the forecast of the method, at time ``t_now``
-        (``T_i``, the frame's arrival on the runtime clock)."""
+        (``T_i``, the frame's arrival on the runtime clock); ``candidate``: the reactive method's forecast
+        of the frame, whose plan each backup weighs against the method's own (:class:`BackupRequest`)."""
         c0 = self.timer()
         cfg = self.config
         if frame.joints.shape != (NUM_JOINTS, 3):
@@ -543,7 +467,7 @@ class Supervisor:
         # is consumed by nothing but the switch its own frame schedules, so the others need not run)
         req = None
         if goal is not None and self._brake is None:
-            req = self._branch_request(seq, T, goal, forecast, active, tau, s)
+            req = self._branch_request(seq, T, goal, forecast, active, tau, s, candidate)
 
         # 2. check the plan in execution against the latest forecast (outside the lock: it takes a while)
         moving_plan = active.under_way(tau)
@@ -655,6 +579,7 @@ class Supervisor:
         active: _Active,
         tau: float,
         s: float,
+        candidate: HumanForecast | None,
     ) -> tuple[BackupRequest, float] | None:
         """The backup request of frame ``seq`` and its branch point (path time in ``active``)."""
         cfg = self.config
@@ -686,6 +611,8 @@ class Supervisor:
             goal=goal,
             forecast=forecast,
             deadline_s=deadline,
+            candidate=candidate,
+            sets_off=not active.under_way(tau),
         )
         return req, float(tau_b)
 
@@ -717,7 +644,9 @@ class Supervisor:
         t_v = self._first_violation(view, forecast, t_ref, view.t_end)
         if t_v is None:
             return None
-        if t_v > t_now + cfg.deadline_s and not (cfg.clear_start and pend.from_rest):
+        if t_v > t_now + cfg.deadline_s and not (
+            cfg.clear_start and pend.from_rest and out.chosen != "reactive_only"
+        ):
             return None
         return t_v
 
@@ -968,6 +897,7 @@ class Supervisor:
                 return
         assert out.traj is not None and out.profile is not None
         tau_new = out.traj.t_start + max(self._tau - pend.tau_branch, 0.0)
+        self.counters.count_choice(out.chosen, out.gain_s)
         pid = self._new_plan_id()
         self._active = _Active(out.traj, out.profile, pid, "plan", True, self._goal, self._seq, out.arrival_s)
         self._person_in_way = False

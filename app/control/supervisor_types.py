@@ -1,16 +1,20 @@
-"""What the supervisor reports: its running totals of one trial (counts of replans and failures, planning
-times, time per state, the trial's time budget, :data:`TIME_BUDGET`), the command of a servo tick, the
-outcome of a frame's decision and its status read-out."""
+"""The supervisor's configuration (:class:`SupervisorConfig`) and what it reports: its running totals of one
+trial (counts of replans and failures, planning times, time per state, the trial's time budget,
+:data:`TIME_BUDGET`), the command of a servo tick, the outcome of a frame's decision and its status
+read-out."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 
+from app.control.metrics import Method
 from app.control.trajectory_views import TrajectoryLike
 from app.safety.modes import PartMode
+from app.safety.stopping import UR5E_STOP
 
 SupervisorState = Literal["idle", "nominal", "collision_avoidance", "stopped", "estop", "fault"]
 #: Every state a :class:`~app.control.supervisor.Supervisor` can be in.
@@ -81,6 +85,19 @@ class SupervisorCounters:
     scaled_scale_s: float = 0.0
     #: per plan that reached its goal: (planned duration (s), executed minus predicted arrival (s))
     arrivals: list[tuple[float, float]] = field(default_factory=list)
+    #: of the plans executed after weighing the reactive method's candidate: how many were the forecast's
+    #: own, the reactive one that arrives earlier, or the reactive one where the forecast's found none
+    #: (:data:`app.control.backup.PlanChoice`), and the predicted time the reactive ones gained (s)
+    plan_choices: dict[str, int] = field(
+        default_factory=lambda: {"forecast": 0, "reactive": 0, "reactive_only": 0}
+    )
+    reactive_gain_s: float = 0.0
+
+    def count_choice(self, chosen: str | None, gain_s: float) -> None:
+        """Count an executed plan's :attr:`PlanOutcome.chosen` (None: no candidate was weighed)."""
+        if chosen is not None:
+            self.plan_choices[chosen] += 1
+            self.reactive_gain_s += gain_s
 
     def add_budget(self, part: str, goal: str, dt: float, scale: float) -> None:
         """Count ``dt`` seconds of the time budget's ``part`` (:data:`TIME_BUDGET`) toward ``goal`` (the
@@ -173,3 +190,86 @@ class SupervisorStatus:
     stale: bool
     estopped: bool
     modes: tuple[PartMode, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class SupervisorConfig:
+    """Parameters of the state machine. D, F and the workers come from :class:`app.config.Settings`.
+
+    Attributes:
+        method: ``proactive`` (the predictor's forecast) or ``reactive`` (the current pose held).
+        deadline_s: D, the backup-plan deadline (s).
+        start_deadline_s: Deadline of a plan that starts the robot from rest (default 3 D): the robot stands
+            still until the plan starts, so a longer search costs waiting time only, not safety.
+        frame_period_s: F, the camera frame period (s).
+        planner_workers: Workers per plan (parallel A*).
+        brake_decel_mps2: Deceleration of the robot's fastest point when braking (m/s^2).
+        brake_joint_decel: Largest joint deceleration when braking (rad/s^2).
+        scale_up_rate: Largest increase of the speed scale per second (1/s), at most the brake's rate.
+        tracking_margin_m: Tracking error of a frame: subtracted from measured separations and used as the
+            margin of the held pose (reactive forecast, emergency plan).
+        human_speed_window_s: Window (s) over which the person's speed is measured.
+        near_band_m: The person's parts within this much of being the nearest to a robot part count for
+            the speed of the person near that part (m).
+        retry_after_s: After a failed plan to start (or resume) moving, the next attempt waits this long (s).
+        clear_start: A plan that starts the robot from rest (or resumes it) is executed only if the latest
+            forecast predicts no violation anywhere along it (timed at ``check_min_scale``); else the robot
+            stays at rest and plans again after ``retry_after_s``. False: only a violation before
+            ``T_i + D`` forbids it, as for a backup that replaces a plan in execution.
+        resume_travel_m: After a stop & replan, the robot is under way again (a new encounter can stop it
+            again) once it has moved this far (m).
+        check_dt_s: Time step of the checks of a plan against a forecast (s).
+        check_min_scale: Least scale at which a slowed or stopped robot's plan is timed for the checks.
+        profile_window_s: Look-ahead of the speed governor along the path (s).
+        robot_toward: The governor takes each part's speed *toward* the person (ISO/TS 15066's directed
+            ``v_r``, measured at every frame along the path ahead: :func:`app.safety.governor.closing_bound`),
+            not its whole speed (False: as if it moved straight at the person).
+        toward_horizon_s: How far along the path (path time, s) the directed speed is measured at each
+            frame; the governor falls back to the whole speed where a brake could end beyond it (or on a
+            plan switched to since the frame).
+        emergency_horizon_s: Horizon of the emergency plan; default F + D.
+    """
+
+    method: Method = "proactive"
+    deadline_s: float = 0.1
+    start_deadline_s: float | None = None
+    frame_period_s: float = 1.0 / 30.0
+    planner_workers: int = 1
+    brake_decel_mps2: float = UR5E_STOP.decel_mps2
+    brake_joint_decel: float = UR5E_STOP.joint_decel_radps2
+    scale_up_rate: float = 4.0
+    tracking_margin_m: float = 0.02
+    human_speed_window_s: float = 0.1
+    near_band_m: float = 0.25
+    retry_after_s: float = 0.2
+    clear_start: bool = True
+    resume_travel_m: float = 0.03
+    check_dt_s: float = 0.04
+    check_min_scale: float = 0.5
+    profile_window_s: float = 0.6
+    robot_toward: bool = True
+    toward_horizon_s: float = 0.9
+    emergency_horizon_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.method not in ("proactive", "reactive"):
+            raise ValueError(f"method must be 'proactive' or 'reactive', got {self.method!r}")
+        if self.deadline_s <= 0 or self.frame_period_s <= 0:
+            raise ValueError("deadline_s and frame_period_s must be positive")
+        if not (math.isfinite(self.toward_horizon_s) and self.toward_horizon_s > 0):
+            raise ValueError(f"toward_horizon_s must be a finite number > 0, got {self.toward_horizon_s!r}")
+
+    @property
+    def max_jobs(self) -> int:
+        """Backup jobs in flight at most: ceil(D / F)."""
+        return max(1, math.ceil(self.deadline_s / self.frame_period_s - 1e-9))
+
+    @property
+    def start_deadline(self) -> float:
+        return 3.0 * self.deadline_s if self.start_deadline_s is None else self.start_deadline_s
+
+    @property
+    def emergency_horizon(self) -> float:
+        if self.emergency_horizon_s is not None:
+            return self.emergency_horizon_s
+        return self.frame_period_s + self.deadline_s

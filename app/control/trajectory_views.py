@@ -67,6 +67,10 @@ class PlannerLike(Protocol):
         self, traj: Any, forecast: HumanForecast, *, t_from: float, t_to: float, dt_s: float | None = None
     ) -> float | None: ...
 
+    def predicted_check(
+        self, traj: Any, forecast: HumanForecast | None, *, timing: Any = None
+    ) -> tuple[float | None, float]: ...
+
 
 class RobotGeometry(Protocol):
     """The robot's body as ``L`` parts (see :class:`app.control.stack.CellGeometry`: one per capsule)."""

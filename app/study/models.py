@@ -203,6 +203,11 @@ class TrialMetricsRow(Base):
     arrival_error_median_abs_s: Mapped[float | None] = mapped_column(Float)
     arrival_error_bias_s: Mapped[float | None] = mapped_column(Float)
     median_plan_s: Mapped[float | None] = mapped_column(Float)
+    # revision 0008, the reactive method's plan as a candidate; NULL: a trial recorded before it
+    plans_forecast: Mapped[int | None] = mapped_column(Integer)
+    plans_reactive: Mapped[int | None] = mapped_column(Integer)
+    plans_reactive_only: Mapped[int | None] = mapped_column(Integer)
+    reactive_gain_s: Mapped[float | None] = mapped_column(Float)
     stale_stops: Mapped[int] = mapped_column(Integer)
     frames_received: Mapped[int] = mapped_column(Integer)
     frames_rejected: Mapped[int] = mapped_column(Integer)
@@ -253,6 +258,10 @@ METRIC_COLUMNS: tuple[str, ...] = (
     "arrival_error_median_abs_s",
     "arrival_error_bias_s",
     "median_plan_s",
+    "plans_forecast",
+    "plans_reactive",
+    "plans_reactive_only",
+    "reactive_gain_s",
     "stale_stops",
     "frames_received",
     "frames_rejected",

@@ -149,6 +149,10 @@ class TrialMetricsRead(_Out):
     arrival_error_median_abs_s: float | None = None
     arrival_error_bias_s: float | None = None
     median_plan_s: float | None = None
+    plans_forecast: int | None = None
+    plans_reactive: int | None = None
+    plans_reactive_only: int | None = None
+    reactive_gain_s: float | None = None
     stale_stops: int
     frames_received: int
     frames_rejected: int

@@ -269,11 +269,7 @@ class _TrajectoryChecks:
         one; without, at its own timing."""
 
         def check(traj: Trajectory) -> tuple[float | None, float]:
-            view: Any = traj
-            if timing is not None and forecast is not None:
-                view = PredictedTiming.of(traj, forecast, self.collision, timing)
-            end = view.t_end + hold_s
-            return self._verify(view, forecast, view.t_start, end, floor_m=floor_m), view.t_end
+            return self._judge_timed(traj, forecast, timing=timing, hold_s=hold_s, floor_m=floor_m)
 
         traj = self._fit(waypoints, qd0)
         if traj is None:
@@ -304,6 +300,30 @@ class _TrajectoryChecks:
             logger.debug("fitted trajectory violates at t=%.3f (%.3f..%.3f)", viol, traj.t_start, traj.t_end)
             return None
         return traj.to_plan(_map_nodes(waypoints, traj)), traj, arrival
+
+    def predicted_check(
+        self, traj: Trajectory, forecast: HumanForecast | None, *, timing: GovernorModel | None = None
+    ) -> tuple[float | None, float]:
+        """``traj`` as the governor is predicted to run it against ``forecast`` (at its own timing without
+        ``timing``): its first violation of the forecast person (None: none), through its arrival and the
+        goal's hold (``PlannerConfig.goal_hold_s``), and its predicted arrival (s, runtime clock). The check
+        of :meth:`plan`'s own result, for a trajectory planned against another forecast."""
+        return self._judge_timed(traj, forecast, timing=timing, hold_s=self.config.goal_hold_s)
+
+    def _judge_timed(
+        self,
+        traj: Trajectory,
+        forecast: HumanForecast | None,
+        *,
+        timing: GovernorModel | None,
+        hold_s: float,
+        floor_m: float | None = None,
+    ) -> tuple[float | None, float]:
+        view: Any = traj
+        if timing is not None and forecast is not None:
+            view = PredictedTiming.of(traj, forecast, self.collision, timing)
+        end = view.t_end + hold_s
+        return self._verify(view, forecast, view.t_start, end, floor_m=floor_m), view.t_end
 
     def _fit_stops(self, plan: Plan) -> Trajectory | None:
         """A trajectory at rest at every waypoint: each segment a straight joint move with zero end

@@ -184,6 +184,9 @@ class FakePlanner:
             True, FakePlan(np.array([t_start, t_start + horizon_s]), np.stack([q, q]), np.zeros(2)), ""
         )
 
+    def predicted_check(self, traj, forecast, *, timing=None) -> tuple[float | None, float]:
+        return self.first_violation(traj, forecast, t_from=traj.t_start, t_to=traj.t_end + 0.3), traj.t_end
+
     def first_violation(self, traj, forecast, *, t_from, t_to, dt_s=None) -> float | None:
         ts = traj.sample(dt_s or 0.02, t_from=t_from, t_to=t_to)
         q = traj.q(ts)
@@ -208,7 +211,9 @@ class Harness:
         q0: np.ndarray | None = None,
         goals: dict[str, np.ndarray] | None = None,
         config: SupervisorConfig | None = None,
+        candidate: bool = False,
     ) -> None:
+        self.candidate = candidate  # weigh the reactive method's plan (the person held still) at each backup
         self.goals = goals or {"B": np.array([2.0, 0.0, 0.0])}
         self.planner = FakePlanner(self.goals)
         self.geometry = PointGeometry()
@@ -252,7 +257,8 @@ class Harness:
             t = self.t
             if self.frames_on and t >= self.next_frame - 1e-9:
                 frame = HumanFrame(t, self.person(t))
-                self.decisions.append(self.sup.on_frame(frame, self.forecast(t), t_now=t))
+                held = HumanForecast.hold(frame) if self.candidate else None
+                self.decisions.append(self.sup.on_frame(frame, self.forecast(t), t_now=t, candidate=held))
                 self.next_frame += self.config.frame_period_s
             elif not self.frames_on:
                 self.next_frame = t
@@ -897,3 +903,116 @@ def test_the_status_says_what_limits_the_robot_and_the_separation_it_is_held_to(
     assert "free" in seen and ({"ssm", "stopped"} & seen)
     h.sup.estop(h.t)
     assert [m.mode for m in h.sup.status().modes] == ["stopped"]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the reactive method's plan as a candidate of the proactive method's decisions
+
+
+def _request(forecast: HumanForecast, candidate: HumanForecast | None, *, sets_off: bool = True) -> Any:
+    from app.control.backup import BackupRequest
+
+    return BackupRequest(
+        key=1, t_request=0.0, t_start=0.1, q_start=np.zeros(6), qd_start=np.zeros(6), goal="B",
+        forecast=forecast, deadline_s=None, candidate=candidate, sets_off=sets_off,
+    )  # fmt: skip
+
+
+def _walk_onto_the_path(at: float, x: float = 1.0) -> HumanForecast:
+    """A forecast person far away who stands on the straight path to B (at ``x``) from ``at`` on."""
+    on = person_at(np.array([x, 0.0, 0.0]))
+    return HumanForecast(
+        t0=0.0, times=np.array([0.0, at - 0.01, at]), joints=np.stack([person_at(FAR), person_at(FAR), on]),
+        margins=np.zeros(3),
+    )  # fmt: skip
+
+
+def _computer(planner: FakePlanner) -> BackupComputer:
+    c = BackupComputer(planner, make_traj, PointGeometry(), deadline_s=0.1, workers=1, timer=_FakeTimer())
+    c.enforce_deadline = False
+    return c
+
+
+def test_the_reactive_plan_is_taken_where_it_arrives_earlier_under_the_forecast() -> None:
+    """A search that detours where it need not (its own forecast clear of the straight path): the reactive
+    method's straight plan passes the check under that forecast and arrives earlier, so it is taken, with
+    the time it gains; where the straight plan would meet the forecast person, the forecast's own wins."""
+    planner = FakePlanner({"B": np.array([2.0, 0.0, 0.0])})
+    far = HumanForecast.hold(HumanFrame(0.0, person_at(FAR)))
+    clear = dataclasses.replace(far)  # the proactive forecast: nobody near, another object than the held one
+    real = planner.plan
+
+    def cautious(**kw: Any) -> FakeResult:  # the forecast's own search goes round where it need not
+        if kw["forecast"] is clear:
+            a, b, side = np.asarray(kw["q_start"])[:3], planner.goals["B"], np.array([0.0, 1.0, 0.0])
+            return FakeResult(True, planner._line([a, a + side, b + side, b], kw["t_start"]), "ok")
+        return real(**kw)
+
+    planner.plan = cautious  # type: ignore[method-assign]
+    out = _computer(planner).compute_raw(_request(clear, far))
+    assert out.status == "ok" and out.chosen == "reactive"
+    straight, detour = 2.0 / SPEED, (1.0 + 2.0 + 1.0) / SPEED
+    assert out.arrival_s == pytest.approx(0.1 + straight)
+    assert out.gain_s == pytest.approx(detour - straight)
+    assert abs(out.traj.q(0.1 + straight / 2)[1]) < 1e-9  # the straight plan
+    # the straight plan would meet the forecast person on the path: the forecast's own (the detour) is kept
+    out = _computer(planner).compute_raw(_request(_walk_onto_the_path(1.5), far))
+    assert out.status == "ok" and out.chosen == "forecast" and out.gain_s == 0.0
+    assert out.traj.q(2.5)[1] == pytest.approx(1.0)  # on the detour
+
+
+@pytest.mark.parametrize("sets_off", [True, False])
+def test_where_the_forecast_finds_no_plan_the_reactive_one_sets_off_if_the_stop_rule_allows(
+    sets_off: bool,
+) -> None:
+    """The forecast blocks every plan (its person on the straight path and on the detour, 1.5 s from now);
+    the reactive method's straight plan is clear until then. A robot at rest sets off on it (its violation
+    comes after the switch's T_i + D: the stop rule of a plan under way watches it from then on); a backup
+    of a plan under way is not replaced by a plan that does not clear the forecast."""
+    planner = FakePlanner({"B": np.array([2.0, 0.0, 0.0])})
+    planner.detour_y = 0.0  # the detour is the straight path too: no plan clears the forecast
+    far = HumanForecast.hold(HumanFrame(0.0, person_at(FAR)))
+    out = _computer(planner).compute_raw(_request(_walk_onto_the_path(1.5), far, sets_off=sets_off))
+    if sets_off:
+        assert out.status == "ok" and out.chosen == "reactive_only"
+        assert out.admitted_until is not None and out.admitted_until == pytest.approx(1.5, abs=0.03)
+    else:
+        assert out.status == "failed" and out.chosen is None
+    # violated before the switch's T_i + D (the person 0.3 m ahead from 0.15 s on): never taken
+    out = _computer(planner).compute_raw(_request(_walk_onto_the_path(0.15, x=0.3), far))
+    assert out.status == "failed" and out.chosen is None
+
+
+def test_the_reactive_method_weighs_no_candidate() -> None:
+    """The reactive method's forecast is the held pose itself: one plan per request, nothing counted."""
+    planner = FakePlanner({"B": np.array([2.0, 0.0, 0.0])})
+    far = HumanForecast.hold(HumanFrame(0.0, person_at(FAR)))
+    out = _computer(planner).compute_raw(_request(far, far))
+    assert out.status == "ok" and out.chosen is None and planner.plan_calls == 1
+
+
+def test_a_robot_at_rest_sets_off_on_the_reactive_plan_instead_of_waiting() -> None:
+    """The forecast says the person will stand on every path to B from 1.5 s on (a forecast that holds a
+    hand at the goal); the person really stays far. Without the candidate the robot at rest waits for the
+    forecast to clear; with it, it sets off at once on the reactive method's plan, watched by the stop rule
+    and the speed governor as every plan under way, and arrives (here the person never comes)."""
+
+    def fc(t: float) -> HumanForecast:
+        on = person_at(np.array([1.0, 0.0, 0.0]))
+        return HumanForecast(
+            t0=t, times=np.array([t, t + 1.5]), joints=np.stack([person_at(FAR), on]), margins=np.zeros(2)
+        )
+
+    arrivals = {}
+    for candidate in (False, True):
+        h = Harness(lambda t: person_at(FAR), forecast_fn=fc, candidate=candidate)
+        h.planner.detour_y = 0.0
+        h.sup.set_goal("B")
+        h.run(3.0)
+        moving = [t for t, _, _, v in h.log if v > 1e-6]
+        arrivals[candidate] = moving[0] if moving else math.inf
+        if candidate:
+            assert h.sup.counters.plan_choices["reactive_only"] >= 1
+            assert _monitor_violations(h) == 0
+    assert arrivals[False] == math.inf  # waited the whole time
+    assert arrivals[True] < 0.5

@@ -13,7 +13,7 @@ from app.control.metrics import TrialMetrics
 from app.study.db import DatabaseError, alembic_config, current_revision, make_engine, upgrade_to_head
 from app.study.models import METRIC_COLUMNS, Base, TrialMetricsRow, UTCDateTime
 
-HEAD = "0007"
+HEAD = "0008"
 #: The ground-truth monitor's columns (revision 0004).
 _SAFETY_0004 = ("contacts", "violation_time_s", "violations_iso", "intrusions", "min_separation_moving_m")
 #: The time budget's wait for the person and the stops of a moving robot, counted apart (revision 0006).
@@ -25,6 +25,8 @@ _PFL_0007 = (
     "exceedance_s",
     "max_approach_mps",
 )
+#: The reactive method's plan as a candidate (revision 0008).
+_CHOICES_0008 = ("plans_forecast", "plans_reactive", "plans_reactive_only", "reactive_gain_s")
 #: The time budget's and the arrivals' columns (revision 0005).
 _BUDGET_0005 = tuple(
     c for c in METRIC_COLUMNS if c.startswith(("budget_", "arrival", "median_plan")) and c not in _PERSON_0006
@@ -97,6 +99,7 @@ def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
                 *_BUDGET_0005,
                 *_PERSON_0006,
                 *_PFL_0007,
+                *_CHOICES_0008,
             )
             cols = [c for c in METRIC_COLUMNS if c not in later]
             conn.execute(
@@ -120,6 +123,8 @@ def test_upgrade_from_0001_keeps_the_stored_trials(tmp_path: Path) -> None:
             assert [tuple(r) for r in person] == [(None, None)]
             pfl = conn.execute(text(f"SELECT {', '.join(_PFL_0007)} FROM trial_metrics"))
             assert [tuple(r) for r in pfl] == [(None,) * 5]  # judged by another judge then: unknown, not 0
+            choices = conn.execute(text(f"SELECT {', '.join(_CHOICES_0008)} FROM trial_metrics"))
+            assert [tuple(r) for r in choices] == [(None,) * 4]  # no candidate weighed then: unknown, not 0
             keys = conn.execute(text("SELECT id, trial_key, setting_label FROM trials"))
             assert [tuple(r) for r in keys] == [(1, None, None)]
     finally:
