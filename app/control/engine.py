@@ -410,7 +410,8 @@ class TrialEngine:
             if self.options.plan_margin_m > 0:
                 extra = self.options.plan_margin_m
                 forecast = dataclasses.replace(forecast, margins=forecast.margins + extra)
-        decision = self.supervisor.on_frame(body, forecast, t_now=t, candidate=held)
+        candidate = held if self.settings.reactive_candidate else None
+        decision = self.supervisor.on_frame(body, forecast, t_now=t, candidate=candidate)
         self.decide_s.append(decision.decide_s)
         self.frame_to_decision_s = time.perf_counter() - c0  # validation + prediction + decision
         self.last_decision = decision

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from app.cell.operator_sim import OperatorParams
@@ -94,3 +95,73 @@ def test_the_live_simulated_operator_is_a_participant_of_the_population_file(
     for seed, world in zip(seeds, _live_worlds(settings, stack, seeds), strict=True):
         assert world.person.params == OperatorParams.draw(seed, slow)
         assert 2.0 <= world.person.params.reaction_s <= 2.5  # the shipped population's: 0.3-1.2 s
+
+
+def test_the_proactive_and_the_reactive_trial_differ_only_in_the_forecast(
+    stack: PlanningStack, worlds: list[tuple[TrialWorld, TrialEngine]]
+) -> None:
+    """Like for like: the same participant, settings, planner, plan jobs, speed governor and judge; the
+    proactive trial has the predictor (and the task's expected fetch, part of its forecast), the reactive one
+    the person held still. Both weigh the same candidate, the held person: for the reactive method that is
+    its own forecast, so it weighs nothing more."""
+    import dataclasses
+
+    settings = Settings(human_source="sim", robot="sim", planner_workers=1)
+    for method in ("proactive", "reactive"):
+        run_headless_trial(
+            settings=settings, method=method, duration_s=1.0, seed=SEED, stack=stack, fixed_compute_s=0.01
+        )
+    (pw, pe), (rw, re) = worlds[-2:]
+    assert (pe.method, re.method) == ("proactive", "reactive")
+    assert pw.settings == rw.settings and pw.person.params == rw.person.params and pw.tracker == rw.tracker
+    assert pe.options == re.options and pe.seed == re.seed
+    assert dataclasses.replace(pe.config, method="reactive") == re.config  # the method's name apart
+    assert pe.supervisor.planner is re.supervisor.planner  # one planner, one roadmap
+    assert pe.supervisor.ssm == re.supervisor.ssm
+    assert pe.jobs.compute.timing == re.jobs.compute.timing  # the same governor model times the plans
+    assert pe.monitor is not None and re.monitor is not None
+    for a in ("ssm", "t_r", "stopping", "pfl", "part_names"):  # the same judge
+        assert getattr(pe.monitor, a) == getattr(re.monitor, a), a
+    # the forecast: the predictor and the expected fetch, or the person held still
+    assert pe.predictor is not None and pe.anticipation is not None
+    assert re.predictor is None and re.anticipation is None
+    assert pe.last_forecast is not None and re.last_forecast is not None
+    held = re.last_forecast
+    assert held.times.size == 1 and np.array_equal(held.joints[0], re.last_frame.joints)
+
+
+def test_with_the_exact_future_the_proactive_plan_never_arrives_later_than_the_reactive_one(
+    stack: PlanningStack, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every backup of a proactive trial with the simulated person's exact future as its forecast (the
+    oracle): wherever the plan the reactive method would take passes the check under that future, the plan
+    the proactive method executes is predicted to arrive no later (the forecast's own plan, or that one)."""
+    from app.control.backup import BackupComputer, BackupRequest, PlanOutcome
+
+    compute_raw = BackupComputer.compute_raw
+    seen: list[tuple[str | None, float, float]] = []
+
+    def checked(self: BackupComputer, req: BackupRequest) -> PlanOutcome:
+        out = compute_raw(self, req)
+        if not req.has_candidate:
+            return out
+        assert req.candidate is not None
+        alone = self._plan_one(req, req.candidate, None, self.timer())  # the reactive method's plan
+        if alone.status == "ok":
+            assert alone.traj is not None
+            t_v, arrival = self.planner.predicted_check(alone.traj, req.forecast, timing=self.timing)
+            if t_v is None:
+                assert out.status == "ok" and out.traj is not None
+                mine = out.arrival_s if out.arrival_s is not None else out.traj.t_end
+                seen.append((out.chosen, mine, arrival))
+        return out
+
+    monkeypatch.setattr(BackupComputer, "compute_raw", checked)
+    settings = Settings(human_source="sim", robot="sim", planner_workers=1)
+    run_headless_trial(
+        settings=settings, method="proactive", duration_s=40.0, seed=SEED, stack=stack,
+        fixed_compute_s=0.01, forecast="oracle",
+    )  # fmt: skip
+    assert len(seen) >= 5
+    late = [(c, a, b) for c, a, b in seen if a > b + 1e-6]
+    assert not late, late
