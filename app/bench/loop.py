@@ -8,7 +8,10 @@ simulated operator, the default roadmap and the shipped predictor) and runs a pr
   the emergency plan when the decision is to stop); the backup plan's own search runs on the planner pool and
   is not included;
 - ``servo_jitter_ms``: how late each tick of the robot command loop woke up after its deadline
-  (:class:`~app.cell.clock.RateLoop`, ``servo_rate_hz``), with its overruns.
+  (:class:`~app.cell.clock.RateLoop`, ``servo_rate_hz``), with its overruns;
+- ``planning``: the compute time of every plan of the trial on the planner pool (each backup weighs the
+  reactive method's plan too: both searches and the check), against the deadline ``D``, and the missed
+  deadlines per minute.
 
 Prints one JSON object (percentiles over every frame and tick of the run).
 """
@@ -35,7 +38,8 @@ def _pct(values: list[float], qs: tuple[int, ...]) -> dict[str, float | int]:
 
 
 def run(*, quick: bool = False, progress: bool = True, servo_rate_hz: float = 125.0) -> dict[str, Any]:
-    """Run the live runtime for a few seconds (4 with ``quick``, 20 otherwise) and measure its loops."""
+    """Run the live runtime for a proactive trial (4 s with ``quick``, 120 s otherwise) and measure its
+    loops."""
     from app.config import Settings
     from app.control.engine import EngineOptions
     from app.control.runtime import Runtime
@@ -46,7 +50,7 @@ def run(*, quick: bool = False, progress: bool = True, servo_rate_hz: float = 12
         torch.set_num_threads(1)
     except ImportError:
         pass
-    duration = 4.0 if quick else 20.0
+    duration = 4.0 if quick else 120.0
     settings = Settings(robot="sim", human_source="sim")
     rt = Runtime(settings, servo_rate_hz=servo_rate_hz, options=EngineOptions(record_frames=False))
     t_build = time.perf_counter()
@@ -68,6 +72,7 @@ def run(*, quick: bool = False, progress: bool = True, servo_rate_hz: float = 12
         late = list(rt.stats.servo_late_ms)
         overruns = rt.stats.servo_overruns - overruns0
         counters = rt.snapshot().counters
+        plans_s, misses = rt.planning_record()
         rt.stop_trial(reason="benchmark done")
     finally:
         rt.stop()
@@ -80,6 +85,12 @@ def run(*, quick: bool = False, progress: bool = True, servo_rate_hz: float = 12
         "servo_jitter_ms": _pct(late, (50, 99)),
         "servo_overruns": overruns,
         "servo_ticks": len(late),
+        "planning": {
+            "deadline_ms": round(1e3 * settings.deadline_s, 3),
+            "plan_ms": _pct([1e3 * x for x in plans_s], (50, 95)),
+            "deadline_misses": misses,
+            "deadline_misses_per_min": round(60.0 * misses / duration, 2),
+        },
         "start_s": round(build_s, 3),
         "trial_counters": {k: v for k, v in counters.items() if isinstance(v, int)},
     }

@@ -415,6 +415,15 @@ class Runtime:
         with self._lock:
             return self._trial_id if self._engine is not None and self._engine.running else None
 
+    def planning_record(self) -> tuple[list[float], int]:
+        """The compute time (s) of every plan of the trial so far and its missed deadlines ([], 0: none)."""
+        with self._lock:
+            engine = self._engine
+        if engine is None:
+            return [], 0
+        c = engine.supervisor.counters
+        return list(c.planning_times_s), c.deadline_misses
+
     def start_trial(self, *, trial_id: int, method: Method, duration_s: float, seed: int) -> None:
         """Start a trial now.
 
