@@ -274,7 +274,8 @@ def eval_cmd(
 ) -> None:
     """MPJPE (mm) at 80..1000 ms of the Graph-Mixer and both baselines on clips (default: CMU test split) or
     on simulated operators (``--sim-operators N``), and of the arbitrated forecast with its margins'
-    coverage and mean margin."""
+    coverage and mean margin, overall and per clip (``forecast.per_clip``), with the clip and horizon where
+    it is worst against the better baseline (``forecast.worst_clip``)."""
     import torch
 
     from app.prediction.data import ClipError, load_clip_dir, require_cmu_dir
@@ -387,6 +388,10 @@ def eval_cmd(
     typer.echo(
         f"{'  margin (mm)':<18}" + "".join(f"{forecast['margin_mm'][str(ms)]:>8.1f}" for ms in HORIZONS_MS)
     )
+    if forecast.get("worst_clip"):
+        from app.prediction.evaluate import worst_clip_text
+
+        typer.echo(f"worst clip, forecast / better baseline: {worst_clip_text(forecast['worst_clip'])}")
     if predictor.model is None:
         typer.echo("(no usable Graph-Mixer weights: baselines only)")
 

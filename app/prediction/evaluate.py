@@ -22,6 +22,9 @@ HORIZONS_MS: tuple[int, ...] = (80, 160, 320, 400, 560, 720, 880, 1000)
 #: Quantiles of the per-joint error stored with the weights ("p95" is the default margin).
 QUANTILES: tuple[int, ...] = (50, 90, 95, 99)
 
+#: The baselines a forecast is measured against (the better of the two, per clip and horizon).
+BASELINES: tuple[str, ...] = ("constant_velocity", "zero_velocity")
+
 PredictFn = Callable[[np.ndarray], np.ndarray]
 
 
@@ -153,6 +156,14 @@ def evaluate_clips(
     return results
 
 
+def baseline_ratio(forecast_mm: float, baseline_mm: float) -> float:
+    """A forecast's error over a baseline's: 1 where both are exact (0 mm), infinite where only the baseline
+    is (reported as None)."""
+    if baseline_mm > 0.0:
+        return forecast_mm / baseline_mm
+    return 1.0 if forecast_mm == 0.0 else float("inf")
+
+
 def evaluate_arbitrated(
     clips: Sequence[Clip],
     predictors: Mapping[str, Callable[[np.ndarray, int], np.ndarray]],
@@ -177,9 +188,19 @@ def evaluate_arbitrated(
     arguments of the arbiter (``gamma``, ``warmup``, ...).
 
     Returns ``{"mpjpe_mm": {ms: ...}, "coverage": {ms: ...}, "coverage_target": ..., "margin_mm": {ms:
-    ...}, "forecasts": n, "chosen": {candidate: share of the steps}}``: the MPJPE of the combined forecast,
-    the fraction of joints inside its margin and the mean margin, per horizon (margins interpolated like the
-    poses, on the grid of half steps where the arbiter calibrates them there).
+    ...}, "forecasts": n, "chosen": {candidate: share of the steps}, "per_clip": [...], "worst_clip":
+    {...}}``: the MPJPE of the combined forecast, the fraction of joints inside its margin and the mean
+    margin, per horizon (margins interpolated like the poses, on the grid of half steps where the arbiter
+    calibrates them there).
+
+    ``per_clip`` has, for each clip evaluated, ``{"clip": label, "forecasts": n, "mpjpe_mm": {ms: ...},
+    "baselines_mm": {baseline: {ms: ...}}, "ratio": {ms: ...}, "coverage": {ms: ...}}``: the combined
+    forecast's MPJPE, that of each baseline of :data:`BASELINES` among ``predictors`` over the same forecasts
+    (from the clip's first), the combined forecast's over the better baseline's (:func:`baseline_ratio`) and
+    its coverage, per horizon. ``worst_clip`` is the clip and horizon of the highest ratio, ``{"clip",
+    "horizon_ms", "ratio", "arbitrated_mm", "best_baseline", "best_baseline_mm", "coverage", "forecasts"}``
+    (the clip's coverage at that horizon and its number of forecasts), or None where no baseline is among
+    the candidates.
     """
     from app.prediction.arbitration import ForecastArbiter
 
@@ -192,6 +213,10 @@ def evaluate_arbitrated(
     options = dict(arbiter_options or {})
     if prior_m is not None:
         options["prior_m"] = prior_m
+    baselines = [n for n in BASELINES if n in predictors]
+    per_clip: list[dict[str, Any]] = []
+    worst: dict[str, Any] | None = None
+    worst_ratio = -np.inf
     for clip in clips:
         pos = np.asarray(clip.positions, dtype=np.float64)
         if pos.shape[0] < t_in + horizon:
@@ -223,6 +248,9 @@ def evaluate_arbitrated(
             for name in out.chosen[1:]:
                 chosen_counts[name] += 1
         truth = np.stack([pos[i : i + horizon + 1] for i in ends])
+        clip_mm: dict[str, float] = {}
+        clip_cov: dict[str, float] = {}
+        base_mm: dict[str, dict[str, float]] = {n: {} for n in baselines}
         for j, ms in enumerate(horizons_ms):
             p = interpolate_horizon(combined, ms / 1000.0, fps)
             g = interpolate_horizon(truth, ms / 1000.0, fps)
@@ -231,7 +259,39 @@ def evaluate_arbitrated(
             err_sum[j] += float(d.mean(axis=1).sum())
             cov_sum[j] += float(np.mean(d <= m[:, None], axis=1).sum())
             margin_sum[j] += float(m.sum())
+            clip_mm[str(ms)] = 1000.0 * float(d.mean())
+            clip_cov[str(ms)] = float(np.mean(d <= m[:, None]))
+            for n in baselines:
+                b = interpolate_horizon(futures[n], ms / 1000.0, fps)
+                base_mm[n][str(ms)] = 1000.0 * float(np.linalg.norm(b - g, axis=-1).mean())
         count += int(ends.size)
+        ratios: dict[str, float | None] = {}
+        for key, mm in clip_mm.items() if baselines else ():
+            best = min(baselines, key=lambda n, key=key: base_mm[n][key])
+            ratio = baseline_ratio(mm, base_mm[best][key])
+            ratios[key] = None if np.isinf(ratio) else round(ratio, 3)
+            if ratio > worst_ratio:
+                worst_ratio = ratio
+                worst = {
+                    "clip": clip.label,
+                    "horizon_ms": int(key),
+                    "ratio": ratios[key],
+                    "arbitrated_mm": round(mm, 1),
+                    "best_baseline": best,
+                    "best_baseline_mm": round(base_mm[best][key], 1),
+                    "coverage": round(clip_cov[key], 4),
+                    "forecasts": int(ends.size),
+                }
+        per_clip.append(
+            {
+                "clip": clip.label,
+                "forecasts": int(ends.size),
+                "mpjpe_mm": {k: round(v, 1) for k, v in clip_mm.items()},
+                "baselines_mm": {n: {k: round(v, 1) for k, v in base_mm[n].items()} for n in baselines},
+                "ratio": ratios,
+                "coverage": {k: round(v, 4) for k, v in clip_cov.items()},
+            }
+        )
     if count == 0:
         raise ValueError(f"no clip is longer than {t_in + horizon} frames")
     n_steps = sum(chosen_counts.values())
@@ -246,13 +306,16 @@ def evaluate_arbitrated(
         },
         "forecasts": count,
         "chosen": {n: round(c / max(n_steps, 1), 3) for n, c in chosen_counts.items()},
+        "per_clip": per_clip,
+        "worst_clip": worst,
     }
 
 
 def report_markdown(report: Mapping[str, Any], *, horizons_ms: Sequence[int] = HORIZONS_MS) -> str:
     """A report of ``hrc hmp eval --json`` as a model-card section: what was evaluated, then one table of
     MPJPE (mm) per predictor and for the arbitrated forecast, the forecast over the better baseline, its
-    margins' coverage and mean margin, per horizon."""
+    margins' coverage and mean margin, per horizon; then the share of the steps taken from each candidate
+    and the clip and horizon where the forecast is worst against the better baseline."""
     forecast = report["forecast"]
     data = str(report["clips"]).rsplit("/", 1)[-1]  # a clip folder by its name: the card is read elsewhere
     lines = [f"Data: {data}; {report['windows']} windows, {forecast['forecasts']} forecasts."]
@@ -281,7 +344,21 @@ def report_markdown(report: Mapping[str, Any], *, horizons_ms: Sequence[int] = H
     row(f"coverage (target {forecast['coverage_target']:g})", [forecast["coverage"][c] for c in cols], ".3f")
     row("mean margin (mm)", [forecast["margin_mm"][c] for c in cols], ".1f")
     chosen = ", ".join(f"{k} {v:.1%}" for k, v in forecast.get("chosen", {}).items())
-    return "\n".join([*lines, "", *table, "", f"Steps taken from each candidate: {chosen}."])
+    tail = [f"Steps taken from each candidate: {chosen}."]
+    if forecast.get("worst_clip"):
+        worst = worst_clip_text(forecast["worst_clip"])
+        tail.append(f"Worst clip (the forecast over the better baseline): {worst}.")
+    return "\n".join([*lines, "", *table, "", *tail])
+
+
+def worst_clip_text(worst: Mapping[str, Any]) -> str:
+    """``worst_clip`` of :func:`evaluate_arbitrated` in one line."""
+    ratio = "inf" if worst["ratio"] is None else f"{worst['ratio']:.3f}"
+    return (
+        f"{worst['clip']} at {worst['horizon_ms']} ms, {ratio}x ({worst['arbitrated_mm']:.1f} mm against "
+        f"{worst['best_baseline']} {worst['best_baseline_mm']:.1f} mm; coverage {worst['coverage']:.3f}, "
+        f"{worst['forecasts']} forecasts)"
+    )
 
 
 def write_card_section(card: Path, key: str, body: str) -> None:

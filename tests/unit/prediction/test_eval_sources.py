@@ -23,6 +23,15 @@ def test_eval_on_simulated_operators_has_the_clips_report_shape() -> None:
     assert forecast["coverage_target"] == 0.95 and forecast["forecasts"] == report["windows"]
     assert all(0.0 <= c <= 1.0 for c in forecast["coverage"].values())
     assert forecast["margin_prior"].startswith("hmp_graphmixer.quantiles.json")
+    # per clip, against the better baseline over the same forecasts
+    assert [c["clip"] for c in forecast["per_clip"]] == ["sim/sim_operator_3", "sim/sim_operator_4"]
+    assert sum(c["forecasts"] for c in forecast["per_clip"]) == forecast["forecasts"]
+    worst = forecast["worst_clip"]
+    ratio = max(r for c in forecast["per_clip"] for r in c["ratio"].values())
+    assert worst["ratio"] == ratio and worst["best_baseline"] in ("constant_velocity", "zero_velocity")
+    clip = next(c for c in forecast["per_clip"] if c["clip"] == worst["clip"])
+    assert clip["ratio"][str(worst["horizon_ms"])] == ratio
+    assert worst["coverage"] == clip["coverage"][str(worst["horizon_ms"])]
 
 
 def test_eval_says_when_the_seeds_are_tuning_seeds() -> None:
