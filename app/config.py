@@ -351,12 +351,6 @@ class Settings(BaseSettings):
         "rule allows it (app.control.backup; tuning seeds 1000-1009 x 300 s, shipped cell: 7.9 tasks per "
         "trial against 6.3 without, reactive 8.1); false: the forecast's own plan alone",
     )
-    governed_check: bool = Field(
-        False,
-        description="the supervisor checks the plan in execution against the forecast at the timing the "
-        "speed governor is predicted to give it from where the robot is (app.planning.ssm_timing; with "
-        "ssm_timing), both methods alike; false: at the scale now, at least half speed",
-    )
     ssm_timing: bool = Field(
         True,
         description="SSM-aware timing: both methods time every plan with the speed scale the ISO/TS 15066 "

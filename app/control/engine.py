@@ -286,7 +286,6 @@ class TrialEngine:
             timer=timer,
             pfl=self.pfl,
             approach_floor_mps=approach_floors(settings, self.pfl),
-            timing=self.governor_model if settings.ssm_timing and settings.governed_check else None,
         )
         self.task = TaskExecutive(
             stack.cell,

@@ -201,7 +201,6 @@ class Supervisor:
         timer: Callable[[], float] = time.perf_counter,
         pfl: PFLModel | None = None,
         approach_floor_mps: np.ndarray | None = None,
-        timing: Any = None,
     ) -> None:
         q0 = np.asarray(q0, dtype=np.float64)
         if q0.shape != (6,):
@@ -213,9 +212,6 @@ class Supervisor:
         self.ssm = separation
         self.speed_scale_law = speed_scale
         self.pfl = pfl
-        #: the governor's model (:class:`app.safety.governor.GovernorModel`): where given, the plan in
-        #: execution is checked at the timing it predicts from where the robot is (else at the scale now)
-        self.timing = timing
         self._floors = (
             None if approach_floor_mps is None else np.asarray(approach_floor_mps, dtype=np.float64)
         )
@@ -477,7 +473,7 @@ class Supervisor:
         moving_plan = active.under_way(tau)
         t_v: float | None = None
         if moving_plan:
-            view = self._execution_view(active.traj, T, tau, s, forecast)
+            view = ScaledView(active.traj, t_ref=T, tau_ref=tau, scale=max(s, cfg.check_min_scale))
             t_v = self._first_violation(view, forecast, T, view.t_end)
         # the stop distance: a part that is to move is within S_p(0) of the person (at their measured speed;
         # the speed governor allows for what they may do before the next frame)
@@ -573,16 +569,6 @@ class Supervisor:
         except Exception:
             log.exception("first_violation raised; treating it as a violation now")
             return t_from
-
-    def _execution_view(self, traj: Any, t: float, tau: float, s: float, forecast: HumanForecast) -> Any:
-        """The plan in execution from path time ``tau`` at ``t`` as the checks time it: at the governor's
-        predicted timing (``timing``), else at the scale ``s`` (at least ``check_min_scale``)."""
-        if self.timing is not None and traj.t_end - tau > 1e-3:
-            try:
-                return self.planner.governed_view(traj, forecast, self.timing, start=(tau, t))
-            except ValueError:
-                log.debug("no governed timing of the plan from %.3f; checked at its scale", tau)
-        return ScaledView(traj, t_ref=t, tau_ref=tau, scale=max(s, self.config.check_min_scale))
 
     def _branch_request(
         self,

@@ -71,10 +71,6 @@ class PlannerLike(Protocol):
         self, traj: Any, forecast: HumanForecast | None, *, timing: Any = None
     ) -> tuple[float | None, float]: ...
 
-    def governed_view(
-        self, traj: Any, forecast: HumanForecast, timing: Any, *, start: tuple[float, float]
-    ) -> Any: ...
-
 
 class RobotGeometry(Protocol):
     """The robot's body as ``L`` parts (see :class:`app.control.stack.CellGeometry`: one per capsule)."""

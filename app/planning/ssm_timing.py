@@ -51,13 +51,7 @@ def _ahead_max(x: np.ndarray, n: int) -> np.ndarray:
 
 
 def predicted_scales(
-    traj: Trajectory,
-    forecast: Any,
-    collision: Any,
-    model: GovernorModel,
-    *,
-    step_s: float = STEP_S,
-    start: tuple[float, float] | None = None,
+    traj: Trajectory, forecast: Any, collision: Any, model: GovernorModel, *, step_s: float = STEP_S
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Walk along ``traj`` at the governor's predicted scale (compiled:
     :func:`app.planning._kernels.timing.predicted_scales_kernel`; the tests compare it with a NumPy
@@ -75,19 +69,13 @@ def predicted_scales(
         collision: The collision model (``robot_capsules``, ``human_capsules``).
         model: The governor's model.
         step_s: Spacing of the sample points (s of path time).
-        start: ``(tau, t)``: walk the rest of the path from path time ``tau`` on, reached at wall time ``t``
-            (a plan under way); default: the whole path from its start, at ``traj.t_start``.
 
     Returns:
         ``(tau, t, scale)``: path times (N + 1,) of the sample points on ``traj``'s own clock (its knots'
         times, at full speed), the predicted wall time (N + 1,) at which the robot gets to each (the first is
-        ``traj.t_start``, or ``start``'s), and the scale (N,) predicted for the move from each point to the
-        next.
+        ``traj.t_start``), and the scale (N,) predicted for the move from each point to the next.
     """
     t0, t1 = traj.t_start, traj.t_end
-    wall0 = t0
-    if start is not None:
-        t0, wall0 = min(max(float(start[0]), t0), t1), float(start[1])
     n = max(math.ceil((t1 - t0) / step_s), 1)
     tau = np.linspace(t0, t1, n + 1)
     q = traj.q(tau)
@@ -99,9 +87,7 @@ def predicted_scales(
     ha, hb, hr = collision.human_capsules(np.asarray(forecast.joints, dtype=np.float64))
     path = TimingPath(tau, _f64(ra), _f64(rb - ra), _f64(rr), _f64(v), _f64(w))
     person = TimingPerson(_f64(forecast.times), _f64(ha), _f64(hb - ha), _f64(hr))
-    t, scales = predicted_scales_kernel(
-        path, person, _governor_arrays(model, ahead, hr.shape[0]), float(wall0)
-    )
+    t, scales = predicted_scales_kernel(path, person, _governor_arrays(model, ahead, hr.shape[0]), float(t0))
     return tau, t, scales
 
 
@@ -159,17 +145,9 @@ class PredictedTiming:
 
     @classmethod
     def of(
-        cls,
-        traj: Trajectory,
-        forecast: Any,
-        collision: Any,
-        model: GovernorModel,
-        *,
-        step_s: float = STEP_S,
-        start: tuple[float, float] | None = None,
+        cls, traj: Trajectory, forecast: Any, collision: Any, model: GovernorModel, *, step_s: float = STEP_S
     ) -> PredictedTiming:
-        """``traj`` timed by :func:`predicted_scales` (from ``start``, ``(tau, t)``, where given)."""
-        tau, t, _ = predicted_scales(traj, forecast, collision, model, step_s=step_s, start=start)
+        tau, t, _ = predicted_scales(traj, forecast, collision, model, step_s=step_s)
         return cls(traj, tau, t)
 
     @property

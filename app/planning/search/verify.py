@@ -310,13 +310,6 @@ class _TrajectoryChecks:
         of :meth:`plan`'s own result, for a trajectory planned against another forecast."""
         return self._judge_timed(traj, forecast, timing=timing, hold_s=self.config.goal_hold_s)
 
-    def governed_view(
-        self, traj: Trajectory, forecast: HumanForecast, timing: GovernorModel, *, start: tuple[float, float]
-    ) -> PredictedTiming:
-        """The rest of ``traj`` from ``start`` (path time, wall time) at the timing the governor is predicted
-        to give it against ``forecast`` (a plan under way, as the supervisor checks it)."""
-        return PredictedTiming.of(traj, forecast, self.collision, timing, start=start)
-
     def _judge_timed(
         self,
         traj: Trajectory,

@@ -235,18 +235,3 @@ def test_where_the_governors_clearance_leaves_no_plan_the_search_falls_back_to_t
     assert res.phases_s["finish"] > 0
     with pytest.raises(ValueError, match="ssm_fallback_share"):
         config(ssm_fallback_share=0.0)
-
-
-def test_a_plan_under_way_is_timed_from_where_the_robot_is(ur5e: CollisionModel) -> None:
-    """The rest of a path from path time 0.6 s, reached at wall time 2.0 s: nobody near, it runs on at its
-    own speed from there; a person beside the turn slows the rest, and the walk starts where it was asked."""
-    traj = _base_turn(1.5)
-    far = _standing(np.array([6.0, 0.0, 0.5]))
-    tau, t, scales = predicted_scales(traj, far, ur5e, governor(), start=(0.6, 2.0))
-    assert tau[0] == pytest.approx(0.6) and tau[-1] == pytest.approx(traj.t_end) and t[0] == 2.0
-    assert np.all(scales == 1.0) and t[-1] == pytest.approx(2.0 + traj.t_end - 0.6)
-    near = _standing(np.array([0.9, -0.3, 0.2]))
-    _, t_near, _ = predicted_scales(traj, near, ur5e, governor(), start=(0.6, 2.0))
-    assert t_near[0] == 2.0 and t_near[-1] > t[-1] + 0.2
-    view = PredictedTiming.of(traj, near, ur5e, governor(), start=(0.6, 2.0))
-    assert view.t_start == 2.0 and np.allclose(view.q(2.0), traj.q(0.6))
