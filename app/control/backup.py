@@ -172,7 +172,8 @@ class BackupComputer:
         reactive method would take from the same state is planned too, with what is left of the deadline,
         and judged under the request's own forecast at the timing the governor is predicted to give it
         (:meth:`PlannerLike.predicted_check`). It is taken where it passes that check and arrives earlier
-        than the forecast's plan (``reactive``), or where the forecast's search found no plan and it passes
+        than the forecast's plan (``reactive``; weighed where the plan sets a robot at rest moving, whose
+        deadline is the longer start deadline), or where the forecast's search found no plan and it passes
         the check too, or, setting a robot at rest moving, is clear of the forecast until the switch's
         ``T_i + D`` (``reactive_only``: what the supervisor's stop rule asks of a plan under way; it watches
         it from then on as it watches every plan in execution). So the proactive method can always do what
@@ -181,7 +182,9 @@ class BackupComputer:
         t0 = self.timer()
         budget = (req.deadline_s or self.deadline_s) if self.enforce_deadline else None
         own = self._plan_one(req, req.forecast, budget, t0)
-        if not req.has_candidate or own.status == "error":
+        if not req.has_candidate or own.status == "error" or (own.status == "ok" and not req.sets_off):
+            # (a backup of a plan under way that found a plan keeps it: under the deadline D, a second search
+            # would cost its compute time on every frame)
             return own
         # (what is left of the budget, less a tenth of it for judging the candidate)
         left = None if budget is None else 0.9 * budget - (self.timer() - t0)

@@ -286,6 +286,7 @@ class TrialEngine:
             timer=timer,
             pfl=self.pfl,
             approach_floor_mps=approach_floors(settings, self.pfl),
+            timing=self.governor_model if settings.ssm_timing else None,
         )
         self.task = TaskExecutive(
             stack.cell,

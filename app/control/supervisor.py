@@ -201,6 +201,7 @@ class Supervisor:
         timer: Callable[[], float] = time.perf_counter,
         pfl: PFLModel | None = None,
         approach_floor_mps: np.ndarray | None = None,
+        timing: Any = None,
     ) -> None:
         q0 = np.asarray(q0, dtype=np.float64)
         if q0.shape != (6,):
@@ -212,6 +213,9 @@ class Supervisor:
         self.ssm = separation
         self.speed_scale_law = speed_scale
         self.pfl = pfl
+        #: the governor's model that times the plans (:class:`app.safety.governor.GovernorModel`), or None: a
+        #: plan setting the robot off is re-checked at the timing it predicts, as the planner verified it
+        self.timing = timing
         self._floors = (
             None if approach_floor_mps is None else np.asarray(approach_floor_mps, dtype=np.float64)
         )
@@ -640,8 +644,17 @@ class Supervisor:
         cfg = self.config
         tau_new = out.traj.t_start + max(tau - pend.tau_branch, 0.0)
         t_ref = max(t_now, pend.t_switch) if tau < pend.tau_branch else t_now
-        view = ScaledView(out.traj, t_ref=t_ref, tau_ref=tau_new, scale=max(s, cfg.check_min_scale))
-        t_v = self._first_violation(view, forecast, t_ref, view.t_end)
+        if pend.from_rest and self.timing is not None and t_ref - out.traj.t_start <= cfg.frame_period_s:
+            # a plan that sets a robot at rest moving, checked as the planner verified it: at the timing the
+            # governor is predicted to give it from its start, against the latest forecast
+            try:
+                t_v = self.planner.predicted_check(out.traj, forecast, timing=self.timing)[0]
+            except Exception:
+                log.exception("predicted_check raised; treating it as a violation now")
+                t_v = t_ref
+        else:
+            view = ScaledView(out.traj, t_ref=t_ref, tau_ref=tau_new, scale=max(s, cfg.check_min_scale))
+            t_v = self._first_violation(view, forecast, t_ref, view.t_end)
         if t_v is None:
             return None
         if t_v > t_now + cfg.deadline_s and not (

@@ -213,7 +213,8 @@ class SupervisorConfig:
             the speed of the person near that part (m).
         retry_after_s: After a failed plan to start (or resume) moving, the next attempt waits this long (s).
         clear_start: A plan that starts the robot from rest (or resumes it) is executed only if the latest
-            forecast predicts no violation anywhere along it (timed at ``check_min_scale``); else the robot
+            forecast predicts no violation anywhere along it (timed as the governor is predicted to run it
+            where the supervisor has the governor's model, else at ``check_min_scale``); else the robot
             stays at rest and plans again after ``retry_after_s``. False: only a violation before
             ``T_i + D`` forbids it, as for a backup that replaces a plan in execution.
         resume_travel_m: After a stop & replan, the robot is under way again (a new encounter can stop it

@@ -159,7 +159,7 @@ def _run(stack: PlanningStack, person: Person, method: Method) -> Run:
         on_event=lambda t, kind, payload: events.append((t, kind, payload)),
         pfl=pfl,
         approach_floor_mps=approach_floors(settings, pfl),
-        timing=model if settings.ssm_timing and settings.governed_check else None,
+        timing=model if settings.ssm_timing else None,
     )
     reaction_s = settings.reaction_time_s(options.servo_period_s)
     monitor = GroundTruthMonitor(

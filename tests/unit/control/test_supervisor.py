@@ -212,6 +212,7 @@ class Harness:
         goals: dict[str, np.ndarray] | None = None,
         config: SupervisorConfig | None = None,
         candidate: bool = False,
+        timing: Any = None,
     ) -> None:
         self.candidate = candidate  # weigh the reactive method's plan (the person held still) at each backup
         self.goals = goals or {"B": np.array([2.0, 0.0, 0.0])}
@@ -235,6 +236,7 @@ class Harness:
             t0=0.0,
             on_event=lambda t, k, p: self.events.append((t, k, p)),
             timer=_FakeTimer(),
+            timing=timing,
         )
         self.person = person
         self.forecast_fn = forecast_fn
@@ -1016,3 +1018,30 @@ def test_a_robot_at_rest_sets_off_on_the_reactive_plan_instead_of_waiting() -> N
             assert _monitor_violations(h) == 0
     assert arrivals[False] == math.inf  # waited the whole time
     assert arrivals[True] < 0.5
+
+
+@pytest.mark.parametrize("governed", [False, True])
+def test_a_plan_setting_off_is_rechecked_at_the_timing_it_was_verified_at(governed: bool) -> None:
+    """The forecast has a person stand on the straight path (x = 1 m) from 4 s to 6 s: the plan at its own
+    (predicted) timing is past them by 3.5 s; timed at half speed it would meet them. With the
+    governor's model the supervisor re-checks the plan that sets the robot off as the planner verified it
+    (here the fake planner's own timing) and sets off on it; without, at half speed, it refuses it and
+    waits for the person to pass (or goes round)."""
+    on = person_at(np.array([1.0, 0.0, 0.0]))
+
+    def fc(t: float) -> HumanForecast:
+        times = np.array([t, 4.0 - 0.01, 4.0, 6.0, 6.0 + 0.01]) if t < 4.0 - 0.01 else np.array([t, t + 5])
+        if times.size == 2:
+            return HumanForecast.hold(HumanFrame(t, person_at(FAR)))
+        joints = np.stack([person_at(FAR), person_at(FAR), on, on, person_at(FAR)])
+        return HumanForecast(t0=t, times=times, joints=joints, margins=np.zeros(5))
+
+    h = Harness(lambda t: person_at(FAR), forecast_fn=fc, timing=object() if governed else None)
+    h.sup.set_goal("B")
+    h.run(1.0)
+    rejected = [t for t, k, p in h.events if k == "plan_failed" and "violates the latest" in p["reason"]]
+    moving = [q for _, q, _, v in h.log if v > 1e-6]
+    if governed:
+        assert not rejected and moving and abs(moving[0][1]) < 1e-9  # straight at once
+    else:
+        assert rejected  # timed at half speed, the straight plan meets the crossing person
