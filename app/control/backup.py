@@ -75,8 +75,8 @@ class BackupRequest:
 
 
 #: Which plan a decision with a candidate took: its own forecast's (``forecast``), the reactive method's
-#: that arrives earlier under that forecast (``reactive``), or the reactive method's where the forecast's
-#: search found none (``reactive_only``).
+#: that arrives earlier under that forecast (``reactive``), or the reactive method's, clear under that
+#: forecast, where the forecast's own search found none (``reactive_only``).
 PlanChoice = Literal["forecast", "reactive", "reactive_only"]
 
 OutcomeStatus = Literal["ok", "failed", "deadline_miss", "error", "skipped"]
@@ -101,9 +101,6 @@ class PlanOutcome:
             another reason (:attr:`app.planning.search.PlanResult.blocked`).
         chosen: Of a request with a candidate, which plan this is (:data:`PlanChoice`); None without one.
         gain_s: Of a ``reactive`` choice, how much earlier it arrives than the forecast's plan (s).
-        admitted_until: Of a ``reactive_only`` choice, its first violation of the forecast at the predicted
-            timing (None: none): it was admitted because that comes after the switch's ``T_i + D``, the
-            stop rule of a plan under way, which then watches it as it watches every plan in execution.
     """
 
     status: OutcomeStatus
@@ -116,7 +113,6 @@ class PlanOutcome:
     blocked: Blocked | None = None
     chosen: PlanChoice | None = None
     gain_s: float = 0.0
-    admitted_until: float | None = None
 
 
 class PlanJobs(Protocol):
@@ -174,10 +170,9 @@ class BackupComputer:
         (:meth:`PlannerLike.predicted_check`). It is taken where it passes that check and arrives earlier
         than the forecast's plan (``reactive``; weighed where the plan sets a robot at rest moving, whose
         deadline is the longer start deadline), or where the forecast's search found no plan and it passes
-        the check too, or, setting a robot at rest moving, is clear of the forecast until the switch's
-        ``T_i + D`` (``reactive_only``: what the supervisor's stop rule asks of a plan under way; it watches
-        it from then on as it watches every plan in execution). So the proactive method can always do what
-        the reactive method would, and does where that arrives earlier.
+        the check (``reactive_only``: the search is more cautious than the check, with its corridor margins
+        and its full-speed timing). A reactive plan that the forecast person would meet is never taken:
+        the supervisor would have to stop it for them.
         """
         t0 = self.timer()
         budget = (req.deadline_s or self.deadline_s) if self.enforce_deadline else None
@@ -208,10 +203,8 @@ class BackupComputer:
                     rival, compute_s=dt, arrival_s=arrival, chosen="reactive", gain_s=float(mine - arrival)
                 )
             return _kept(own, dt)
-        if t_v is None or (req.sets_off and t_v > req.t_start + self.deadline_s):
-            return dataclasses.replace(
-                rival, compute_s=dt, arrival_s=arrival, chosen="reactive_only", admitted_until=t_v
-            )
+        if t_v is None:
+            return dataclasses.replace(rival, compute_s=dt, arrival_s=arrival, chosen="reactive_only")
         return _kept(own, dt)
 
     def _plan_one(

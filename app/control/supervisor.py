@@ -657,9 +657,7 @@ class Supervisor:
             t_v = self._first_violation(view, forecast, t_ref, view.t_end)
         if t_v is None:
             return None
-        if t_v > t_now + cfg.deadline_s and not (
-            cfg.clear_start and pend.from_rest and out.chosen != "reactive_only"
-        ):
+        if t_v > t_now + cfg.deadline_s and not (cfg.clear_start and pend.from_rest):
             return None
         return t_v
 

@@ -964,25 +964,26 @@ def test_the_reactive_plan_is_taken_where_it_arrives_earlier_under_the_forecast(
 
 
 @pytest.mark.parametrize("sets_off", [True, False])
-def test_where_the_forecast_finds_no_plan_the_reactive_one_sets_off_if_the_stop_rule_allows(
-    sets_off: bool,
-) -> None:
-    """The forecast blocks every plan (its person on the straight path and on the detour, 1.5 s from now);
-    the reactive method's straight plan is clear until then. A robot at rest sets off on it (its violation
-    comes after the switch's T_i + D: the stop rule of a plan under way watches it from then on); a backup
-    of a plan under way is not replaced by a plan that does not clear the forecast."""
+def test_where_the_forecast_finds_no_plan_a_clear_reactive_one_is_taken(sets_off: bool) -> None:
+    """The forecast's own search finds no plan (more cautious than the check). The reactive method's
+    straight plan is taken where it passes the check under the forecast, from rest or under way; where the
+    forecast person would meet it (on the path from 1.5 s on, long after the switch's T_i + D), it is not:
+    the supervisor would have to stop it for them."""
     planner = FakePlanner({"B": np.array([2.0, 0.0, 0.0])})
-    planner.detour_y = 0.0  # the detour is the straight path too: no plan clears the forecast
     far = HumanForecast.hold(HumanFrame(0.0, person_at(FAR)))
+    real = planner.plan
+
+    def blocked(**kw: Any) -> FakeResult:  # the forecast's own search: the goal looks occupied
+        if kw["forecast"] is not far:
+            return FakeResult(False, None, "goal blocked (test)", blocked="goal")
+        return real(**kw)
+
+    planner.plan = blocked  # type: ignore[method-assign]
+    clear = dataclasses.replace(far)
+    out = _computer(planner).compute_raw(_request(clear, far, sets_off=sets_off))
+    assert out.status == "ok" and out.chosen == "reactive_only" and out.gain_s == 0.0
     out = _computer(planner).compute_raw(_request(_walk_onto_the_path(1.5), far, sets_off=sets_off))
-    if sets_off:
-        assert out.status == "ok" and out.chosen == "reactive_only"
-        assert out.admitted_until is not None and out.admitted_until == pytest.approx(1.5, abs=0.03)
-    else:
-        assert out.status == "failed" and out.chosen is None
-    # violated before the switch's T_i + D (the person 0.3 m ahead from 0.15 s on): never taken
-    out = _computer(planner).compute_raw(_request(_walk_onto_the_path(0.15, x=0.3), far))
-    assert out.status == "failed" and out.chosen is None
+    assert out.status == "failed" and out.chosen is None and out.blocked == "goal"
 
 
 def test_the_reactive_method_weighs_no_candidate() -> None:
@@ -994,29 +995,34 @@ def test_the_reactive_method_weighs_no_candidate() -> None:
 
 
 def test_a_robot_at_rest_sets_off_on_the_reactive_plan_instead_of_waiting() -> None:
-    """The forecast says the person will stand on every path to B from 1.5 s on (a forecast that holds a
-    hand at the goal); the person really stays far. Without the candidate the robot at rest waits for the
-    forecast to clear; with it, it sets off at once on the reactive method's plan, watched by the stop rule
-    and the speed governor as every plan under way, and arrives (here the person never comes)."""
-
-    def fc(t: float) -> HumanForecast:
-        on = person_at(np.array([1.0, 0.0, 0.0]))
-        return HumanForecast(
-            t0=t, times=np.array([t, t + 1.5]), joints=np.stack([person_at(FAR), on]), margins=np.zeros(2)
-        )
-
+    """The forecast's own search finds no plan for the first 2 s (it holds the goal for occupied), though
+    the straight path is clear of the forecast person. Without the candidate the robot at rest waits; with
+    it, it sets off at once on the reactive method's plan, and arrives."""
     arrivals = {}
     for candidate in (False, True):
-        h = Harness(lambda t: person_at(FAR), forecast_fn=fc, candidate=candidate)
-        h.planner.detour_y = 0.0
+        h = Harness(lambda t: person_at(FAR), candidate=candidate)
+        real = h.planner.plan
+
+        def cautious(real: Any = real, h: Harness = h, **kw: Any) -> FakeResult:
+            if h.t < 2.0 and kw["forecast"].times.size > 1:  # the forecast's own search, not the held pose's
+                return FakeResult(False, None, "goal blocked (test)", blocked="goal")
+            return real(**kw)
+
+        h.planner.plan = cautious  # type: ignore[method-assign]
+        h.forecast_fn = lambda t: HumanForecast(
+            t0=t, times=np.array([t, t + 1.0]), joints=np.stack([person_at(FAR)] * 2), margins=np.zeros(2)
+        )
         h.sup.set_goal("B")
         h.run(3.0)
         moving = [t for t, _, _, v in h.log if v > 1e-6]
         arrivals[candidate] = moving[0] if moving else math.inf
         if candidate:
             assert h.sup.counters.plan_choices["reactive_only"] >= 1
-            assert _monitor_violations(h) == 0
-    assert arrivals[False] == math.inf  # waited the whole time
+            assert h.sup.counters.budget_s["waiting_for_person"] == 0.0
+        else:
+            assert h.sup.counters.budget_s["waiting_for_person"] > 1.5
+        assert _monitor_violations(h) == 0
+    assert arrivals[False] > 2.0  # waited until its own search found a plan
     assert arrivals[True] < 0.5
 
 
