@@ -9,9 +9,9 @@ simulated operator, the default roadmap and the shipped predictor) and runs a pr
   is not included;
 - ``servo_jitter_ms``: how late each tick of the robot command loop woke up after its deadline
   (:class:`~app.cell.clock.RateLoop`, ``servo_rate_hz``), with its overruns;
-- ``planning``: the compute time of every plan of the trial on the planner pool (each backup weighs the
-  reactive method's plan too: both searches and the check), against the deadline ``D``, and the missed
-  deadlines per minute.
+- ``planning``: the compute time of every plan of the trial on the planner pool (a plan that sets the robot
+  off also weighs the reactive method's plan: both searches and the check), against the deadline ``D``, and
+  the missed deadlines per minute.
 
 Prints one JSON object (percentiles over every frame and tick of the run).
 """
