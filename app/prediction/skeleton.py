@@ -6,6 +6,7 @@ anything else sees it. Positions are in metres in the world frame (z up).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,28 +82,84 @@ def bone_lengths(joints: np.ndarray) -> np.ndarray:
     return np.linalg.norm(joints[..., BONES[:, 1], :] - joints[..., BONES[:, 0], :], axis=-1)
 
 
+def body_count(n_joints: int) -> int:
+    """How many canonical skeletons a stacked joint array of ``n_joints`` rows holds; ValueError where the
+    rows are no whole number of skeletons."""
+    bodies, rest = divmod(int(n_joints), NUM_JOINTS)
+    if rest:
+        raise ValueError(
+            f"a stacked skeleton array must have a multiple of {NUM_JOINTS} joints (one block per body), "
+            f"got {n_joints}"
+        )
+    return bodies
+
+
 @dataclass(frozen=True, slots=True)
 class HumanFrame:
-    """One tracked skeleton.
+    """The tracked people of one capture: every body the tracker reports, each with its tracker id.
+
+    The bodies are stacked: body ``k`` (id ``body_ids[k]``) holds rows ``k*J .. (k+1)*J - 1`` of ``joints``
+    and ``confidence`` (J = :data:`NUM_JOINTS`). One body is the common case (the default id 0); no body is
+    a person-free capture, a frame all the same. What decides about the robot takes every body at once;
+    what works on one skeleton (the predictor, frame validation) takes :meth:`body`.
 
     Attributes:
         t: Timestamp in seconds on the runtime's clock.
-        joints: Joint positions (J, 3) in metres, world frame, canonical order (:data:`JOINTS`).
-        confidence: Per-joint confidence (J,) in [0, 1]; 0 means the joint was not seen.
+        joints: Joint positions (B*J, 3) in metres, world frame, canonical order (:data:`JOINTS`) per body.
+        confidence: Per-joint confidence (B*J,) in [0, 1]; 0 means the joint was not seen.
+        body_ids: The tracker's id of each body (B,), distinct and >= 0.
     """
 
     t: float
     joints: np.ndarray
     confidence: np.ndarray = field(default_factory=lambda: np.ones(NUM_JOINTS))
+    body_ids: tuple[int, ...] = (0,)
 
     def __post_init__(self) -> None:
         joints = np.asarray(self.joints, dtype=np.float64)
         conf = np.asarray(self.confidence, dtype=np.float64)
-        if joints.shape != (NUM_JOINTS, 3):
-            raise ValueError(f"HumanFrame.joints must have shape ({NUM_JOINTS}, 3), got {joints.shape}")
-        if conf.shape != (NUM_JOINTS,):
-            raise ValueError(f"HumanFrame.confidence must have shape ({NUM_JOINTS},), got {conf.shape}")
+        ids = tuple(int(i) for i in self.body_ids)
+        B = len(ids)
+        if len(set(ids)) != B or any(i < 0 for i in ids):
+            raise ValueError(f"HumanFrame.body_ids must be distinct and >= 0, got {self.body_ids}")
+        if joints.shape != (B * NUM_JOINTS, 3):
+            raise ValueError(
+                f"HumanFrame.joints must have shape ({B * NUM_JOINTS}, 3) for {B} bodies, got {joints.shape}"
+            )
+        if conf.shape != (B * NUM_JOINTS,):
+            raise ValueError(
+                f"HumanFrame.confidence must have shape ({B * NUM_JOINTS},) for {B} bodies, got {conf.shape}"
+            )
         joints.setflags(write=False)
         conf.setflags(write=False)
         object.__setattr__(self, "joints", joints)
         object.__setattr__(self, "confidence", conf)
+        object.__setattr__(self, "body_ids", ids)
+
+    @property
+    def bodies(self) -> int:
+        """The number of bodies (B)."""
+        return len(self.body_ids)
+
+    def body(self, k: int) -> HumanFrame:
+        """Body ``k`` (its index in :attr:`body_ids`, not its id) alone, with its id."""
+        if not 0 <= k < self.bodies:
+            raise IndexError(f"body {k} of a frame with {self.bodies} body(ies)")
+        rows = slice(k * NUM_JOINTS, (k + 1) * NUM_JOINTS)
+        return HumanFrame(self.t, self.joints[rows], self.confidence[rows], (self.body_ids[k],))
+
+    def split(self) -> list[HumanFrame]:
+        """Every body alone, in order."""
+        return [self.body(k) for k in range(self.bodies)]
+
+    @classmethod
+    def stack(cls, t: float, bodies: Sequence[HumanFrame]) -> HumanFrame:
+        """One frame at ``t`` of ``bodies`` (each of one or more bodies; ids must stay distinct)."""
+        if not bodies:
+            return cls(t, np.zeros((0, 3)), np.zeros(0), ())
+        return cls(
+            t,
+            np.concatenate([b.joints for b in bodies]),
+            np.concatenate([b.confidence for b in bodies]),
+            tuple(i for b in bodies for i in b.body_ids),
+        )
