@@ -3,6 +3,7 @@ one (:class:`Predictor`)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -14,9 +15,13 @@ from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 
 @dataclass(frozen=True, slots=True)
 class HumanForecast:
-    """A person's predicted skeleton over a horizon, with a margin that grows with the horizon.
+    """The predicted skeletons of the people in the cell over a horizon, with a margin that grows with the
+    horizon.
 
-    Index 0 is the latest observed pose at ``t0``; the following entries are predictions.
+    Index 0 is the latest observed pose at ``t0``; the following entries are predictions. The bodies are
+    stacked as in :class:`~app.prediction.skeleton.HumanFrame` (body ``k``: joints ``k*J .. (k+1)*J - 1``);
+    one body by default, none for a person-free cell. The margins are shared by every body (the largest of
+    theirs).
 
     Attributes:
         t0: Time of the latest observed frame (s, runtime clock).
@@ -26,6 +31,7 @@ class HumanForecast:
             (e.g. a per-horizon error quantile measured on validation data); ``margins[0]`` covers tracking.
         growth_mps: Beyond the last sample the last pose is held and the margin grows at this speed (m/s).
         max_margin_m: Upper bound of the grown margin (m).
+        body_ids: The tracker's id of each body (B,).
     """
 
     t0: float
@@ -34,17 +40,23 @@ class HumanForecast:
     margins: np.ndarray
     growth_mps: float = 0.0
     max_margin_m: float = 1.0
+    body_ids: tuple[int, ...] = (0,)
 
     def __post_init__(self) -> None:
         times = np.asarray(self.times, dtype=np.float64)
         joints = np.asarray(self.joints, dtype=np.float64)
         margins = np.asarray(self.margins, dtype=np.float64)
         H = times.shape[0]
+        ids = tuple(int(i) for i in self.body_ids)
+        n = len(ids) * NUM_JOINTS
         if times.ndim != 1 or H < 1:
             raise ValueError(f"HumanForecast.times must have shape (H,), H >= 1, got {times.shape}")
-        if joints.shape != (H, NUM_JOINTS, 3):
+        if len(set(ids)) != len(ids) or any(i < 0 for i in ids):
+            raise ValueError(f"HumanForecast.body_ids must be distinct and >= 0, got {self.body_ids}")
+        if joints.shape != (H, n, 3):
             raise ValueError(
-                f"HumanForecast.joints must have shape ({H}, {NUM_JOINTS}, 3), got {joints.shape}"
+                f"HumanForecast.joints must have shape ({H}, {n}, 3) for {len(ids)} bodies, "
+                f"got {joints.shape}"
             )
         if margins.shape != (H,):
             raise ValueError(f"HumanForecast.margins must have shape ({H},), got {margins.shape}")
@@ -57,6 +69,7 @@ class HumanForecast:
         object.__setattr__(self, "times", times)
         object.__setattr__(self, "joints", joints)
         object.__setattr__(self, "margins", margins)
+        object.__setattr__(self, "body_ids", ids)
 
     @classmethod
     def hold(
@@ -67,7 +80,7 @@ class HumanForecast:
         growth_mps: float = 0.0,
         max_margin_m: float = 1.0,
     ) -> HumanForecast:
-        """The person held still at ``frame``'s pose (the reactive baseline and the emergency plan)."""
+        """The people held still at ``frame``'s poses (the reactive baseline and the emergency plan)."""
         return cls(
             t0=frame.t,
             times=np.array([frame.t]),
@@ -75,7 +88,13 @@ class HumanForecast:
             margins=np.array([margin_m]),
             growth_mps=growth_mps,
             max_margin_m=max_margin_m,
+            body_ids=frame.body_ids,
         )
+
+    @property
+    def bodies(self) -> int:
+        """The number of bodies (B)."""
+        return len(self.body_ids)
 
     @property
     def horizon_end(self) -> float:
@@ -110,6 +129,37 @@ class HumanForecast:
         """Pose (J, 3) and margin (m) at time ``t``."""
         joints, margins = self.poses_at(np.array([t]))
         return joints[0], float(margins[0])
+
+
+def stack_forecasts(forecasts: Sequence[HumanForecast], *, t0: float) -> HumanForecast:
+    """One forecast of every body in ``forecasts`` (each of one or more bodies, the same ``t0``), on the
+    sample times of the longest: each body's poses interpolated there (held beyond its own horizon), the
+    margin at each time the largest of theirs (grown beyond a horizon as that forecast grows it), the
+    growth and the bound the largest. No forecast: the person-free cell at ``t0``."""
+    if not forecasts:
+        return HumanForecast(
+            t0=t0, times=np.array([t0]), joints=np.zeros((1, 0, 3)), margins=np.zeros(1), body_ids=()
+        )
+    if len(forecasts) == 1:
+        return forecasts[0]
+    ref = max(forecasts, key=lambda f: (f.horizon_end, f.times.shape[0]))
+    times = ref.times
+    joints, margins = [], []
+    for f in forecasts:
+        if f.t0 != ref.t0:
+            raise ValueError(f"stack_forecasts: forecasts of different frames (t0 {f.t0} and {ref.t0})")
+        j, m = f.poses_at(times)
+        joints.append(j)
+        margins.append(m)
+    return HumanForecast(
+        t0=ref.t0,
+        times=times,
+        joints=np.concatenate(joints, axis=1),
+        margins=np.max(margins, axis=0),
+        growth_mps=max(f.growth_mps for f in forecasts),
+        max_margin_m=max(f.max_margin_m for f in forecasts),
+        body_ids=tuple(i for f in forecasts for i in f.body_ids),
+    )
 
 
 def half_step_grid(
