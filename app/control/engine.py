@@ -37,12 +37,13 @@ from app.config import Settings, WorkCell
 from app.control.anticipation import FetchAnticipation, FetchAnticipationParams
 from app.control.backup import BackupComputer, PlanJobs
 from app.control.metrics import Method, TrialEvent, TrialMetrics
+from app.control.people import People, PeopleOptions, PeopleUpdate
 from app.control.results import Snapshot, TrialFrames, TrialResult, TrialStatus
 from app.control.stack import CellGeometry, PlanningStack
 from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.task import TaskExecutive
 from app.planning.collision import reach_fingertips
-from app.prediction.forecast import HumanForecast, Predictor
+from app.prediction.forecast import HumanForecast, Predictor, stack_forecasts
 from app.prediction.skeleton import HumanFrame
 from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw
 from app.safety.monitor import GroundTruthMonitor, is_intrusion
@@ -319,8 +320,13 @@ class TrialEngine:
                 pfl=self.pfl,
             )
         self.truth = truth
-        self._truth_prev: tuple[float, np.ndarray] | None = None
-        self._last_tracked: HumanFrame | None = None  # the last frame as the tracker gave it
+        self._truth_prev: tuple[float, HumanFrame] | None = None
+        self._last_tracked: HumanFrame | None = None  # the last capture's people (track ids)
+        #: every person in the cell, followed from capture to capture (:mod:`app.control.people`)
+        self.people = People(
+            predictor if method == "proactive" else None, PeopleOptions(hold_s=settings.stale_timeout_s)
+        )
+        self._work_spot = np.asarray(stack.cell.operator.work_spot, dtype=np.float64)
         self.intrusions = 0
         self.completed_tasks = 0
         self.min_separation_m = math.inf
@@ -337,6 +343,7 @@ class TrialEngine:
         self._frames_sk: list[np.ndarray] = []
         self.decide_s: list[float] = []
         self.frame_to_decision_s = 0.0
+        self.people_frame: HumanFrame | None = None
         if predictor is not None:
             predictor.reset()
         self._emit_abs(t0, "trial_started", {"method": method, "seed": self.seed})
@@ -391,28 +398,35 @@ class TrialEngine:
         if self.finished is not None:
             return None
         c0 = time.perf_counter()
-        frame = self.source.poll(t)
-        if frame is None:
+        tracked = self.source.poll(t)
+        if tracked is None:
             return None
-        self._check_intrusion(t, frame)
-        # the body as the geometry sees it: the hand capsules out to the fingertips (the predictor keeps the
-        # tracked joints it was trained on)
+        people = self.people.update(tracked)
+        frame = people.frame  # every body seen, and the lost ones held, with their track ids
+        self._check_intrusion(t, people)
+        # the bodies as the geometry sees them: the hand capsules out to the fingertips (the predictor keeps
+        # the tracked joints it was trained on)
         body = dataclasses.replace(frame, joints=reach_fingertips(frame.joints))
-        # the reactive method's forecast: the person held still where they are now; the proactive method
+        # the reactive method's forecast: the people held still where they are now; the proactive method
         # weighs the plan it gives as a candidate against its own at every backup
         margin = self.options.tracking_margin_m + self.options.plan_margin_m
-        held = HumanForecast.hold(body, margin_m=margin)
+        held = self._held(body, people, margin)
         forecast = held
         if self.method == "proactive":
-            forecast = self.predictor.update(frame)
-            if self.anticipation is not None:
-                forecast = self.anticipation.apply(frame, forecast)
+            if self.predictor.whole_frame:  # a predictor of every body at once (the oracle)
+                forecast = self.predictor.update(people.seen)
+            else:
+                forecast = self.people.forecast(
+                    people, margin_m=self.options.tracking_margin_m, shape=self._shape
+                )
             forecast = dataclasses.replace(forecast, joints=reach_fingertips(forecast.joints))
             if self.options.plan_margin_m > 0:
                 extra = self.options.plan_margin_m
                 forecast = dataclasses.replace(forecast, margins=forecast.margins + extra)
         candidate = held if self.settings.reactive_candidate else None
-        decision = self.supervisor.on_frame(body, forecast, t_now=t, candidate=candidate)
+        decision = self.supervisor.on_frame(
+            body, forecast, t_now=t, candidate=candidate, ages_s=people.ages_s
+        )
         self.decide_s.append(decision.decide_s)
         self.frame_to_decision_s = time.perf_counter() - c0  # validation + prediction + decision
         self.last_decision = decision
@@ -424,44 +438,119 @@ class TrialEngine:
         if self.options.record_frames:
             self._frames_t.append(self.elapsed(t))
             self._frames_q.append(np.asarray(self.last_state.q, dtype=np.float32))
-            self._frames_sk.append(np.asarray(frame.joints, dtype=np.float32))  # as tracked
+            self._frames_sk.append(np.asarray(people.seen.joints, dtype=np.float32))  # as tracked
         return decision
 
-    def _check_intrusion(self, t: float, frame: HumanFrame) -> None:
-        """A person who moved faster than a person can since the last frame appeared (or the tracker jumped
-        to someone else): a protective stop, and the predictor starts over."""
+    def _held(self, body: HumanFrame, people: PeopleUpdate, margin_m: float) -> HumanForecast:
+        """The people of ``body`` held still (the reactive method's forecast); a lost body's margin grown by
+        its age, growing on at the people's growth speed."""
+        if not np.any(people.ages_s > 0.0):
+            return HumanForecast.hold(body, margin_m=margin_m)
+        growth = self.people.options.growth_mps
+        return stack_forecasts(
+            [
+                HumanForecast.hold(
+                    body.body(k), margin_m=margin_m + growth * age, growth_mps=growth if age > 0 else 0.0
+                )
+                for k, age in enumerate(people.ages_s.tolist())
+            ],
+            t0=body.t,
+        )
+
+    def _shape(self, body: HumanFrame, forecast: HumanForecast) -> HumanForecast:
+        """A body's forecast as the task shapes it: the operator's (the body nearest the work spot) expects
+        the fetch of the block the robot has placed (:class:`FetchAnticipation`)."""
+        if self.anticipation is None or not self._is_operator(body):
+            return forecast
+        return self.anticipation.apply(body, forecast)
+
+    def _is_operator(self, body: HumanFrame) -> bool:
+        """Whether ``body`` is the one whose pelvis lies nearest the operator's work spot (over the floor)."""
+        frame = self.people_frame
+        if frame is None or frame.bodies <= 1:
+            return True
+        pelvis = frame.joints.reshape(frame.bodies, -1, 3)[:, 0, :2]
+        nearest = int(np.argmin(np.linalg.norm(pelvis - self._work_spot[:2], axis=1)))
+        return frame.body_ids[nearest] == body.body_ids[0]
+
+    def _check_intrusion(self, t: float, people: PeopleUpdate) -> None:
+        """A body that moved faster than a person can since the last capture (or the tracker jumped to
+        someone else), or a new body near the robot before it has been tracked long enough to forecast: a
+        protective stop, and that body's forecast starts over."""
+        frame = people.frame
+        self.people_frame = frame
         prev = self._last_tracked
         self._last_tracked = frame
-        if prev is None or not frame.t > prev.t:
+        for tid in people.appeared:
+            self._emit_abs(t, "body_appeared", {"body": tid})
+        for tracker_id, tid in people.renamed.items():
+            self._emit_abs(t, "body_renamed", {"body": tid, "tracker_id": tracker_id})
+        for tid in people.dropped:
+            self._emit_abs(t, "body_dropped", {"body": tid})
+        near = self._new_near(people)
+        if near is not None:
+            self.intrusions += 1
+            log.warning("intrusion: a new body %d within %.2f m of the robot; protective stop", *near)
+            self._emit_abs(t, "intrusion", {"body": near[0], "separation_m": near[1]})
+            self.supervisor.intrusion(t)
+            self._recent.clear()
             return
-        speeds = np.linalg.norm(frame.joints - prev.joints, axis=1) / (frame.t - prev.t)
-        speed = float(speeds.max())
-        if not is_intrusion(speeds, body_mps=self.options.intrusion_speed_mps):
+        if prev is None or not frame.t > prev.t or frame.bodies == 0:
             return
+        speeds = np.linalg.norm(frame.joints - frame.matched(prev), axis=1) / (frame.t - prev.t)
+        per_body = speeds.reshape(frame.bodies, -1)
+        jumped = [
+            k
+            for k in range(frame.bodies)
+            if is_intrusion(per_body[k], body_mps=self.options.intrusion_speed_mps)
+        ]
+        if not jumped:
+            return
+        speed = float(per_body[jumped].max())
         self.intrusions += 1
-        log.warning("intrusion: the person moved at %.1f m/s between two frames; protective stop", speed)
-        self._emit_abs(t, "intrusion", {"speed_mps": speed})
+        log.warning("intrusion: a person moved at %.1f m/s between two frames; protective stop", speed)
+        self._emit_abs(t, "intrusion", {"speed_mps": speed, "body": frame.body_ids[jumped[0]]})
         self.supervisor.intrusion(t)
         self._recent.clear()
         if self.predictor is not None:
-            self.predictor.reset()
+            self.people.reset_forecast([frame.body_ids[k] for k in jumped])
+
+    def _new_near(self, people: PeopleUpdate) -> tuple[int, float] | None:
+        """A settling body (new, not yet forecast) within ``near_m`` of the robot: its track id and its
+        distance (m); None if there is none."""
+        if not people.settling:
+            return None
+        frame, q = people.frame, np.asarray(self.last_state.q, dtype=np.float64)
+        collision = self.stack.collision
+        for k, tid in enumerate(frame.body_ids):
+            if tid not in people.settling:
+                continue
+            d = float(collision.distance_to_human(q[None], frame.body(k).joints[None])[0, 0])
+            if d < self.people.options.near_m:
+                return tid, d
+        return None
 
     def _judge(self, t: float, state: RobotState) -> None:
         """The ground-truth monitor's check of this servo tick."""
         mon = self.monitor
         assert mon is not None
         if self.truth is not None:
-            joints = reach_fingertips(np.asarray(self.truth(t), dtype=np.float64))
+            truth = self.truth(t)
+            now = (
+                truth if isinstance(truth, HumanFrame) else HumanFrame(t, np.asarray(truth, dtype=np.float64))
+            )
+            now = dataclasses.replace(now, t=t, joints=reach_fingertips(now.joints))
             prev = self._truth_prev
-            before, dt = (joints, 0.0) if prev is None else (prev[1], t - prev[0])
-            self._truth_prev = (t, joints)
+            joints = now.joints
+            before, dt = (joints, 0.0) if prev is None else (now.matched(prev[1]), t - prev[0])
+            self._truth_prev = (t, now)
         else:  # no truth (a real cell): the tracker's frames are the best there is
             frame = self.last_frame
             if frame is None:
                 return
             old = self._older_frame(frame)
             joints = frame.joints
-            before, dt = (joints, 0.0) if old is None else (old.joints, frame.t - old.t)
+            before, dt = (joints, 0.0) if old is None else (frame.matched(old), frame.t - old.t)
         violations, contacts, harmful_before = mon.violations, mon.contacts, mon.harmful_contacts
         sample = mon.check(t, state.q, state.qd, joints, before, dt)
         if mon.violations > violations:

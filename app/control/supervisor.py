@@ -388,14 +388,19 @@ class Supervisor:
         *,
         t_now: float,
         candidate: HumanForecast | None = None,
+        ages_s: np.ndarray | None = None,
     ) -> FrameDecision:
-        """Process a new frame ``frame`` (validated) with the forecast of the method, at time ``t_now``
-        (``T_i``, the frame's arrival on the runtime clock); ``candidate``: the reactive method's forecast
-        of the frame, whose plan each backup weighs against the method's own (:class:`BackupRequest`)."""
+        """Process a new frame ``frame`` (validated; every body in the cell) with the forecast of the
+        method, at time ``t_now`` (``T_i``, the frame's arrival on the runtime clock); ``candidate``: the
+        reactive method's forecast of the frame, whose plan each backup weighs against the method's own
+        (:class:`BackupRequest`); ``ages_s`` (B,): how old each body's pose is (s; a lost body held where it
+        was last seen, None: all seen now), each second of which counts as the fastest approach."""
         c0 = self.timer()
         cfg = self.config
-        if frame.joints.shape != (NUM_JOINTS, 3):
-            raise ValueError(f"frame joints must be ({NUM_JOINTS}, 3), got {frame.joints.shape}")
+        if frame.joints.shape != (frame.bodies * NUM_JOINTS, 3):
+            raise ValueError(
+                f"frame joints must be ({frame.bodies * NUM_JOINTS}, 3), got {frame.joints.shape}"
+            )
         with self._lock:
             self._seq += 1
             seq = self._seq
@@ -411,15 +416,21 @@ class Supervisor:
         # the person's approach speed: how fast their motion closed the distance over the last window
         old = self._older_frame(frame.t - cfg.human_speed_window_s)
         pfl, pairs = None, None
-        if self.pfl is not None or self._floors is not None:
+        if frame.bodies == 0:  # nobody in the cell
+            sep_parts = np.full(self.n_parts, np.inf)
+            v_h0, t_mid = np.zeros(self.n_parts), frame.t
+        elif self.pfl is not None or self._floors is not None:
             # ISO 13855's person: each capsule approaches at least at its region's speed; power and force
             # limiting inside S_p by region
-            before = None if old is None else old.joints
+            before = None if old is None else frame.matched(old)
             d_now, v_pairs = directed_pairs(
                 self.geometry, q_now, frame.joints, before, None if old is None else frame.t - old.t,
                 v_unknown_mps=self.ssm.human_speed_max_mps, floor_mps=self._floors,
             )  # fmt: skip
             t_mid = frame.t if old is None else 0.5 * (frame.t + old.t)
+            if ages_s is not None and np.any(ages_s > 0.0):  # a lost body may have come closer since
+                aged = np.repeat(np.asarray(ages_s, dtype=np.float64), d_now.shape[1] // frame.bodies)
+                d_now = d_now - self.ssm.human_speed_max_mps * aged[None, :]
             sep_parts, v_h0 = nearest_approach(d_now, v_pairs, band_m=cfg.near_band_m)
             sep_parts = sep_parts - cfg.tracking_margin_m
             pfl, caps = self._pfl_levels(d_now, v_pairs, frame.joints)
@@ -428,7 +439,7 @@ class Supervisor:
             # the person's directed speed toward each part: the fastest approach of the body parts that are
             # (nearly) the nearest to it (over all of them, so it does not jump when the nearest pair changes)
             sep_parts, v_h0 = self.geometry.near_person(
-                q_now, frame.joints, old.joints, frame.t - old.t, band_m=cfg.near_band_m
+                q_now, frame.joints, frame.matched(old), frame.t - old.t, band_m=cfg.near_band_m
             )
             sep_parts = np.asarray(sep_parts, dtype=np.float64) - cfg.tracking_margin_m
             v_h0 = np.asarray(v_h0, dtype=np.float64)
@@ -441,7 +452,7 @@ class Supervisor:
             pfl = ssm_alone(self.n_parts)
         sep = float(sep_parts.min())
         toward = None
-        if cfg.robot_toward and active.kind != "hold":
+        if cfg.robot_toward and active.kind != "hold" and frame.bodies > 0:
             closing = PathClosing.measure(
                 active.traj, active.profile, tau, frame.joints, self.geometry, horizon_s=cfg.toward_horizon_s
             )

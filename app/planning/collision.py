@@ -40,7 +40,7 @@ from app.planning import _kernels
 from app.planning.kinematics import _TWIST, UR5e
 from app.planning.kinematics import A as _DH_A
 from app.planning.kinematics import D as _DH_D
-from app.prediction.skeleton import BONES, JOINT_INDEX, JOINTS, NUM_JOINTS
+from app.prediction.skeleton import BONES, JOINT_INDEX, JOINTS, NUM_JOINTS, body_count
 
 if TYPE_CHECKING:
     import fcl
@@ -179,20 +179,26 @@ HAND_LENGTH_P95_M = 0.21
 
 
 def reach_fingertips(joints: np.ndarray, *, hand_radius_m: float | None = None) -> np.ndarray:
-    """Poses (..., J, 3) with each hand joint moved out along the wrist->hand direction so that the hand
-    capsule (radius ``hand_radius_m``, default :class:`HumanRadii`'s) reaches :data:`HAND_LENGTH_P95_M` from
-    the wrist; a hand joint already that far out stays. Every consumer of the person's geometry (the
-    supervisor, the planner's forecast, the monitor's truth) takes the poses through this."""
+    """Poses (..., B*J, 3) (B stacked bodies) with each hand joint moved out along the wrist->hand direction
+    so that the hand capsule (radius ``hand_radius_m``, default :class:`HumanRadii`'s) reaches
+    :data:`HAND_LENGTH_P95_M` from the wrist; a hand joint already that far out stays. Every consumer of the
+    person's geometry (the supervisor, the planner's forecast, the monitor's truth) takes the poses through
+    this."""
     r = HumanRadii().hand if hand_radius_m is None else float(hand_radius_m)
     reach = max(HAND_LENGTH_P95_M - r, 0.0)
-    out = np.array(joints, dtype=np.float64, copy=True)
+    joints = np.asarray(joints, dtype=np.float64)
+    stacked = joints.shape[-2]
+    # (..., B, J, 3): every body of a stacked pose
+    out = np.array(joints, dtype=np.float64, copy=True).reshape(
+        *joints.shape[:-2], body_count(stacked), NUM_JOINTS, 3
+    )
     hands = ((JOINT_INDEX["l_wrist"], JOINT_INDEX["l_hand"]), (JOINT_INDEX["r_wrist"], JOINT_INDEX["r_hand"]))
     for wrist, hand in hands:
         v = out[..., hand, :] - out[..., wrist, :]
         n = np.linalg.norm(v, axis=-1, keepdims=True)
         scale = np.where(n > 1e-9, np.maximum(reach / np.maximum(n, 1e-9), 1.0), 1.0)
         out[..., hand, :] = out[..., wrist, :] + v * scale
-    return out
+    return out.reshape(joints.shape)
 
 
 @dataclass(frozen=True)
@@ -549,10 +555,35 @@ class CollisionModel:
                 ra=self._k_ra,
             )
         )
-        person = _kernels.PersonCapsules(self._k_ia, self._k_ib, self._k_rh)
-        self._k_geometry = _kernels.KernelGeometry(robot=self._k_robot, person=_kernels.pack(person))
+        self._k_people: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._k_geometries: dict[int, _kernels.KernelGeometry] = {}
+        self._k_geometry = self.kernel_geometry_for(1)
 
     # ------------------------------------------------------------------ geometry
+    def people(self, n_joints: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The capsules of the people in a stacked pose of ``n_joints`` joints (B bodies of
+        :data:`~app.prediction.skeleton.NUM_JOINTS`; :class:`~app.prediction.skeleton.HumanFrame`): each
+        capsule's two joint indices and its radius, ``(ia (B*M,), ib (B*M,), r (B*M,))``, body by body in the
+        order of :data:`HUMAN_CAPSULES` (read-only, cached per B)."""
+        bodies = body_count(n_joints)
+        got = self._k_people.get(bodies)
+        if got is None:
+            off = (NUM_JOINTS * np.arange(bodies, dtype=np.int64))[:, None]
+            ia = np.ascontiguousarray((self._k_ia[None, :] + off).ravel())
+            ib = np.ascontiguousarray((self._k_ib[None, :] + off).ravel())
+            rh = np.ascontiguousarray(np.tile(self._k_rh, bodies))
+            got = self._k_people[bodies] = (ia, ib, rh)
+        return got
+
+    def kernel_geometry_for(self, bodies: int) -> _kernels.KernelGeometry:
+        """:meth:`kernel_geometry` for a stacked pose of ``bodies`` bodies (cached)."""
+        geo = self._k_geometries.get(bodies)
+        if geo is None:
+            person = _kernels.PersonCapsules(*self.people(bodies * NUM_JOINTS))
+            geo = _kernels.KernelGeometry(robot=self._k_robot, person=_kernels.pack(person))
+            self._k_geometries[bodies] = geo
+        return geo
+
     def _robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Robot segment starts and directions, each (B, L, 3)."""
         a, d = self._robot_segments_cm(q)
@@ -574,14 +605,15 @@ class CollisionModel:
         return a.copy(), a + d, self.robot_radii.copy()
 
     def human_capsules(self, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Person capsules for poses (H, J, 3) in the canonical joint set.
+        """Person capsules for poses (H, B*J, 3) of B stacked bodies in the canonical joint set.
 
         Returns:
-            ``(a (H, M, 3), b (H, M, 3), r (M,))`` in the order of :data:`HUMAN_CAPSULES` (the last is the
-            head sphere, a == b).
+            ``(a (H, B*M, 3), b (H, B*M, 3), r (B*M,))``, body by body in the order of
+            :data:`HUMAN_CAPSULES` (the last of each is the head sphere, a == b).
         """
         joints = self._check_joints(joints, "human_capsules")
-        return joints[:, _HUMAN_A], joints[:, _HUMAN_B], self.human_radii.copy()
+        ia, ib, rh = self.people(joints.shape[1])
+        return joints[:, ia], joints[:, ib], rh.copy()
 
     # ------------------------------------------------------------------ robot vs person
     def distance_to_human(self, q: np.ndarray, joints: np.ndarray) -> np.ndarray:
@@ -598,10 +630,11 @@ class CollisionModel:
         joints = self._check_joints(joints, "distance_to_human")
         if q.shape[0] == 0 or joints.shape[0] == 0:
             return np.empty((q.shape[0], joints.shape[0]))
+        ia, ib, rh = self.people(joints.shape[1])
+        if ia.size == 0:
+            return np.full((q.shape[0], joints.shape[0]), np.inf)
         a_c, d_c = self._robot_segments_cm(q)
-        return _kernels.cross_min_distance(
-            a_c, d_c, self._k_ra, _kernels.as_f64(joints), self._k_ia, self._k_ib, self._k_rh
-        )
+        return _kernels.cross_min_distance(a_c, d_c, self._k_ra, _kernels.as_f64(joints), ia, ib, rh)
 
     def distance_to_human_paired(
         self,
@@ -641,8 +674,12 @@ class CollisionModel:
             raise ValueError(
                 f"distance_to_human_paired: segments must be ({_NL}, 3, K) each, got {a_c.shape}"
             )
-        ia, ib, rh = self._k_ia, self._k_ib, self._k_rh
-        if (links is not None and len(links) == 0) or (capsules is not None and len(capsules) == 0):
+        ia, ib, rh = self.people(joints.shape[1])
+        if (
+            (links is not None and len(links) == 0)
+            or (capsules is not None and len(capsules) == 0)
+            or not ia.size
+        ):
             return np.full(q.shape[0], np.inf)
         if capsules is not None:
             ia, ib, rh = ia[capsules], ib[capsules], rh[capsules]
@@ -672,10 +709,11 @@ class CollisionModel:
         if q.shape != (6,):
             raise ValueError(f"pair_distances: q must have shape (6,), got {q.shape}")
         joints = self._check_joints(joints, "pair_distances")
+        ia, ib, rh = self.people(joints.shape[1])
+        if ia.size == 0:
+            return np.zeros((joints.shape[0], _NL, 0))
         a_c, d_c = self._robot_segments_cm(q[None])
-        return _kernels.pair_distances(
-            a_c, d_c, self._k_ra, _kernels.as_f64(joints), self._k_ia, self._k_ib, self._k_rh
-        )
+        return _kernels.pair_distances(a_c, d_c, self._k_ra, _kernels.as_f64(joints), ia, ib, rh)
 
     def kernel_geometry(self) -> _kernels.KernelGeometry | None:
         """The robot (:class:`~app.planning._kernels.RobotArrays`) and person
@@ -857,9 +895,9 @@ class CollisionModel:
     @staticmethod
     def _check_joints(joints: Any, name: str) -> np.ndarray:
         joints = np.asarray(joints, dtype=float)
-        if joints.ndim != 3 or joints.shape[1:] != (NUM_JOINTS, 3):
+        if joints.ndim != 3 or joints.shape[2] != 3 or joints.shape[1] % NUM_JOINTS:
             raise ValueError(
-                f"{name}: joints must have shape (H, {NUM_JOINTS}, 3) in the canonical joint set, "
-                f"got {joints.shape}"
+                f"{name}: joints must have shape (H, B*{NUM_JOINTS}, 3), B bodies stacked in the canonical "
+                f"joint set, got {joints.shape}"
             )
         return joints

@@ -220,6 +220,17 @@ class Predictor(Protocol):
         """Forget the frames seen (a new trial, or another person)."""
         ...
 
+    @property
+    def whole_frame(self) -> bool:
+        """:meth:`update` takes every body of a frame at once and forecasts them stacked (False, the default:
+        it forecasts one body, and a cell of several people runs one predictor per body, :meth:`spawn`)."""
+        return False
+
+    def spawn(self) -> Predictor:
+        """A predictor of the same kind for another person: what is learned of the model shared, nothing of
+        this person's history (the default: this predictor cannot forecast more than one person)."""
+        raise NotImplementedError(f"{type(self).__name__} forecasts one person only")
+
     def update(self, frame: HumanFrame) -> HumanForecast:
         """Take the newest frame and return the forecast from it."""
         ...

@@ -33,6 +33,7 @@ the runtime should also call ``torch.set_num_threads(1)`` once.
 
 from __future__ import annotations
 
+import copy
 import functools
 import json
 import logging
@@ -371,6 +372,16 @@ class MotionPredictor(Predictor):
         self._frames.clear()
         if self.arbiter is not None:
             self.arbiter.reset()
+
+    def spawn(self) -> MotionPredictor:
+        """This predictor for another person: the network, its compiled forms and the margins shared; the
+        history, the counters and the arbiter's record its own."""
+        twin = copy.copy(self)
+        twin._frames = deque(maxlen=self._frames.maxlen)
+        twin.counters = dict.fromkeys(self.counters, 0)
+        twin.arbiter = None if self.arbiter is None else copy.deepcopy(self.arbiter)
+        twin.reset()
+        return twin
 
     @property
     def history_len(self) -> int:

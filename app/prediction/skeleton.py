@@ -148,6 +148,21 @@ class HumanFrame:
         rows = slice(k * NUM_JOINTS, (k + 1) * NUM_JOINTS)
         return HumanFrame(self.t, self.joints[rows], self.confidence[rows], (self.body_ids[k],))
 
+    def matched(self, before: HumanFrame) -> np.ndarray:
+        """(B*J, 3) ``before``'s joints of this frame's bodies, matched by id, in this frame's order; a body
+        that ``before`` lacks (it has just appeared) at its own pose here (no motion measured)."""
+        if before.body_ids == self.body_ids:
+            return before.joints
+        rows = {i: k for k, i in enumerate(before.body_ids)}
+        out = np.array(self.joints)
+        for k, i in enumerate(self.body_ids):
+            j = rows.get(i)
+            if j is not None:
+                out[k * NUM_JOINTS : (k + 1) * NUM_JOINTS] = before.joints[
+                    j * NUM_JOINTS : (j + 1) * NUM_JOINTS
+                ]
+        return out
+
     def split(self) -> list[HumanFrame]:
         """Every body alone, in order."""
         return [self.body(k) for k in range(self.bodies)]

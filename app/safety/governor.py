@@ -25,6 +25,7 @@ from app.safety._kernels import (
     max_scale,
 )
 from app.safety._kernels import max_scale as _kernel_max_scale
+from app.safety.pfl import per_body
 from app.safety.ssm import max_safe_speed, required_separation
 
 __all__ = [
@@ -508,24 +509,18 @@ class GovernorModel:
             raise ValueError(f"GovernorModel.min_scale must be in (0, 1], got {self.min_scale}")
 
     def caps_for(self, n_caps: int) -> np.ndarray:
-        """(M,) the capsules' permissible contact speeds (m/s), -1 everywhere for SSM alone."""
+        """(B*M,) the capsules' permissible contact speeds (m/s) for ``n_caps`` capsules of B stacked bodies,
+        -1 everywhere for SSM alone."""
         if not self.pfl_caps_mps:
             return np.full(n_caps, -1.0)
-        if len(self.pfl_caps_mps) != n_caps:
-            raise ValueError(
-                f"GovernorModel.pfl_caps_mps has {len(self.pfl_caps_mps)} capsules, not {n_caps}"
-            )
-        return np.asarray(self.pfl_caps_mps, dtype=np.float64)
+        return per_body(self.pfl_caps_mps, n_caps, "GovernorModel.pfl_caps_mps")
 
     def floors_for(self, n_caps: int) -> np.ndarray:
-        """(M,) the capsules' least approach speeds (m/s), 0 everywhere without a floor."""
+        """(B*M,) the capsules' least approach speeds (m/s) for ``n_caps`` capsules of B stacked bodies, 0
+        everywhere without a floor."""
         if not self.approach_floor_mps:
             return np.zeros(n_caps)
-        if len(self.approach_floor_mps) != n_caps:
-            raise ValueError(
-                f"GovernorModel.approach_floor_mps has {len(self.approach_floor_mps)} capsules, not {n_caps}"
-            )
-        return np.asarray(self.approach_floor_mps, dtype=np.float64)
+        return per_body(self.approach_floor_mps, n_caps, "GovernorModel.approach_floor_mps")
 
     @property
     def approach_floor_max_mps(self) -> float:

@@ -51,7 +51,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from app.safety.pfl import PFLModel, capsule_region
+from app.safety.pfl import PFLModel, capsule_region, per_body
 from app.safety.ssm import SSMParams, required_separation
 from app.safety.stopping import UR5E_STOP, StoppingModel
 
@@ -316,15 +316,18 @@ class GroundTruthMonitor:
         return self.counts["measured_vh"]
 
     # ------------------------------------------------------------------------------------------------
-    def caps_mps(self, joints: np.ndarray) -> np.ndarray:
-        """(M,) each capsule's permissible contact speed (m/s) with the person at ``joints``: quasi-static
-        where a hand or forearm lies on the scene; -1 where no contact is permitted (or PFL is off)."""
+    def caps_mps(self, joints: np.ndarray, n_caps: int | None = None) -> np.ndarray:
+        """(B*M,) each capsule's permissible contact speed (m/s) with the people at ``joints`` (B stacked
+        bodies, ``n_caps`` = B*M capsules in all; default one body): quasi-static where a hand or forearm
+        lies on the scene; -1 where no contact is permitted (or PFL is off)."""
+        n_caps = len(self.pfl.capsules) if n_caps is None else int(n_caps)
+        if n_caps == 0:
+            return np.zeros(0)
+        pfl = self.pfl.stacked(n_caps)
         gaps = None
         if self._use_pins:
-            gaps = np.asarray(
-                self.geometry.human_static_gaps(joints, self.pfl.pinnable_index), dtype=np.float64
-            )
-        return self.pfl.capsule_speeds_mps(gaps, len(self.pfl.capsules))
+            gaps = np.asarray(self.geometry.human_static_gaps(joints, pfl.pinnable_index), dtype=np.float64)
+        return self.pfl.capsule_speeds_mps(gaps, n_caps)
 
     def check(
         self,
@@ -335,8 +338,10 @@ class GroundTruthMonitor:
         joints_before: np.ndarray,
         dt: float,
     ) -> MonitorSample:
-        """Judge the robot at ``q``, ``qd`` (6,) against the true person at ``joints`` (J, 3), who was at
-        ``joints_before`` ``dt`` seconds earlier. Returns the worst pair of this check."""
+        """Judge the robot at ``q``, ``qd`` (6,) against the true people at ``joints`` (B*J, 3; B bodies
+        stacked as in :class:`~app.prediction.skeleton.HumanFrame`, none for a person-free cell), who were
+        at ``joints_before`` (the same bodies in the same order) ``dt`` seconds earlier. Returns the worst
+        pair of this check."""
         q = np.asarray(q, dtype=np.float64).reshape(6)
         qd = np.asarray(qd, dtype=np.float64).reshape(6)
         joints = np.asarray(joints, dtype=np.float64)
@@ -352,8 +357,12 @@ class GroundTruthMonitor:
             self._intrusion_t = float(t)
         w_top = float(np.abs(qd).max())
         moving = w_top > self.standstill_radps
-        d = self.geometry.pair_distances(q, np.stack([joints, before]))  # (2, L, M)
+        if joints.shape[0] == 0:  # nobody in the cell
+            self._close_episodes()
+            return MonitorSample(t, self._part(0), math.inf, 0.0, 0.0, 0.0, False, False)
+        d = self.geometry.pair_distances(q, np.stack([joints, before]))  # (2, L, B*M)
         d0 = d[0]
+        iso_speeds = per_body(self.iso_speeds, d0.shape[1], "the capsules' ISO 13855 speeds")
         sep = d0.min(axis=1)
         self.min_separation_m = min(self.min_separation_m, float(sep.min()))
         if not moving:
@@ -376,9 +385,9 @@ class GroundTruthMonitor:
             )
 
         # the safety model: ISO 13855's person (the true speed where faster), SSM with PFL
-        v_h = np.maximum(self.iso_speeds[None, :], v_true)
+        v_h = np.maximum(iso_speeds[None, :], v_true)
         req = s_p(v_h)
-        caps = self.caps_mps(joints)
+        caps = self.caps_mps(joints, d0.shape[1])
         above = v_r > caps[None, :]  # faster toward the region than permitted (any speed: no contact allowed)
         inside = d0 < req
         bad = inside & above
@@ -396,7 +405,7 @@ class GroundTruthMonitor:
             )
         # the residual risk: the true person approached within S_p faster than assumed (a jump no person
         # makes is an intrusion, counted apart)
-        faster = (v_true > self.iso_speeds[None, :]) & inside
+        faster = (v_true > iso_speeds[None, :]) & inside
         if faster.any() and not jumped:
             self._faster_until = max(self._faster_until, float(t) + t_r + t_s)
             self.exceedance_s += tick
@@ -410,7 +419,7 @@ class GroundTruthMonitor:
             v_near, r_near, t_reaction_s=t_r, t_stop_s=t_s, constant_m=c, stop_distance_m=s_s_near
         )
         measured_vh = bool(np.any(sep < req_meas))
-        iso = bool(np.any(d0 < s_p(self.iso_speeds[None, :])))
+        iso = bool(np.any(d0 < s_p(iso_speeds[None, :])))
         sample = MonitorSample(
             t,
             self._part(int(i)),
@@ -420,7 +429,7 @@ class GroundTruthMonitor:
             float(v_true[i, m]),
             violation,
             contact,
-            self.regions[int(m)],
+            self.regions[int(m) % len(self.regions)],
             float(caps[m]),
         )
         mg = float(d0[i, m] - req[i, m])

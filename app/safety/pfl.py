@@ -28,6 +28,8 @@ masses in kg, forces in N, spring constants in N/m.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -195,6 +197,16 @@ class PFLModel:
     def for_capsules(cls, capsules: Sequence[str], **kwargs: object) -> PFLModel:
         return cls(tuple(capsules), **kwargs)  # type: ignore[arg-type]
 
+    def stacked(self, n_caps: int) -> PFLModel:
+        """This model for ``n_caps`` capsules of B stacked bodies, each with :attr:`capsules` (itself for
+        one body; :class:`~app.prediction.skeleton.HumanFrame` stacks the bodies of a capture)."""
+        m = len(self.capsules)
+        if n_caps == m:
+            return self
+        if m == 0 or n_caps % m:
+            raise ValueError(f"PFLModel: {n_caps} capsules are no whole number of bodies of {m} capsules")
+        return _stacked(self, n_caps // m)
+
     @cached_property
     def regions(self) -> tuple[str, ...]:
         """Each capsule's body region."""
@@ -265,16 +277,32 @@ class PFLModel:
         None: none pinned), -1 everywhere with PFL off."""
         if not self.enabled:
             return np.full(n_caps, -1.0)
+        model = self.stacked(n_caps)
         pinned = None
         if static_gaps_m is not None:
-            pinned = pinned_capsules(static_gaps_m, self.pinnable, pin_gap_m=self.pin_gap_m)
-        return self.caps_mps(pinned)
+            pinned = pinned_capsules(static_gaps_m, model.pinnable, pin_gap_m=self.pin_gap_m)
+        return model.caps_mps(pinned)
 
     def caps_mps(self, pinned: np.ndarray | None = None) -> np.ndarray:
         """(M,) each capsule's permissible speed (m/s): quasi-static where ``pinned`` (M,) is True."""
         if pinned is None:
             return self.transient_mps
         return np.where(np.asarray(pinned, dtype=bool), self.quasi_static_mps, self.transient_mps)
+
+
+def per_body(per_capsule: Sequence[float] | np.ndarray, n_caps: int, name: str) -> np.ndarray:
+    """(B*M,) a value per capsule of one body (M,) repeated for each of B stacked bodies, ``n_caps`` = B*M
+    capsules in all (ValueError where ``n_caps`` is no whole number of bodies)."""
+    one = np.asarray(per_capsule, dtype=np.float64)
+    m = one.shape[0]
+    if m == 0 or n_caps % m:
+        raise ValueError(f"{name} has {m} capsules per body, which {n_caps} capsules are no multiple of")
+    return np.tile(one, n_caps // m)
+
+
+@functools.lru_cache(maxsize=16)
+def _stacked(model: PFLModel, bodies: int) -> PFLModel:
+    return dataclasses.replace(model, capsules=model.capsules * bodies)
 
 
 def pinned_capsules(capsule_gaps_m: np.ndarray, pinnable: np.ndarray, *, pin_gap_m: float) -> np.ndarray:

@@ -46,6 +46,11 @@ if TYPE_CHECKING:
     from app.safety.governor import GovernorModel
 
 
+def _people(forecast: HumanForecast | None) -> HumanForecast | None:
+    """``forecast``, or None where it holds no body (a person-free cell: static checks only)."""
+    return None if forecast is None or forecast.bodies == 0 else forecast
+
+
 class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks):
     """Time-variant A* over a roadmap, against a forecast of the person.
 
@@ -270,6 +275,7 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         floor_m: float | None = None,
         ssm_extra: tuple[float, np.ndarray] | None = None,
     ) -> _Separation:
+        forecast = _people(forecast)
         return _Separation(
             self.collision,
             forecast,
@@ -278,12 +284,27 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
             offsets=offsets,
             floor_m=floor_m,
             subsets=self._subsets_ok and self._segments_ok,
-            cap_ends=self._cap_ends,
+            cap_ends=self._cap_ends_for(forecast),
             robot_r=self._robot_r,
-            kernel=self._kernel_geometry,
+            kernel=self._kernel_geometry_for(forecast),
             ssm_extra=ssm_extra,
             stopping=self.config.stopping,
         )
+
+    def _kernel_geometry_for(self, forecast: HumanForecast | None) -> Any:
+        """The compiled geometry for ``forecast``'s bodies (None where the planner checks in NumPy)."""
+        if self._kernel_geometry is None or forecast is None or forecast.bodies == 1:
+            return self._kernel_geometry
+        return self.collision.kernel_geometry_for(forecast.bodies)  # type: ignore[attr-defined]
+
+    def _cap_ends_for(self, forecast: HumanForecast | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which joints each capsule of ``forecast``'s stacked bodies runs between, and its radius."""
+        bodies = 1 if forecast is None else forecast.bodies
+        if bodies == 1:
+            return self._cap_ends
+        ia, ib, r = self._cap_ends
+        off = (NUM_JOINTS * np.arange(bodies, dtype=np.int64))[:, None]
+        return (ia[None] + off).ravel(), (ib[None] + off).ravel(), np.tile(r, bodies)
 
     # ------------------------------------------------------------------------------------------ public
     def plan(
@@ -465,6 +486,7 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
             margins=np.array([margin]),
             growth_mps=forecast.growth_mps,
             max_margin_m=forecast.max_margin_m,
+            body_ids=forecast.body_ids,
         )
         hold_s = max(cfg.emergency_hold_s, 0.0)
         t_stop = t_start + max(horizon_s, 0.0)

@@ -52,6 +52,8 @@ class _TrajectoryChecks:
         floor_m: float | None = None,
     ) -> float | None:
         dt = self.config.verify_dt_s if dt_s is None else dt_s
+        if forecast is not None and forecast.bodies == 0:
+            forecast = None  # a person-free cell
         ts = traj.sample(dt, t_from=t_from, t_to=max(t_to, t_from))
         if self._kernel_geometry is not None and forecast is not None:
             view = _compiled_view(traj)
@@ -116,7 +118,7 @@ class _TrajectoryChecks:
         f64 = _kernels.as_f64
         eps = 1e-4
         t_wall = f64(ts[:first])
-        geo = self._kernel_geometry
+        geo = self._kernel_geometry_for(forecast)
         assert geo is not None
         pack = _kernels.pack
         fc = pack(
@@ -320,7 +322,7 @@ class _TrajectoryChecks:
         floor_m: float | None = None,
     ) -> tuple[float | None, float]:
         view: Any = traj
-        if timing is not None and forecast is not None:
+        if timing is not None and forecast is not None and forecast.bodies > 0:
             view = PredictedTiming.of(traj, forecast, self.collision, timing)
         end = view.t_end + hold_s
         return self._verify(view, forecast, view.t_start, end, floor_m=floor_m), view.t_end

@@ -1,0 +1,258 @@
+"""Every person in the cell: the bodies a tracker reports, followed from capture to capture, and what the
+decisions take of them.
+
+A tracker reports every body it sees with an id (the ZED SDK's body tracking does). :class:`People` keeps a
+*track* per person and gives the trial engine, at every capture, the people that every decision takes at
+once (:class:`PeopleUpdate`):
+
+- **A new body** starts a track. Until it has been tracked for ``settle_s`` (long enough for the predictor's
+  history) it is *settling*; a settling body within ``near_m`` of the robot is an intrusion, and the engine
+  makes a protective stop (:meth:`app.control.supervisor.Supervisor.intrusion`). The first body of a trial
+  is not new: the trial starts with it.
+- **A lost body** (its id is missing from a capture) is held where it was last seen for ``hold_s``, with
+  its age: the decisions count it as present, and its forecast margin grows at ISO 13855's body speed. Then
+  it is dropped.
+- **An id that changes** (the tracker loses a person and finds them again under a new id): a new id whose
+  pelvis lies within ``rematch_m`` of where a lost body was last seen takes over that body's track, history
+  and predictor. The person is not lost, and not new.
+
+Bodies keep their track's id in what the decisions see (the first tracker id the person had), so that the
+speeds measured from one capture to the next compare the same person.
+
+The proactive method forecasts every body: one predictor per track (the engine's own for the first,
+:meth:`~app.prediction.forecast.Predictor.spawn` for the others), the forecasts stacked on one time grid
+(:func:`~app.prediction.forecast.stack_forecasts`). A lost body is held with the growing margin.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from app.prediction.forecast import HumanForecast, Predictor, stack_forecasts
+from app.prediction.skeleton import JOINT_INDEX, HumanFrame
+
+_PELVIS = JOINT_INDEX["pelvis"]
+
+
+@dataclass(frozen=True, slots=True)
+class PeopleOptions:
+    """How :class:`People` follows the bodies.
+
+    Attributes:
+        settle_s: A body tracked for less than this is new (s): the predictor's history, 10 frames at
+            30 Hz.
+        hold_s: A lost body is held where it was last seen for this long (s), then dropped: the stale
+            stream's timeout, the time the runtime waits for any frame before it stops the robot.
+        rematch_m: A new id whose pelvis lies within this of a lost body's last pelvis (m) is that body
+            under a new id: half a metre, what a person moves in the hold time at ISO 13855's body speed
+            (1.6 m/s x 0.35 s = 0.56 m), rounded down.
+        near_m: A new body within this of the robot (surface to surface, m) is an intrusion: the protective
+            separation of the UR5e at full speed (about 1.2 m, see the safety model).
+        growth_mps: A lost body's margin grows at this speed (m/s): ISO 13855's body speed.
+    """
+
+    settle_s: float = 10 / 30
+    hold_s: float = 0.35
+    rematch_m: float = 0.5
+    near_m: float = 1.2
+    growth_mps: float = 1.6
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"PeopleOptions.{f.name} must be a finite number >= 0, got {v!r}")
+
+
+@dataclass
+class _Track:
+    id: int  #: the track's id (the body's first tracker id)
+    tracker_id: int  #: the id the tracker gives the body now
+    first_t: float
+    last_t: float
+    last: HumanFrame  #: the body as last seen (one body, the track's id)
+    predictor: Predictor | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class PeopleUpdate:
+    """The people of one capture as the decisions take them.
+
+    Attributes:
+        frame: Every body seen in the capture and every lost body still held, stacked, with their track ids
+            (a lost body at its last pose, with the capture's time).
+        ages_s: (B,) How old each body's pose is (s): 0 for a body seen in this capture.
+        appeared: Track ids of the bodies that are new in this capture.
+        settling: Track ids of the bodies tracked for less than ``settle_s`` (new ones included).
+        renamed: ``{tracker id: track id}`` of the ids that changed in this capture.
+        dropped: Track ids of the lost bodies dropped in this capture.
+    """
+
+    frame: HumanFrame
+    ages_s: np.ndarray
+    appeared: tuple[int, ...] = ()
+    settling: tuple[int, ...] = ()
+    renamed: dict[int, int] = field(default_factory=dict)
+    dropped: tuple[int, ...] = ()
+
+    @property
+    def seen(self) -> HumanFrame:
+        """The bodies seen in this capture (the lost ones left out)."""
+        keep = [k for k in range(self.frame.bodies) if self.ages_s[k] == 0.0]
+        if len(keep) == self.frame.bodies:
+            return self.frame
+        return HumanFrame.stack(self.frame.t, [self.frame.body(k) for k in keep])
+
+
+class People:
+    """The tracks of the people in the cell (see the module's docstring).
+
+    Args:
+        predictor: The proactive method's predictor (its first track's; the others spawn from it), None for
+            the reactive method.
+        options: How the bodies are followed.
+    """
+
+    def __init__(self, predictor: Predictor | None = None, options: PeopleOptions | None = None) -> None:
+        self.options = options if options is not None else PeopleOptions()
+        self.predictor = predictor
+        self._tracks: dict[int, _Track] = {}  # by track id
+        self._started = False
+        self._started_forecasts = False
+        self.appeared = 0  #: bodies that appeared after the first capture
+        self.renamed = 0  #: id changes bridged
+        self.dropped = 0  #: lost bodies dropped
+        self.max_bodies = 0  #: the most bodies (seen and held) of one capture
+
+    def reset(self) -> None:
+        """Forget every track (a new trial)."""
+        self._tracks.clear()
+        self._started = self._started_forecasts = False
+        if self.predictor is not None:
+            self.predictor.reset()
+
+    def reset_forecast(self, track_ids: list[int]) -> None:
+        """Forget what the predictors of these tracks have seen (a body that jumped: another person, or the
+        tracker's mistake)."""
+        for tid in track_ids:
+            tr = self._tracks.get(tid)
+            if tr is not None and tr.predictor is not None:
+                tr.predictor.reset()
+
+    @property
+    def tracks(self) -> tuple[int, ...]:
+        """The track ids followed now."""
+        return tuple(self._tracks)
+
+    def update(self, frame: HumanFrame) -> PeopleUpdate:
+        """Take a capture: follow its bodies, hold and drop the lost ones."""
+        opts, t = self.options, frame.t
+        by_tracker = {tr.tracker_id: tr for tr in self._tracks.values()}
+        seen: list[tuple[_Track, HumanFrame]] = []
+        fresh: list[HumanFrame] = []
+        for body in frame.split():
+            tr = by_tracker.get(body.body_ids[0])
+            if tr is not None:
+                seen.append((tr, body))
+            else:
+                fresh.append(body)
+        taken = {id(tr) for tr, _ in seen}
+        renamed: dict[int, int] = {}
+        appeared: list[int] = []
+        for body in fresh:
+            tid = body.body_ids[0]
+            lost = [tr for tr in self._tracks.values() if id(tr) not in taken and tr.last_t < t]
+            near = _nearest(lost, body, opts.rematch_m)
+            if near is not None:  # the same person under a new id
+                renamed[tid] = near.id
+                near.tracker_id = tid
+                self.renamed += 1
+                seen.append((near, body))
+                taken.add(id(near))
+                continue
+            track_id = tid
+            while track_id in self._tracks:  # an id the tracker reused for someone else
+                track_id = max(self._tracks) + 1
+            tr = _Track(track_id, tid, t, t, body, None)
+            if self._started:
+                appeared.append(track_id)
+                self.appeared += 1
+            else:
+                tr.first_t = -math.inf  # the trial starts with the people already there
+            self._tracks[track_id] = tr
+            seen.append((tr, body))
+            taken.add(id(tr))
+        self._started = True
+        for tr, body in seen:
+            tr.last_t = t
+            tr.last = dataclasses.replace(body, body_ids=(tr.id,))
+        dropped = []
+        for tr in list(self._tracks.values()):
+            if id(tr) not in taken and t - tr.last_t > opts.hold_s:
+                dropped.append(tr.id)
+                del self._tracks[tr.id]
+        self.dropped += len(dropped)
+        bodies = [tr.last for tr, _ in seen]
+        ages = [0.0] * len(seen)
+        for tr in self._tracks.values():
+            if id(tr) not in taken:
+                bodies.append(dataclasses.replace(tr.last, t=t))
+                ages.append(t - tr.last_t)
+        settling = tuple(tr.id for tr, _ in seen if t - tr.first_t < opts.settle_s)
+        people = HumanFrame.stack(t, bodies)
+        self.max_bodies = max(self.max_bodies, people.bodies)
+        return PeopleUpdate(people, np.array(ages), tuple(appeared), settling, renamed, tuple(dropped))
+
+    def forecast(
+        self,
+        update: PeopleUpdate,
+        *,
+        margin_m: float,
+        shape: Callable[[HumanFrame, HumanForecast], HumanForecast] | None = None,
+    ) -> HumanForecast:
+        """The proactive method's forecast of every body of ``update``: each body seen through its track's
+        predictor (``shape``: what the engine does to a body's forecast, e.g. the fetch it expects), each
+        lost one held with a margin of ``margin_m`` grown by its age, growing on; stacked."""
+        assert self.predictor is not None, "forecasting needs a predictor"
+        frame = update.frame
+        out: list[HumanForecast] = []
+        for k in range(frame.bodies):
+            body = frame.body(k)
+            track = self._tracks[body.body_ids[0]]
+            age = float(update.ages_s[k])
+            if age > 0.0:
+                grown = margin_m + self.options.growth_mps * age
+                out.append(
+                    HumanForecast.hold(
+                        body, margin_m=grown, growth_mps=self.options.growth_mps, max_margin_m=max(grown, 1.0)
+                    )
+                )
+                continue
+            if track.predictor is None:
+                owned = any(tr.predictor is self.predictor for tr in self._tracks.values())
+                if owned:
+                    track.predictor = self.predictor.spawn()
+                else:  # the first track's, or one whose person has left the cell
+                    track.predictor = self.predictor
+                    if self._started_forecasts:
+                        self.predictor.reset()
+                self._started_forecasts = True
+            fc = dataclasses.replace(track.predictor.update(body), body_ids=body.body_ids)
+            out.append(fc if shape is None else shape(body, fc))
+        return stack_forecasts(out, t0=frame.t)
+
+
+def _nearest(tracks: list[_Track], body: HumanFrame, within_m: float) -> _Track | None:
+    """The track whose last pelvis lies nearest ``body``'s, if within ``within_m``."""
+    best, best_d = None, within_m
+    p = body.joints[_PELVIS]
+    for tr in tracks:
+        d = float(np.linalg.norm(tr.last.joints[_PELVIS] - p))
+        if d <= best_d:
+            best, best_d = tr, d
+    return best
