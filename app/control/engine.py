@@ -543,6 +543,7 @@ class TrialEngine:
             prev = self._truth_prev
             joints = now.joints
             before, dt = (joints, 0.0) if prev is None else (now.matched(prev[1]), t - prev[0])
+            entered = prev is not None and not set(now.body_ids) <= set(prev[1].body_ids)
             self._truth_prev = (t, now)
         else:  # no truth (a real cell): the tracker's frames are the best there is
             frame = self.last_frame
@@ -551,8 +552,9 @@ class TrialEngine:
             old = self._older_frame(frame)
             joints = frame.joints
             before, dt = (joints, 0.0) if old is None else (frame.matched(old), frame.t - old.t)
+            entered = old is not None and not set(frame.body_ids) <= set(old.body_ids)
         violations, contacts, harmful_before = mon.violations, mon.contacts, mon.harmful_contacts
-        sample = mon.check(t, state.q, state.qd, joints, before, dt)
+        sample = mon.check(t, state.q, state.qd, joints, before, dt, entered=entered)
         if mon.violations > violations:
             log.error(
                 "safety monitor: %s at %.3f m < S_p %.3f m",

@@ -29,7 +29,10 @@ EVENT_KINDS: tuple[str, ...] = (
     "robot_fault",  # [message]
     "violation",  # [part, separation_m, required_m, robot_speed_mps, human_speed_mps]
     "contact",  # [part, separation_m, robot_speed_mps]
-    "intrusion",  # [speed_mps]
+    "intrusion",  # [speed_mps] of a body that jumped, or [separation_m] of a new body near the robot; [body]
+    "body_appeared",  # [body]: a person came into the cell (their track id)
+    "body_renamed",  # [body, tracker_id]: the tracker gave a person a new id; their track goes on
+    "body_dropped",  # [body]: a person lost for longer than the hold time
 )
 
 

@@ -1100,10 +1100,13 @@ class Supervisor:
         rate = brake_rate(float(vmax.max()), prof.joint_window_at(self._tau), cfg.brake_decel_mps2,
                           cfg.brake_joint_decel)  # fmt: skip
         robot = self._robot_motion(vmax, 0.0, rate, 1.0)
+        regions = None  # each capsule's region, for every body
+        if pairs is not None and pfl is not None:
+            regions = RegionMap(*pairs, pfl.stacked(pairs[1].shape[0]).regions)
         return partial(
             part_modes, self._parts, robot._replace(closed_m=robot.closed_m.copy()), self._governor,
             scale=self._s, dt_h=self._t - self._v_h_t if math.isfinite(self._v_h_t) else math.nan, rate=rate,
-            regions=None if pairs is None or pfl is None else RegionMap(*pairs, pfl.regions), held=held,
+            regions=regions, held=held,
         )  # fmt: skip
 
     def _older_frame(self, t: float) -> HumanFrame | None:

@@ -303,7 +303,7 @@ def directed_approach(
     d_now = np.asarray(d_now, dtype=np.float64)
     approach = np.maximum(np.asarray(d_before, dtype=np.float64) - d_now, 0.0) / max(float(dt_s), 1e-6)
     if floor_mps is not None:
-        approach = np.maximum(approach, np.asarray(floor_mps, dtype=np.float64))
+        approach = np.maximum(approach, per_body(floor_mps, d_now.shape[-1], "floor_mps"))
     return nearest_approach(d_now, approach, band_m=band_m)
 
 
@@ -331,7 +331,8 @@ def directed_pairs(
     """The surface distances (L, M) of the robot's parts at ``q`` to the person's capsules at ``joints``,
     and the person's speed toward each part per capsule (L, M): how fast each distance shrank since
     ``joints_before``, ``dt_s`` earlier (``v_unknown_mps`` without an earlier pose), at least ``floor_mps``
-    (M,), ISO 13855's speed of each capsule's region (None: the measured speed alone)."""
+    (M,), ISO 13855's speed of each capsule's region (None: the measured speed alone). Several bodies stacked
+    (B*J joints): (L, B*M), the floor of each body's capsules the same."""
     if joints_before is None or dt_s is None:
         d_now = np.asarray(geometry.pair_distances(q, np.asarray(joints)[None]), dtype=np.float64)[0]
         v = np.full(d_now.shape, float(v_unknown_mps))
@@ -339,8 +340,8 @@ def directed_pairs(
         d2 = np.asarray(geometry.pair_distances(q, np.stack([joints, joints_before])), dtype=np.float64)
         d_now = d2[0]
         v = np.maximum(d2[1] - d_now, 0.0) / max(float(dt_s), 1e-6)
-    if floor_mps is not None:
-        v = np.maximum(v, np.asarray(floor_mps, dtype=np.float64)[None, :])
+    if floor_mps is not None:  # per capsule of one body, for every body of a stacked pose
+        v = np.maximum(v, per_body(floor_mps, d_now.shape[1], "floor_mps")[None, :])
     return d_now, v
 
 

@@ -337,11 +337,14 @@ class GroundTruthMonitor:
         joints: np.ndarray,
         joints_before: np.ndarray,
         dt: float,
+        *,
+        entered: bool = False,
     ) -> MonitorSample:
         """Judge the robot at ``q``, ``qd`` (6,) against the true people at ``joints`` (B*J, 3; B bodies
         stacked as in :class:`~app.prediction.skeleton.HumanFrame`, none for a person-free cell), who were
-        at ``joints_before`` (the same bodies in the same order) ``dt`` seconds earlier. Returns the worst
-        pair of this check."""
+        at ``joints_before`` (the same bodies in the same order) ``dt`` seconds earlier; ``entered``: a body
+        was not there before (it came into the cell, or into the tracker's view, at once): an intrusion, as a
+        jump is. Returns the worst pair of this check."""
         q = np.asarray(q, dtype=np.float64).reshape(6)
         qd = np.asarray(qd, dtype=np.float64).reshape(6)
         joints = np.asarray(joints, dtype=np.float64)
@@ -349,18 +352,22 @@ class GroundTruthMonitor:
         tick = 0.0 if self._last_t is None else max(float(t) - self._last_t, 0.0)
         self._last_t = float(t)
         self.checks += 1
-        jumped = dt > 0 and is_intrusion(
-            np.linalg.norm(joints - before, axis=1) / dt, body_mps=self.intrusion_speed_mps
+        if joints.shape[0] == 0:  # nobody in the cell
+            self._close_episodes()
+            return MonitorSample(t, self._part(0), math.inf, 0.0, 0.0, 0.0, False, False)
+        d = self.geometry.pair_distances(q, np.stack([joints, before]))  # (2, L, B*M)
+        # a jump of any one body (B bodies of the same number of joints, stacked)
+        speeds = np.linalg.norm(joints - before, axis=1) / dt if dt > 0 else None
+        bodies = max(d.shape[2] // len(self.regions), 1)
+        jumped = entered or (
+            speeds is not None
+            and any(is_intrusion(v, body_mps=self.intrusion_speed_mps) for v in speeds.reshape(bodies, -1))
         )
         if jumped:
             self.intrusions += 1
             self._intrusion_t = float(t)
         w_top = float(np.abs(qd).max())
         moving = w_top > self.standstill_radps
-        if joints.shape[0] == 0:  # nobody in the cell
-            self._close_episodes()
-            return MonitorSample(t, self._part(0), math.inf, 0.0, 0.0, 0.0, False, False)
-        d = self.geometry.pair_distances(q, np.stack([joints, before]))  # (2, L, B*M)
         d0 = d[0]
         iso_speeds = per_body(self.iso_speeds, d0.shape[1], "the capsules' ISO 13855 speeds")
         sep = d0.min(axis=1)
