@@ -70,6 +70,10 @@ def bench(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
     quick: Annotated[bool, typer.Option("--quick", help="Fewer repetitions (smoke run).")] = False,
     list_: Annotated[bool, typer.Option("--list", help="List the benchmarks and exit.")] = False,
+    bodies: Annotated[
+        int | None,
+        typer.Option("--bodies", min=1, max=4, help="loop: that many people in the cell (1-4)."),
+    ] = None,
 ) -> None:
     """Run a benchmark; it prints its measurements (medians and p95 over many runs) as JSON."""
     names = _bench_names()
@@ -79,7 +83,10 @@ def bench(
     if name not in names:
         raise typer.BadParameter(f"unknown benchmark {name!r}; choose one of: {', '.join(names)}")
     module = importlib.import_module(f"app.bench.{name}")
-    result = module.run(quick=quick, progress=not as_json)
+    if bodies is not None and name != "loop":
+        raise typer.BadParameter(f"--bodies is an option of `hrc bench loop`, not of {name!r}")
+    extra = {} if bodies is None else {"bodies": bodies}
+    result = module.run(quick=quick, progress=not as_json, **extra)
     typer.echo(json.dumps(result, indent=None if as_json else 2, sort_keys=False))
 
 

@@ -1,4 +1,5 @@
-"""``hrc bench hmp``: forecast latency (one person, one CPU thread) and MPJPE on the CMU test split.
+"""``hrc bench hmp``: forecast latency (one person, one CPU thread; and the forecast of 1, 2 and 4 people per
+frame, ``people_forecast_ms``) and MPJPE on the CMU test split.
 
 Prints ``infer_ms`` {p50, p95} (Graph-Mixer, one person, the per-frame call ``predict_batch`` on (1, T, J, 3)
 through the path the predictor uses, named by ``single_person_backend``: ``numba``, ``onnxruntime``,
@@ -60,6 +61,29 @@ def _by_backend(predictor, history: np.ndarray, repeats: int) -> dict[str, dict[
     return {name: _percentiles(s) for name, s in samples.items()}
 
 
+def _people_ms(bodies: int, base: np.ndarray, repeats: int) -> dict[str, float]:
+    """Per frame, the forecast of ``bodies`` people walking side by side 0.8 m apart (arbitrated, as the
+    engine forecasts each person)."""
+    from app.control.people import People
+    from app.prediction.predictor import MotionPredictor
+    from app.prediction.skeleton import HumanFrame
+
+    people = People(MotionPredictor(kind="graphmixer", arbitrate=True))
+    warm = 40 + 10
+    samples = []
+    for k in range(repeats + warm):
+        t = k / 30.0
+        frame = HumanFrame.stack(
+            t,
+            [HumanFrame(t, base + np.array([0.03 * k, 0.8 * b, 0.0]), body_ids=(b,)) for b in range(bodies)],
+        )
+        t_start = time.perf_counter()
+        people.forecast(people.update(frame), margin_m=0.02)
+        if k >= warm:
+            samples.append(time.perf_counter() - t_start)
+    return _percentiles(samples)
+
+
 def run(*, quick: bool = False, progress: bool = True) -> dict:
     """Measure; returns the JSON-able result."""
     import torch
@@ -107,6 +131,9 @@ def run(*, quick: bool = False, progress: bool = True) -> dict:
         if k >= arbitrated.history + arbitrated.horizon:  # every step scored: the full per-frame work
             samples.append(time.perf_counter() - t)
     result["update_arbitrated_ms"] = _percentiles(samples)
+    # every person in the cell: the engine's forecast of 1, 2 and 4 tracked bodies per frame (one arbitrated
+    # predictor per person, the forecasts stacked), as :class:`app.control.people.People` runs it
+    result["people_forecast_ms"] = {str(n): _people_ms(n, base, repeats) for n in (1, 2, 4)}
     result["params"] = count_parameters(predictor.model) if predictor.model is not None else 0
     # the same number of repetitions of a fixed numpy workload: how noisy this machine's timing is right now
     a = rng.random((160, 160))

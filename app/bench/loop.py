@@ -13,6 +13,11 @@ simulated operator, the default roadmap and the shipped predictor) and runs a pr
   off also weighs the reactive method's plan: both searches and the check), against the deadline ``D``, and
   the missed deadlines per minute.
 
+With ``bodies`` N > 1 the cell holds N people: the simulated operator, seen through the tracker model, and
+N - 1 copies of what the tracker reports of them, standing elsewhere around the table (:class:`_Copies`):
+every decision then takes N bodies. ``bodies=1`` runs the same path with the operator alone, so the figures
+compare like for like (the default, ``bodies=None``, runs the runtime's own simulated cell).
+
 Prints one JSON object (percentiles over every frame and tick of the run).
 """
 
@@ -37,9 +42,66 @@ def _pct(values: list[float], qs: tuple[int, ...]) -> dict[str, float | int]:
     return out
 
 
-def run(*, quick: bool = False, progress: bool = True, servo_rate_hz: float = 125.0) -> dict[str, Any]:
+#: Where the copies of the operator stand (their pelvis moved by this in the floor plane, m): beside the
+#: table, left and right of the robot, and behind the operator's shoulder.
+COPY_OFFSETS_M: tuple[tuple[float, float], ...] = ((-0.8, 1.1), (-0.8, -1.1), (0.1, 0.7))
+
+
+class _Copies:
+    """A human source's people and copies of the first of them moved by :data:`COPY_OFFSETS_M`, with ids
+    1, 2, ...; the truth likewise (the benchmark's load of several bodies)."""
+
+    validates_frames = False
+
+    def __init__(self, source: Any, bodies: int) -> None:
+        if not 1 <= bodies <= len(COPY_OFFSETS_M) + 1:
+            raise ValueError(f"bodies must be 1 to {len(COPY_OFFSETS_M) + 1}, got {bodies}")
+        self.source = source
+        self.offsets = np.array([(0.0, 0.0), *COPY_OFFSETS_M[: bodies - 1]], dtype=np.float64)
+        self._truth = source.ground_truth()
+
+    def _people(self, t: float, joints: np.ndarray) -> Any:
+        from app.prediction.skeleton import HumanFrame
+
+        copies = [np.concatenate([joints[:, :2] + off, joints[:, 2:]], axis=1) for off in self.offsets]
+        return HumanFrame(t, np.concatenate(copies), body_ids=tuple(range(len(copies))))
+
+    def frame_at(self, t: float) -> Any:
+        frame = self.source.frame_at(t)
+        return None if frame is None else self._people(frame.t, frame.body(0).joints)
+
+    def notify_block_placed(self, station: str, t: float) -> None:
+        self.source.notify_block_placed(station, t)
+
+    def reset_counters(self) -> None:
+        pass
+
+    def ground_truth(self) -> Any:
+        truth = self._truth
+        if truth is None:
+            return None
+        return lambda t: self._people(t, np.asarray(truth(t), dtype=np.float64))
+
+
+def _people_source(settings: Any, clock: Any, bodies: int) -> Any:
+    """The simulated operator (participant 1) through the tracker model, and copies: :class:`_Copies`."""
+    from app.cell.tracker import TrackedSource, TrackerModel
+    from app.control.world import make_operator
+
+    t0 = clock.now()
+    person = make_operator(
+        settings.load_workcell(), source="sim", seed=1, participant_seed=1, population=settings.population,
+        noise=False, t0=t0,
+    )  # fmt: skip
+    return _Copies(TrackedSource(person, TrackerModel.from_settings(settings), seed=1, t0=t0), bodies)
+
+
+def run(
+    *, quick: bool = False, progress: bool = True, servo_rate_hz: float = 125.0, bodies: int | None = None
+) -> dict[str, Any]:
     """Run the live runtime for a proactive trial (4 s with ``quick``, 120 s otherwise) and measure its
-    loops."""
+    loops; ``bodies``: that many people in the cell (see the module's docstring)."""
+    from app.cell.clock import WallClock
     from app.config import Settings
     from app.control.engine import EngineOptions
     from app.control.runtime import Runtime
@@ -52,7 +114,12 @@ def run(*, quick: bool = False, progress: bool = True, servo_rate_hz: float = 12
         pass
     duration = 4.0 if quick else 120.0
     settings = Settings(robot="sim", human_source="sim")
-    rt = Runtime(settings, servo_rate_hz=servo_rate_hz, options=EngineOptions(record_frames=False))
+    clock = WallClock()
+    source = None if bodies is None else _people_source(settings, clock, bodies)
+    rt = Runtime(
+        settings, servo_rate_hz=servo_rate_hz, options=EngineOptions(record_frames=False), clock=clock,
+        source=source,
+    )  # fmt: skip
     t_build = time.perf_counter()
     rt.start()
     build_s = time.perf_counter() - t_build
@@ -77,6 +144,7 @@ def run(*, quick: bool = False, progress: bool = True, servo_rate_hz: float = 12
     finally:
         rt.stop()
     return {
+        "bodies": 1 if bodies is None else bodies,
         "duration_s": duration,
         "servo_rate_hz": servo_rate_hz,
         "frame_rate_hz": round(1.0 / settings.frame_period_s, 3),

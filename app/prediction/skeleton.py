@@ -7,7 +7,7 @@ anything else sees it. Positions are in metres in the world frame (z up).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -106,18 +106,23 @@ class HumanFrame:
     Attributes:
         t: Timestamp in seconds on the runtime's clock.
         joints: Joint positions (B*J, 3) in metres, world frame, canonical order (:data:`JOINTS`) per body.
-        confidence: Per-joint confidence (B*J,) in [0, 1]; 0 means the joint was not seen.
+        confidence: Per-joint confidence (B*J,) in [0, 1]; 0 means the joint was not seen (default: every
+            joint seen).
         body_ids: The tracker's id of each body (B,), distinct and >= 0.
     """
 
     t: float
     joints: np.ndarray
-    confidence: np.ndarray = field(default_factory=lambda: np.ones(NUM_JOINTS))
+    confidence: np.ndarray | None = None
     body_ids: tuple[int, ...] = (0,)
 
     def __post_init__(self) -> None:
         joints = np.asarray(self.joints, dtype=np.float64)
-        conf = np.asarray(self.confidence, dtype=np.float64)
+        conf = (
+            np.ones(joints.shape[0])
+            if self.confidence is None
+            else np.asarray(self.confidence, dtype=np.float64)
+        )
         ids = tuple(int(i) for i in self.body_ids)
         B = len(ids)
         if len(set(ids)) != B or any(i < 0 for i in ids):
