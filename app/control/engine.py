@@ -44,7 +44,7 @@ from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.task import TaskExecutive
 from app.planning.collision import reach_fingertips
 from app.prediction.forecast import HumanForecast, Predictor, stack_forecasts
-from app.prediction.skeleton import HumanFrame
+from app.prediction.skeleton import JOINT_INDEX, HumanFrame
 from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw
 from app.safety.monitor import GroundTruthMonitor, is_intrusion
 from app.safety.pfl import PFLModel
@@ -343,7 +343,7 @@ class TrialEngine:
         self._frames_sk: list[np.ndarray] = []
         self.decide_s: list[float] = []
         self.frame_to_decision_s = 0.0
-        self.people_frame: HumanFrame | None = None
+        self._fetcher_id: int | None = None
         if predictor is not None:
             predictor.reset()
         self._emit_abs(t0, "trial_started", {"method": method, "seed": self.seed})
@@ -413,6 +413,7 @@ class TrialEngine:
         held = self._held(body, people, margin)
         forecast = held
         if self.method == "proactive":
+            self._fetcher_id = self._fetcher(people.seen)
             if self.predictor.whole_frame:  # a predictor of every body at once (the oracle)
                 forecast = self.predictor.update(people.seen)
             else:
@@ -458,27 +459,34 @@ class TrialEngine:
         )
 
     def _shape(self, body: HumanFrame, forecast: HumanForecast) -> HumanForecast:
-        """A body's forecast as the task shapes it: the operator's (the body nearest the work spot) expects
-        the fetch of the block the robot has placed (:class:`FetchAnticipation`)."""
-        if self.anticipation is None or not self._is_operator(body):
+        """A body's forecast as the task shapes it: the person who will fetch the block the robot has placed
+        (:meth:`_fetcher`) is expected to reach for it (:class:`FetchAnticipation`)."""
+        if self.anticipation is None or body.body_ids[0] != self._fetcher_id:
             return forecast
         return self.anticipation.apply(body, forecast)
 
-    def _is_operator(self, body: HumanFrame) -> bool:
-        """Whether ``body`` is the one whose pelvis lies nearest the operator's work spot (over the floor)."""
-        frame = self.people_frame
-        if frame is None or frame.bodies <= 1:
-            return True
-        pelvis = frame.joints.reshape(frame.bodies, -1, 3)[:, 0, :2]
-        nearest = int(np.argmin(np.linalg.norm(pelvis - self._work_spot[:2], axis=1)))
-        return frame.body_ids[nearest] == body.body_ids[0]
+    def _fetcher(self, frame: HumanFrame) -> int | None:
+        """The track id of the person expected to fetch the next block: the one whose hand is nearest the
+        station the fetch is expected at; with none expected, the one nearest the operator's work spot (over
+        the floor). None without a body."""
+        if frame.bodies == 0:
+            return None
+        if frame.bodies == 1:
+            return frame.body_ids[0]
+        poses = frame.joints.reshape(frame.bodies, -1, 3)
+        expected = [] if self.anticipation is None else self.anticipation.expected()
+        if expected:
+            hands = poses[:, [JOINT_INDEX["l_hand"], JOINT_INDEX["r_hand"]]]
+            d = np.linalg.norm(hands - self._stations[expected[0]], axis=-1).min(axis=1)
+        else:
+            d = np.linalg.norm(poses[:, JOINT_INDEX["pelvis"], :2] - self._work_spot[:2], axis=1)
+        return frame.body_ids[int(np.argmin(d))]
 
     def _check_intrusion(self, t: float, people: PeopleUpdate) -> None:
         """A body that moved faster than a person can since the last capture (or the tracker jumped to
         someone else), or a new body near the robot before it has been tracked long enough to forecast: a
         protective stop, and that body's forecast starts over."""
         frame = people.frame
-        self.people_frame = frame
         prev = self._last_tracked
         self._last_tracked = frame
         for tid in people.appeared:
