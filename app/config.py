@@ -468,6 +468,8 @@ class Settings(BaseSettings):
     def _population_file_exists(cls, value: Path | None, info: ValidationInfo) -> Path | None:
         if value is not None and not value.is_file():
             raise ValueError(f"{info.field_name} file {value} does not exist")
+        if value is not None and info.field_name == "scenario":  # the same file for a study's workers
+            return value.resolve()
         return value
 
     @field_validator("hmp_weights", "hmp_quantiles")

@@ -68,6 +68,8 @@ PATH_CLEARANCE_OF_BOXES_M = 0.25
 #: The stance share of a gait cycle, the swing foot's lift (m, for a person 1.65 m tall).
 _STANCE = 0.6
 _FOOT_LIFT = 0.1
+#: The pelvis's vertical bob over a step (m, for a person 1.65 m tall).
+_BOB = 0.04
 
 
 def derived_seed(seed: int, *tags: int) -> int:
@@ -343,8 +345,11 @@ class Walker:
                 fz, stance = _FOOT_LIFT * k * math.sin(math.pi * w), False
             feet.append((np.array([fx, side * b.foot_y, b.ankle_z + fz]), stance))
             hips_xy.append(R_p @ np.array([0.0, side * b.hip_y, 0.0]))
-        # the pelvis as high as the standing body allows, lower where a stance leg must reach its foot
-        h = b.pelvis_z + b.hip_z - b.ankle_z
+        # the pelvis a few centimetres above its lowest (a stance foot furthest from the hip), lower where a
+        # stance leg must reach its foot: the knees flex in mid-stance, the pelvis bobs as in walking
+        dy = b.foot_y - b.hip_y
+        lowest = math.sqrt(max((0.995 * leg) ** 2 - (0.3 * stride + 0.01) ** 2 - dy * dy, 0.0))
+        h = min(b.pelvis_z + b.hip_z - b.ankle_z, lowest + _BOB * k)
         for (foot, stance), hip in zip(feet, hips_xy, strict=True):
             if stance:
                 d2 = (foot[0] - hip[0]) ** 2 + (foot[1] - hip[1]) ** 2
