@@ -49,8 +49,8 @@ def test_the_scenario_of_the_settings_puts_its_people_in_the_world(stack: Planni
     frame = tracked.frame_at(t)
     assert frame is not None and frame.body_ids == (OPERATOR_ID, FIRST_WALKER_ID)
     # the block placements reach the operator through the tracked source
-    tracked.notify_block_placed("B", 1.0)
-    people.pose_at(6.0)
+    tracked.notify_block_placed("B", t)
+    people.pose_at(t + 8.0)
     assert [a.station for a in people.operators[OPERATOR_ID].actions if a.kind == "fetch"] == ["B"]
 
 
