@@ -62,3 +62,34 @@ def test_the_setting_defaults_to_no_scenario_and_takes_a_file(tmp_path: Path) ->
     p = _write(tmp_path, "[second_operator]\n")
     assert Settings(scenario=p).scenario == p.resolve()
     assert Scenario.model_validate({"second_operator": {}}).second_operator is not None
+
+
+def test_simulate_and_study_take_a_scenario_file_and_refuse_a_wrong_one(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from app.cli import app
+    from app.study.repository import open_repository
+
+    runner = CliRunner()
+    missing = runner.invoke(app, ["simulate", "--duration", "1", "--scenario", str(tmp_path / "no.toml")])
+    assert missing.exit_code != 0 and "no.toml" in missing.output
+    bad = _write(tmp_path, "[passers_by]\ninterval_s = [30.0, 10.0]\n")
+    refused = runner.invoke(
+        app, ["simulate", "--duration", "1", "--method", "reactive", "--scenario", str(bad)]
+    )
+    assert refused.exit_code == 2 and str(bad) in refused.output and "interval_s" in refused.output
+    url = f"sqlite:///{tmp_path / 'study.db'}"
+    base = ["study", "--participants", "1", "--duration", "0.5", "--workers", "0", "--engine", "inline"]
+    missing = runner.invoke(
+        app, [*base, "--no-progress", "--url", url, "--scenario", str(tmp_path / "no.toml")]
+    )
+    assert missing.exit_code != 0 and "no.toml" in missing.output
+    scenario = EXAMPLES / "scenario_second_operator.toml"
+    ran = runner.invoke(app, [*base, "--no-progress", "--url", url, "--scenario", str(scenario)])
+    assert ran.exit_code == 0, ran.output
+    repo = open_repository(url)
+    try:  # the trials record the scenario they ran in (whatever the decision layer made of it)
+        trials = repo.list_trials()
+        assert len(trials) == 2 and all(t.settings["scenario"] == str(scenario.resolve()) for t in trials)
+    finally:
+        repo.close()
