@@ -6,8 +6,9 @@ at a side of the table (the same class at another work spot, id :data:`SECOND_OP
 pass the robot now and then (:class:`Walker`, ids :data:`FIRST_WALKER_ID` + i), as a scenario file declares
 (:mod:`app.cell.scenario`). Its frames and its truth are the stacked
 :class:`~app.prediction.skeleton.HumanFrame` of every person present at that instant, in id order: a walker
-is present while every joint of theirs lies in the tracked volume
-(:meth:`~app.cell.validation.CellVolume.from_workcell`), so bodies appear and disappear.
+is present while every joint of theirs lies in the tracked volume (:func:`tracked_volume`: the frame
+checks' volume, :meth:`~app.cell.validation.CellVolume.from_workcell`, a little inset), so bodies appear
+and disappear.
 
 The division of work: each drop station's block is fetched by the operator whose work spot is nearest to it
 (ties: the operator), unless the scenario lists the second operator's stations; a placement notification
@@ -58,6 +59,7 @@ __all__ = [
     "Walker",
     "derived_seed",
     "second_operator_cell",
+    "tracked_volume",
 ]
 
 OPERATOR_ID = 0
@@ -70,6 +72,19 @@ _STANCE = 0.6
 _FOOT_LIFT = 0.1
 #: The pelvis's vertical bob over a step (m, for a person 1.65 m tall).
 _BOB = 0.04
+
+
+#: A walker is in the cell while every joint lies this far (m) inside the frame checks' volume, in x and y:
+#: the tracker's noise (about 1 cm) never carries a joint of theirs out of it (which would lose the frame).
+TRACKED_MARGIN_M = 0.1
+
+
+def tracked_volume(cell: WorkCell) -> CellVolume:
+    """Where a walker is in the cell: the frame checks' volume (:meth:`CellVolume.from_workcell`) less
+    :data:`TRACKED_MARGIN_M` in x and y."""
+    v = CellVolume.from_workcell(cell)
+    inset = np.array([TRACKED_MARGIN_M, TRACKED_MARGIN_M, 0.0])
+    return CellVolume(lo=v.lo + inset, hi=v.hi - inset)
 
 
 def derived_seed(seed: int, *tags: int) -> int:
@@ -255,7 +270,7 @@ class Walker:
         self.seed = int(seed)
         self.t0 = float(t0)
         self.body = _Body(params.height_m)
-        self.volume = CellVolume.from_workcell(cell)
+        self.volume = tracked_volume(cell)
         self.floor_z = float(cell.operator.floor_z)
         self._rng = np.random.default_rng([self.seed, 0x3A1C])
         self.passes: list[Pass] = []

@@ -26,7 +26,7 @@ By default a simulated trial has one person, the operator across the table
 robot's left (+y) and walks across the cell behind the robot (-x) to leave on its right; ``right`` the
 other way; ``back`` enters behind the robot and walks along its left or right side (drawn) towards the
 operator's end and out; ``front`` the other way. A walker is in the cell (in the frames and the truth) while
-every joint of theirs lies in the tracked volume (:meth:`app.cell.validation.CellVolume.from_workcell`).
+every joint of theirs lies in the tracked volume (:func:`app.cell.people_sim.tracked_volume`).
 
 Every draw is seeded: the walkers' and the second operator's bodies come from the participant's seed (the
 same population as the operator's), their passes and behaviour from the trial's seed.

@@ -21,6 +21,7 @@ from app.cell.people_sim import (
 )
 from app.cell.scenario import PassersBy, Scenario, ScenarioError, load_scenario
 from app.cell.tracker import TrackedSource, TrackerModel
+from app.cell.validation import CellVolume
 from app.config import load_workcell
 from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, bone_lengths
 
@@ -186,12 +187,14 @@ def test_the_tracker_keeps_every_body_and_its_id_and_tracks_the_operator_as_alon
     model = TrackerModel(latency_s=0.06, noise_m=0.01, drop_p=0.0, burst_p=0.0)
     tracked = TrackedSource(people, model, seed=9)
     alone = TrackedSource(people.operators[OPERATOR_ID], model, seed=9)
+    volume = CellVolume.from_workcell(_cell())
     walker_seen = 0
     for t in np.arange(0.1, 60.0, 1 / FPS):
         f, g = tracked.frame_at(float(t)), alone.frame_at(float(t))
         assert f is not None and g is not None and f.t == g.t
         assert f.body_ids == people.body_ids_at(f.t)
         assert np.array_equal(f.body(0).joints, g.joints)  # the operator's noise is as it was alone
+        assert np.all(volume.contains(f.joints))  # the frame checks never lose a frame for a walker
         if f.bodies == 2:
             walker_seen += 1
             err = f.body(1).joints - people.walkers[FIRST_WALKER_ID].pose_at(f.t)
