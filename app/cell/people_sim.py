@@ -67,11 +67,11 @@ SECOND_OPERATOR_ID = 1
 FIRST_WALKER_ID = 2
 #: How far (m) a walker's pelvis path keeps from the table and every static box (the body's half-width).
 PATH_CLEARANCE_OF_BOXES_M = 0.25
-#: The stance share of a gait cycle, the swing foot's lift (m, for a person 1.65 m tall).
-_STANCE = 0.6
-_FOOT_LIFT = 0.1
-#: The pelvis's vertical bob over a step (m, for a person 1.65 m tall).
-_BOB = 0.04
+#: The gait cycle (a stride): the stance share, where the planted foot starts (ahead of the hip, in strides)
+#: and where its heel comes off (the share of the cycle); the heel's rise by toe-off and the swing foot's
+#: lift, and the pelvis's vertical bob (m, for a person 1.65 m tall).
+_STANCE, _FRONT, _HEEL_OFF = 0.6, 0.27, 0.45
+_HEEL_RISE, _FOOT_LIFT, _BOB = 0.06, 0.1, 0.05
 
 
 #: A walker is in the cell while every joint lies this far (m) inside the frame checks' volume, in x and y:
@@ -342,33 +342,38 @@ class Walker:
         ``s`` metres at ``speed`` (m/s)."""
         b = self.body
         k = b.k
-        step = self.params.height_m * (0.25 + 0.1 * speed)  # step length (m); a stride is two
+        step = self.params.height_m * (0.22 + 0.1 * speed)  # step length (m); a stride is two
         stride = 2.0 * step
         phase = s / stride
-        leg = b.l_thigh + b.l_shank
+        leg = 0.995 * (b.l_thigh + b.l_shank)
+        rise = _HEEL_RISE * k
         yaw_p = 0.06 * math.sin(2 * math.pi * phase)  # the pelvis turns with the forward leg
         R_p = _rz(yaw_p)
         out = np.empty((NUM_JOINTS, 3))
         feet, hips_xy = [], []
         for side, offset in ((1.0, 0.0), (-1.0, 0.5)):
             q = (phase + offset) % 1.0
-            if q < _STANCE:
-                fx, fz, stance = stride * (0.3 - q * 0.6 / _STANCE), 0.0, True
+            if q < _STANCE:  # planted from heel strike, the heel coming up before toe-off
+                fx, stance = stride * (_FRONT - q), True
+                fz = rise * ((q - _HEEL_OFF) / (_STANCE - _HEEL_OFF)) ** 2 if q > _HEEL_OFF else 0.0
             else:
                 w = (q - _STANCE) / (1.0 - _STANCE)
-                fx = -0.3 * stride + 0.6 * stride * float(min_jerk(w))
-                fz, stance = _FOOT_LIFT * k * math.sin(math.pi * w), False
+                m = float(min_jerk(w))
+                fx = stride * (_FRONT - _STANCE) + _STANCE * stride * m
+                fz, stance = rise * (1.0 - m) + _FOOT_LIFT * k * math.sin(math.pi * w), False
             feet.append((np.array([fx, side * b.foot_y, b.ankle_z + fz]), stance))
             hips_xy.append(R_p @ np.array([0.0, side * b.hip_y, 0.0]))
-        # the pelvis a few centimetres above its lowest (a stance foot furthest from the hip), lower where a
-        # stance leg must reach its foot: the knees flex in mid-stance, the pelvis bobs as in walking
-        dy = b.foot_y - b.hip_y
-        lowest = math.sqrt(max((0.995 * leg) ** 2 - (0.3 * stride + 0.01) ** 2 - dy * dy, 0.0))
-        h = min(b.pelvis_z + b.hip_z - b.ankle_z, lowest + _BOB * k)
+        # the pelvis a few centimetres above its lowest (the front foot at heel strike, the back one at
+        # toe-off), lower where a stance leg must reach its foot: the knees flex a little in mid-stance and
+        # the pelvis bobs, as in walking
+        dy2 = (b.foot_y - b.hip_y) ** 2
+        front = math.sqrt(max(leg**2 - (_FRONT * stride + 0.01) ** 2 - dy2, 0.0))
+        back = rise + math.sqrt(max(leg**2 - ((_STANCE - _FRONT) * stride + 0.01) ** 2 - dy2, 0.0))
+        h = min(b.pelvis_z + b.hip_z - b.ankle_z, min(front, back) + _BOB * k)
         for (foot, stance), hip in zip(feet, hips_xy, strict=True):
             if stance:
                 d2 = (foot[0] - hip[0]) ** 2 + (foot[1] - hip[1]) ** 2
-                h = min(h, math.sqrt(max((0.995 * leg) ** 2 - d2, 0.0)))
+                h = min(h, foot[2] - b.ankle_z + math.sqrt(max(leg**2 - d2, 0.0)))
         pelvis = np.array([0.0, 0.0, b.ankle_z + h - b.hip_z])
         lean = 0.04 + 0.03 * speed
         yaw_c = -0.6 * yaw_p

@@ -63,14 +63,22 @@ def test_a_walker_walks_like_a_person(enter: str) -> None:
     ankles = poses[:, [JOINT_INDEX["l_ankle"], JOINT_INDEX["r_ankle"]], :]
     lowest = ankles[:, :, 2].min(axis=1) - floor
     ankle_z = w.body.ankle_z
-    # one foot is always on the floor; the swing foot lifts less than 15 cm
-    assert np.allclose(lowest, ankle_z, atol=1e-6)
-    assert ankles[:, :, 2].max() - floor < ankle_z + 0.15
-    # a planted foot does not slide
+    # a foot is always on the floor (its heel up by a centimetre at most), the swing foot lifts < 20 cm
+    assert np.all(lowest >= ankle_z - 1e-9) and np.all(lowest < ankle_z + 0.01)
+    assert np.mean(lowest < ankle_z + 1e-9) > 0.8
+    assert 0.08 < ankles[:, :, 2].max() - floor - ankle_z < 0.2
+    # a planted foot does not slide (less than a millimetre a frame where a bowed path turns the body)
     for a in range(2):
         planted = (ankles[:-1, a, 2] - floor < ankle_z + 1e-9) & (ankles[1:, a, 2] - floor < ankle_z + 1e-9)
         slide = np.linalg.norm(np.diff(ankles[:, a, :2], axis=0), axis=1)[planted]
         assert planted.any() and slide.max() < 1e-3
+    # the knees flex (forward) by less than 30 degrees while the foot is planted
+    for hip, knee, ankle in ((13, 14, 15), (16, 17, 18)):
+        thigh, shank = poses[:, knee] - poses[:, hip], poses[:, ankle] - poses[:, knee]
+        cos = np.sum(thigh * shank, axis=1) / np.linalg.norm(thigh, axis=1) / np.linalg.norm(shank, axis=1)
+        flexion = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+        down = poses[:, ankle, 2] - floor < ankle_z + 1e-9
+        assert flexion[down].max() < 30.0 and flexion.max() < 75.0
     # the head at standing height, the pelvis a leg's length up, bobbing a few centimetres
     head = poses[:, JOINT_INDEX["head"], 2] - floor
     assert np.all((head > 0.8 * height) & (head < height))
