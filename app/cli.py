@@ -287,6 +287,13 @@ def study(
             "app/assets/population.toml)."
         ),
     ] = None,
+    scenario: Annotated[
+        Path | None,
+        typer.Option(
+            help="TOML file of who else is in the simulated cell: passers-by, a second operator (default "
+            "HRC_SCENARIO, else the operator alone; e.g. examples/scenario_passer_by.toml)."
+        ),
+    ] = None,
     url: _DbUrl = None,
 ) -> None:
     """Headless study: simulated participants x both methods, as Ray tasks or on a process pool, into the DB.
@@ -296,7 +303,7 @@ def study(
     """
     from app.study.runner import run_study
 
-    settings = _load_settings(settings_file, population=population)
+    settings = _load_settings(settings_file, population=population, scenario=scenario)
     result = _with_study(
         url,
         lambda repo: run_study(
@@ -556,6 +563,13 @@ def simulate(
             "app/assets/population.toml)."
         ),
     ] = None,
+    scenario: Annotated[
+        Path | None,
+        typer.Option(
+            help="TOML file of who else is in the simulated cell: passers-by, a second operator (default "
+            "HRC_SCENARIO, else the operator alone; e.g. examples/scenario_passer_by.toml)."
+        ),
+    ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
 ) -> None:
     """Run one headless trial on the simulated clock and print its metrics."""
@@ -582,7 +596,8 @@ def simulate(
     from pydantic import ValidationError
 
     try:
-        settings = Settings() if population is None else Settings(population=population)
+        given = {k: v for k, v in (("population", population), ("scenario", scenario)) if v is not None}
+        settings = Settings(**given)
     except ValidationError as exc:
         raise typer.BadParameter("; ".join(e["msg"] for e in exc.errors())) from exc
     try:
@@ -601,6 +616,8 @@ def simulate(
     out = result.summary()
     if forecast == "oracle":
         out["forecast"] = "oracle"
+    if settings.scenario is not None:
+        out["scenario"] = str(settings.scenario)
     typer.echo(json.dumps(out, indent=None if as_json else 2))
 
 

@@ -457,11 +457,19 @@ class Settings(BaseSettings):
         "app/assets/population.toml)",
     )
 
-    @field_validator("population")
+    scenario: Path | None = Field(
+        None,
+        description="TOML file of who else is in the simulated cell: passers-by, a second operator "
+        "(app.cell.scenario; e.g. examples/scenario_passer_by.toml); default: the operator alone",
+    )
+
+    @field_validator("population", "scenario")
     @classmethod
-    def _population_file_exists(cls, value: Path | None) -> Path | None:
+    def _population_file_exists(cls, value: Path | None, info: ValidationInfo) -> Path | None:
         if value is not None and not value.is_file():
-            raise ValueError(f"population file {value} does not exist")
+            raise ValueError(f"{info.field_name} file {value} does not exist")
+        if value is not None and info.field_name == "scenario":  # the same file for a study's workers
+            return value.resolve()
         return value
 
     @field_validator("hmp_weights", "hmp_quantiles")

@@ -109,9 +109,13 @@ class TrackerModel:
 class TrackedSource(HumanSource):
     """The frames a tracker with :class:`TrackerModel` delivers of a true human source.
 
+    Every body of the truth is tracked: each gets its own per-joint noise and keeps its id; a lost frame
+    loses every body (the camera's image is lost), a body the truth does not hold is not in the frame.
+
     Args:
-        truth: The true person: ``pose_at(t)`` (their pose at any instant), else ``frame_at(t)``; it should
-            carry no noise of its own.
+        truth: The true people: ``true_frame(t)`` (every person at any instant, with their ids:
+            :class:`~app.cell.people_sim.SimulatedPeople`), else ``pose_at(t)`` (one person's pose at any
+            instant, id 0), else ``frame_at(t)``; it should carry no noise of its own.
         model: The tracker's latency, noise, drops and rate.
         seed: Seeds the noise and the drops.
         t0: Capture time of frame 0 (s).
@@ -124,6 +128,7 @@ class TrackedSource(HumanSource):
         self.t0 = float(t0)
         self._block: tuple[int, np.ndarray, np.ndarray] | None = None
         self._cache: tuple[int, HumanFrame | None] | None = None
+        self._body_noise: dict[tuple[int, int], np.ndarray] = {}
 
     # ------------------------------------------------------------------ the source protocol
     def frame_at(self, t: float) -> HumanFrame | None:
@@ -160,20 +165,51 @@ class TrackedSource(HumanSource):
         if self._cache is not None and self._cache[0] == k:
             return self._cache[1]
         t_k = self.capture_time(k)
+        true_frame = getattr(self.truth, "true_frame", None)
         pose_at = getattr(self.truth, "pose_at", None)
-        if pose_at is not None:  # the true motion at the capture instant
+        ids: tuple[int, ...] = (0,)
+        if true_frame is not None:  # every true person at the capture instant, with their ids
+            true = true_frame(t_k)
+            joints, confidence = (None, None) if true is None else (true.joints, true.confidence)
+            ids = () if true is None else true.body_ids
+        elif pose_at is not None:  # the true motion at the capture instant
             seen = t_k >= getattr(self.truth, "t0", 0.0)
             joints, confidence = (pose_at(t_k), np.ones(NUM_JOINTS)) if seen else (None, None)
         else:
             true = self.truth.frame_at(t_k)
             joints, confidence = (None, None) if true is None else (true.joints, true.confidence)
+            ids = () if true is None else true.body_ids
         if joints is None:
             frame = None
         else:
-            noise, _ = self._draws(k)
-            frame = HumanFrame(t=t_k, joints=joints + noise, confidence=confidence)
+            frame = HumanFrame(
+                t=t_k, joints=joints + self._noise(k, ids), confidence=confidence, body_ids=ids
+            )
         self._cache = (k, frame)
         return frame
+
+    def _noise(self, k: int, ids: tuple[int, ...]) -> np.ndarray:
+        """The noise (B*J, 3) of frame ``k`` for the bodies ``ids``: body 0's from the frame's block draw
+        (as ever), another body's from a generator of its own (seeded by the seed, the block and its id)."""
+        block, i = divmod(k, _BLOCK)
+        parts = []
+        for bid in ids:
+            if bid == 0:
+                parts.append(self._draws(k)[0])
+                continue
+            key = (block, bid)
+            if key not in self._body_noise:
+                if len(self._body_noise) > 64:
+                    self._body_noise.clear()
+                m = self.model
+                rng = np.random.default_rng([self.seed, 0x7AC4E5, block, bid])
+                self._body_noise[key] = (
+                    rng.normal(0.0, m.noise_m, size=(_BLOCK, NUM_JOINTS, 3))
+                    if m.noise_m > 0
+                    else np.zeros((_BLOCK, NUM_JOINTS, 3))
+                )
+            parts.append(self._body_noise[key][i])
+        return np.concatenate(parts) if parts else np.zeros((0, 3))
 
     def _draws(self, k: int) -> tuple[np.ndarray, bool]:
         """Noise (J, 3) and the dropped flag of frame ``k``, drawn per block of frames."""

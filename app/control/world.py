@@ -201,20 +201,40 @@ def make_operator(
     population: str | Path | None = None,
     noise: bool = True,
     t0: float = 0.0,
+    scenario: str | Path | None = None,
 ) -> HumanSource:
     """The person of a simulated trial: a simulated participant (``participant_seed`` draws their body and
     habits from ``population``, a TOML file or None for the shipped one; ``seed`` their moment-to-moment
     behaviour and noise) or a recorded clip, played forth and back; their frames start at ``t0``.
-    ``noise=False``: the simulated participant without tracking noise (the truth behind a tracker model)."""
+    ``noise=False``: the simulated participant without tracking noise (the truth behind a tracker model).
+    ``scenario``: a scenario file (:mod:`app.cell.scenario`): the participant with the people it declares
+    around them, :class:`~app.cell.people_sim.SimulatedPeople` (ScenarioError, a ValueError, where it
+    cannot be used)."""
     from app.cell.human import ReplaySource
     from app.cell.operator_sim import OperatorParams, SimulatedOperator
 
     if source == "sim":
-        params = OperatorParams.draw(participant_seed, OperatorParams.population(population))
-        return SimulatedOperator(cell, params, seed=seed, t0=t0, noise=noise)
+        pop = OperatorParams.population(population)
+        params = OperatorParams.draw(participant_seed, pop)
+        operator = SimulatedOperator(cell, params, seed=seed, t0=t0, noise=noise)
+        if scenario is None:
+            return operator
+        from app.cell.people_sim import SimulatedPeople
+        from app.cell.scenario import load_scenario
+
+        return SimulatedPeople.from_scenario(
+            cell,
+            load_scenario(scenario),
+            operator,
+            seed=seed,
+            participant_seed=participant_seed,
+            population=pop,
+        )
     if source == "replay":
         if clip is None:
             raise ValueError("--source replay needs a clip: pass clip=PATH or set HRC_REPLAY_CLIP")
+        if scenario is not None:
+            raise ValueError("a scenario (HRC_SCENARIO) needs the simulated operator (source 'sim')")
         return ReplaySource(clip, cell, t0=t0)
     raise ValueError(f"unknown headless source {source!r}; expected 'sim' or 'replay'")
 
@@ -223,9 +243,17 @@ def _oracle(truth: Any, method: Method | None, options: EngineOptions) -> Any:
     """The simulated operator's own future as the proactive method's forecast
     (:class:`~app.cell.operator_sim.OracleForecaster`)."""
     from app.cell.operator_sim import OracleForecaster, SimulatedOperator
+    from app.cell.people_sim import PeopleOracle, SimulatedPeople
 
     if method != "proactive":
         raise ValueError("the oracle forecast is for the proactive method, instead of its predictor")
+    if isinstance(truth, SimulatedPeople):  # every person's own future, stacked with their ids
+        return PeopleOracle(
+            truth,
+            margin_m=options.tracking_margin_m,
+            growth_mps=BEYOND_HORIZON_GROWTH_MPS,
+            max_margin_m=BEYOND_HORIZON_MAX_MARGIN_M,
+        )
     if not isinstance(truth, SimulatedOperator):
         raise ValueError("the oracle forecast needs the simulated operator (source 'sim')")
     # the operator's own future over the horizon (it knows of a fetch as soon as the block is placed);
@@ -368,8 +396,9 @@ def build_trial_world(
         seed: The trial's seed (the person's behaviour and noise, the tracker's noise).
         participant_seed: The participant's seed (body, habits, assembly order); default ``seed``.
         t0: When the person's frames start (s, on the robot's clock).
-        source: ``sim`` (a simulated participant of ``settings.population``) or ``replay`` (a recorded
-            clip); default ``settings.human_source``, which may also be ``stream`` (a tracker's frames,
+        source: ``sim`` (a simulated participant of ``settings.population``, with the people of
+            ``settings.scenario`` around them) or ``replay`` (a recorded clip); default
+            ``settings.human_source``, which may also be ``stream`` (a tracker's frames,
             :class:`~app.cell.human.StreamSource`). A simulated or recorded person is the truth that the
             runtime sees through the tracker model.
         clip: The clip of ``replay`` (default ``settings.replay_clip``).
@@ -418,6 +447,7 @@ def build_trial_world(
             population=settings.population,
             noise=False,
             t0=t0,
+            scenario=settings.scenario,
         )
     if forecast == "oracle":  # before any source is read: the oracle needs the simulated operator
         predictor = _oracle(person, method, options)
@@ -429,6 +459,9 @@ def build_trial_world(
         stream = human if isinstance(human, StreamSource) else None
     elif person is None:  # a tracker's stream
         from app.cell.human import make_human_source
+
+        if settings.scenario is not None:
+            raise ValueError("a scenario (HRC_SCENARIO) is for the simulated cell, not a tracker's stream")
 
         stream = make_human_source(settings, cell)
         vsource = share(stream)
