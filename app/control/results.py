@@ -10,6 +10,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from app.cell.bodies import frame_bodies, recorded_bodies
 from app.control.metrics import TrialEvent, TrialMetrics
 from app.safety.modes import PartMode, binding_part, mode_text, region_text
 from app.safety.monitor import MonitorTotals
@@ -26,15 +27,36 @@ class TrialFrames:
     Attributes:
         t: (T,) seconds since the trial started.
         q: (T, 6) robot joint positions (rad).
-        skeleton: (T, J, 3) person joints in the world frame (m), or None when none were recorded.
+        skeleton: (T, B, J, 3) every tracked body's joints in the world frame (m), NaN in the body slots a
+            frame does not use (the layout of :mod:`app.cell.bodies`), or None when none were recorded.
+            A single-body array (T, J, 3) is taken as one slot, id 0.
+        body_ids: (T, B) the tracker's id of each body slot, -1 where unused (None: the single-body
+            layout, ids 0; filled in on construction).
     """
 
     t: np.ndarray
     q: np.ndarray
     skeleton: np.ndarray | None
+    body_ids: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.skeleton is not None:
+            sk, ids = recorded_bodies(self.skeleton, self.body_ids)
+            if sk.shape[0] != self.t.shape[0]:
+                raise ValueError(
+                    f"TrialFrames skeleton must have {self.t.shape[0]} frames, got {sk.shape[0]}"
+                )
+            object.__setattr__(self, "skeleton", sk)
+            object.__setattr__(self, "body_ids", ids)
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
+
+    def bodies(self, i: int) -> tuple[np.ndarray, tuple[int, ...]]:
+        """Frame ``i``'s bodies: joints stacked (B_i*J, 3) and their ids (none without a skeleton)."""
+        if self.skeleton is None or self.body_ids is None:
+            return np.zeros((0, 3)), ()
+        return frame_bodies(self.skeleton, self.body_ids, i)
 
 
 @dataclass(frozen=True, slots=True)
