@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -222,3 +225,54 @@ def test_validated_source_reports_body_changes_and_an_empty_cell_keeps_the_strea
     assert not src.is_stale(0.3)
     assert src.last_changes.vanished == ()
     assert src.is_stale(0.5)  # and no frame at all is stale
+
+
+# --- the example clients ----------------------------------------------------------------------------------
+def _example(name: str) -> Any:
+    import importlib.util
+
+    script = Path(__file__).resolve().parents[3] / "examples" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, script)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_zed_client_sends_every_tracked_body_with_its_id_and_empty_captures() -> None:
+    zed = _example("zed_client")
+    sl = SimpleNamespace(OBJECT_TRACKING_STATE=SimpleNamespace(OK="ok", SEARCHING="searching"))
+    kp = np.zeros((34, 3))
+    kp[:, 0] = 1.5
+    kp[:, 2] = np.linspace(0.0, 1.7, 34)
+
+    def body(i: int, state: str) -> SimpleNamespace:
+        return SimpleNamespace(id=i, tracking_state=state, keypoint=kp, keypoint_confidence=np.full(34, 80.0))
+
+    stamp = SimpleNamespace(get_nanoseconds=lambda: 2_000_000_000)
+    capture = SimpleNamespace(body_list=[body(4, "ok"), body(5, "searching"), body(9, "ok")], timestamp=stamp)
+    msg = zed.capture_message(sl, capture, "zed34")
+    parsed = parse_message(json.dumps(msg))
+    assert parsed.body_ids == (4, 9) and parsed.t == 2.0 and parsed.frame == "camera"
+    empty = parse_message(zed.capture_message(sl, SimpleNamespace(body_list=[], timestamp=stamp), "zed34"))
+    assert empty.bodies == ()
+
+
+def test_the_replay_client_sends_several_clips_as_several_bodies(tmp_path: Path) -> None:
+    from app.cell.human import save_clip
+
+    client = _example("stream_replay_client")
+    op = SimulatedOperator(CELL, seed=0, noise=False)
+    clip = save_clip(tmp_path / "a.npz", [op.frame_at(k / FPS) for k in range(15)])
+    msgs, fps, total = client.messages([clip, clip], loops=1, place=False, spacing_m=0.8)
+    msgs = list(msgs)
+    assert total == len(msgs) == 15 and fps == pytest.approx(30.0)
+    src = StreamSource(validator=FrameValidator.for_workcell(CELL))
+    for k, m in enumerate(msgs):
+        frame = src.push(json.dumps(m), t_received=k / FPS)
+        assert frame.body_ids == (0, 1)
+        np.testing.assert_allclose(
+            frame.body(1).joints - frame.body(0).joints, [[0.0, 0.8, 0.0]] * 19, atol=1e-3
+        )
+    one, _, _ = client.messages(clip, loops=1, place=False)
+    assert parse_message(next(iter(one))).body_ids == (0,)
