@@ -329,7 +329,8 @@ def test_headless_trial_is_reproducible_with_fixed_compute_times(stack: Planning
     assert [(e.t, e.kind) for e in a.events] == [(e.t, e.kind) for e in b.events]
     assert a.metrics.to_dict() == b.metrics.to_dict()
     assert a.frames is not None and a.frames.q.shape == (len(a.frames), 6)
-    assert a.frames.skeleton is not None and a.frames.skeleton.shape[1:] == (NUM_JOINTS, 3)
+    assert a.frames.skeleton is not None and a.frames.skeleton.shape[1:] == (1, NUM_JOINTS, 3)  # one body
+    assert a.frames.body_ids is not None and (a.frames.body_ids == 0).all()
     assert a.metrics.frames_received >= 170  # 30 Hz for 6 s
     summary = a.summary()
     for key in (
