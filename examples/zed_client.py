@@ -7,8 +7,10 @@ yaw]'``, metres/radians, in the coordinate system below: x forward, y left, z up
     python examples/zed_client.py --url ws://<app-host>:8000/api/ingest --token "$HRC_API_TOKEN" \
         --format zed34
 
-This script is deliberately thin: everything it shares with the app (building the messages, sending them)
-is ``app.cell.stream_protocol`` and is tested there. The message format is ``docs/stream-protocol.md``.
+Every body the SDK tracks is sent with its tracker id, one message per capture (a capture with nobody in
+view too). This script is deliberately thin: everything it shares with the app (building the messages,
+sending them) is ``app.cell.stream_protocol`` and is tested there. The message format is
+``docs/stream-protocol.md``.
 """
 
 from __future__ import annotations
@@ -48,10 +50,22 @@ def open_camera(sl: Any, body_format: str) -> Any:
     return zed
 
 
-async def body_messages(sl: Any, zed: Any, body_format: str) -> AsyncIterator[dict[str, Any]]:
-    """One message per grabbed frame with a person: the tracked body nearest the camera."""
-    from app.cell.stream_protocol import message_from_zed_body
+def capture_message(sl: Any, bodies: Any, body_format: str) -> dict[str, Any]:
+    """One message of a grabbed capture: every body the SDK tracks (``tracking_state`` OK) with its id;
+    none is a person-free capture (sent all the same: the stream stays alive while the cell is empty)."""
+    from app.cell.stream_protocol import message_from_zed_bodies
 
+    tracked = [b for b in bodies.body_list if b.tracking_state == sl.OBJECT_TRACKING_STATE.OK]
+    return message_from_zed_bodies(
+        [(int(b.id), b.keypoint, b.keypoint_confidence) for b in tracked],
+        t=bodies.timestamp.get_nanoseconds() * 1e-9,
+        body_format=body_format,  # type: ignore[arg-type]
+        frame="camera",
+    )
+
+
+async def body_messages(sl: Any, zed: Any, body_format: str) -> AsyncIterator[dict[str, Any]]:
+    """One message per grabbed frame (:func:`capture_message`)."""
     bodies = sl.Bodies()
     runtime = sl.BodyTrackingRuntimeParameters()
     runtime.detection_confidence_threshold = 40
@@ -60,18 +74,7 @@ async def body_messages(sl: Any, zed: Any, body_format: str) -> AsyncIterator[di
         if zed.grab() != sl.ERROR_CODE.SUCCESS:
             return None
         zed.retrieve_bodies(bodies, runtime)
-        people = [b for b in bodies.body_list if b.tracking_state == sl.OBJECT_TRACKING_STATE.OK]
-        if not people:
-            return None
-        body = min(people, key=lambda b: float(sum(v * v for v in b.position)))
-        return message_from_zed_body(
-            body.keypoint,
-            body.keypoint_confidence,
-            t=bodies.timestamp.get_nanoseconds() * 1e-9,
-            body_format=body_format,  # type: ignore[arg-type]
-            frame="camera",
-            body_id=int(body.id),
-        )
+        return capture_message(sl, bodies, body_format)
 
     while True:
         msg = await asyncio.to_thread(grab)  # the SDK blocks; keep the WebSocket responsive

@@ -8,11 +8,11 @@ to the event loop, where every client has its own bounded queue that drops the o
 is slow. The runtime's control loop only ever pushes into its own bounded subscription: no client can block
 it, and the JSON encoding happens off the control thread, once for all clients.
 
-Ingest (``/api/ingest``): a tracker sends one JSON skeleton frame per text message (the ``StreamSource``
-format); each message is checked for size, rate (token bucket) and JSON syntax before it reaches
-``Runtime.ingest``; every rejected message is answered with ``{"type": "error", "code": ..., "detail": ...}``
-and a client that keeps flooding (or sends an oversized message) is closed. Nothing a client sends can raise
-into the runtime.
+Ingest (``/api/ingest``): a tracker sends one JSON capture (every body it tracks) per text message (the
+``StreamSource`` format); each message is checked for size, rate (token bucket) and JSON syntax before it
+reaches ``Runtime.ingest``; every rejected message is answered with
+``{"type": "error", "code": ..., "detail": ...}`` and a client that keeps flooding (or sends an oversized
+message) is closed. Nothing a client sends can raise into the runtime.
 
 Authentication on both sockets: ``Authorization: Bearer <token>`` header, ``?token=`` query parameter, or a
 first message ``{"token": "..."}`` within ``auth_timeout_s``. With ``HRC_READ_ONLY_OPEN`` ``/api/live`` is

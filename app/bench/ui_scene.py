@@ -33,9 +33,10 @@ class _Snap:
     trial_id: int = 1
     trial_elapsed_s: float = 10.0
     trial_duration_s: float = 60.0
+    body_ids: tuple[int, ...] = ()
 
 
-def _snapshots(n: int, seed: int = 0) -> list[_Snap]:
+def _snapshots(n: int, seed: int = 0, bodies: int = 1) -> list[_Snap]:
     from app.config import load_workcell
     from app.planning.kinematics import UR5e
     from app.prediction.skeleton import NUM_JOINTS
@@ -48,7 +49,9 @@ def _snapshots(n: int, seed: int = 0) -> list[_Snap]:
     for k in range(n):
         q = home + rng.uniform(-0.5, 0.5, 6)
         tcp = kin.fk_tcp(q[None])[0, :3, 3]
-        sk = np.array([1.3, 0.0, 0.2]) + rng.uniform(-0.3, 0.3, (NUM_JOINTS, 3))
+        sk = np.concatenate(
+            [np.array([1.3, 0.8 * b, 0.2]) + rng.uniform(-0.3, 0.3, (NUM_JOINTS, 3)) for b in range(bodies)]
+        )  # every body stacked, as a frame holds them
         forecast = sk[None] + np.linspace(0, 0.3, 30)[:, None, None]
         plan = tcp + np.linspace(0, 0.4, 40)[:, None] * np.array([1.0, -0.5, -0.3])
         out.append(
@@ -60,13 +63,15 @@ def _snapshots(n: int, seed: int = 0) -> list[_Snap]:
                 forecast=forecast,
                 plan_tcp=plan,
                 backup_tcp=plan[::2],
+                body_ids=tuple(range(3, 3 + bodies)),
             )
         )
     return out
 
 
-def run(*, quick: bool, progress: bool) -> dict[str, Any]:
-    """Apply ``n`` distinct snapshots to a live :class:`~app.ui.scene.CellView`; return timing statistics."""
+def run(*, quick: bool, progress: bool, bodies: int = 1) -> dict[str, Any]:
+    """Apply ``n`` distinct snapshots of ``bodies`` tracked people each to a live
+    :class:`~app.ui.scene.CellView`; return timing statistics."""
     import contextlib
     import sys
 
@@ -78,7 +83,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
 
     n = 150 if quick else 1500
     cell = load_workcell()
-    snaps = _snapshots(n)
+    snaps = _snapshots(n, bodies=bodies)
     with contextlib.redirect_stdout(sys.stderr):  # viser prints its banner to stdout; keep stdout JSON
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:
@@ -99,6 +104,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
     return {
         "benchmark": "ui_scene",
         "snapshots": n,
+        "bodies": bodies,
         "apply_ms": {
             "median": round(median, 3),
             "p95": round(p95, 3),

@@ -259,9 +259,10 @@ class StreamSource(HumanSource):
     Each message is parsed, converted to canonical world coordinates, completed, timed and validated before it
     is queued; a rejected message raises :class:`~app.cell.validation.FrameRejected` (counted).
 
-    - Missing keypoints (``null``): the canonical joints they feed are filled from the previous valid frame
-      (confidence 0); more than ``max_missing_joints`` missing, or none to fill from: rejected
-      (``missing_joints``).
+    - Bodies: every body of a message, with its tracker id (a message with none is a person-free frame).
+    - Missing keypoints (``null``): the canonical joints they feed are filled from the same body id's pose
+      in the previous valid frame (confidence 0); more than ``max_missing_joints`` missing, or none to fill
+      from (a new id): rejected (``missing_joints``, naming the body).
     - Time: a message's ``t`` (the sender's clock) is mapped onto the runtime clock by the smallest observed
       ``t_received - t`` over the last ``offset_window`` messages (the least-delayed message), keeping the
       sender's frame spacing; a forward jump of the sender's clock by more than 1 s restarts the estimate.
@@ -318,27 +319,21 @@ class StreamSource(HumanSource):
         Raises:
             FrameRejected: the message is malformed or the frame invalid (the reason is counted).
         """
-        from app.cell.stream_protocol import parse_message, to_canonical
+        from app.cell.stream_protocol import canonical_bodies, parse_message
 
         with self._lock:
             self.received += 1
             try:
                 msg = parse_message(message)
-                joints, conf = to_canonical(msg, T_world_camera=self.T_world_camera)
-                missing = ~np.all(np.isfinite(joints), axis=1)
-                if np.any(missing):
-                    prev = self._frames[-1] if self._frames else None
-                    n_missing = int(missing.sum())
-                    if prev is None or n_missing > self.max_missing_joints:
-                        why = "no previous frame to fill them from" if prev is None else "too many"
-                        names = [JOINTS[i] for i in np.nonzero(missing)[0]]
-                        raise FrameRejected("missing_joints", f"{n_missing} joints not seen ({why}): {names}")
-                    joints = np.where(missing[:, None], prev.joints, joints)
-                    conf = np.where(missing, 0.0, conf)
+                bodies = canonical_bodies(msg, T_world_camera=self.T_world_camera)
+                completed = [self._completed(bid, j, c) for bid, j, c in bodies]
+                ids = tuple(bid for bid, _, _ in bodies)
+                joints = np.concatenate([j for j, _ in completed]) if bodies else np.zeros((0, 3))
+                conf = np.concatenate([c for _, c in completed]) if bodies else np.zeros(0)
                 t = self._frame_time(msg.t, float(t_received))
             except FrameRejected as exc:
                 raise self.validator.reject(exc.reason, exc.detail) from None
-            frame = self.validator.validate(t, joints, conf)
+            frame = self.validator.validate(t, joints, conf, ids)
             if msg.t is not None:
                 self._last_sender_t = msg.t
             self._backwards_since = None
@@ -346,6 +341,26 @@ class StreamSource(HumanSource):
                 self.dropped += 1
             self._frames.append(frame)
             return frame
+
+    def _completed(self, body_id: int, joints: np.ndarray, conf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A body's joints (J, 3) and confidences (J,) with the unseen joints filled from the same id's
+        previous accepted pose (confidence 0).
+
+        Raises:
+            FrameRejected: ``missing_joints``: too many unseen, or some unseen on an id not seen before.
+        """
+        missing = ~np.all(np.isfinite(joints), axis=1)
+        if not np.any(missing):
+            return joints, conf
+        prev = self.validator.tracks.pose(body_id)
+        n_missing = int(missing.sum())
+        if prev is None or n_missing > self.max_missing_joints:
+            why = f"no previous pose of body {body_id} to fill them from" if prev is None else "too many"
+            names = [JOINTS[i] for i in np.nonzero(missing)[0]]
+            raise FrameRejected(
+                "missing_joints", f"body {body_id}: {n_missing} joints not seen ({why}): {names}"
+            )
+        return np.where(missing[:, None], prev, joints), np.where(missing, 0.0, conf)
 
     def _frame_time(self, t_sender: float | None, t_received: float) -> float:
         """The frame's time on the runtime clock (see the class docstring).

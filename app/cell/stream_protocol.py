@@ -1,12 +1,19 @@
 """The JSON message format of pushed skeleton frames (``/api/ingest``), shared by the server and the clients.
 
-One message = one skeleton, a JSON object (see ``docs/stream-protocol.md`` for the full description)::
+One message = one capture of the tracker, a JSON object (see ``docs/stream-protocol.md`` for the full
+description) with every body the tracker reports, each with its tracker id::
 
     {"t": 12.345, "format": "zed34", "frame": "camera", "units": "m",
-     "joints": [[x, y, z], ..., null, ...], "confidence": [0.9, ...]}
+     "bodies": [{"id": 3, "joints": [[x, y, z], ..., null, ...], "confidence": [0.9, ...]},
+                {"id": 7, "joints": [...], "confidence": [...]}]}
+
+``"bodies": []`` is a capture with nobody in view (a valid, person-free frame). The single-body message of
+earlier clients stays valid: ``joints`` and ``confidence`` at the top level (and an optional ``body_id``,
+default 0) are one body.
 
 - ``format``: ``"canonical"`` (the app's 19 joints, :data:`~app.prediction.skeleton.JOINTS` order),
-  ``"zed34"`` or ``"zed38"`` (ZED SDK ``BODY_34`` / ``BODY_38`` keypoint order).
+  ``"zed34"`` or ``"zed38"`` (ZED SDK ``BODY_34`` / ``BODY_38`` keypoint order), for every body.
+- ``id``: the tracker's id of the body, an integer >= 0, distinct within the message.
 - ``joints``: one ``[x, y, z]`` per keypoint; ``null`` (or a triple of ``null``) marks a keypoint the tracker
   did not see. ``NaN``/``Infinity`` literals are invalid (the frame is rejected), never "missing".
 - ``t`` (optional): the sender's timestamp (s); the receiver maps it onto its own clock. Without it the
@@ -18,7 +25,8 @@ One message = one skeleton, a JSON object (see ``docs/stream-protocol.md`` for t
   named (metres sent as ``"mm"``) are refused (``wrong_units``).
 
 Every value is checked as sent, never coerced: strings and booleans are not numbers, a confidence outside
-[0, 1] is refused (``bad_confidence``), not clipped.
+[0, 1] is refused (``bad_confidence``), not clipped. A rejection caused by one body names it (its index in
+``bodies`` and its id).
 
 Pure functions, no I/O, except :func:`send_messages` (an asyncio WebSocket client for the example scripts).
 """
@@ -29,7 +37,7 @@ import asyncio
 import json
 import logging
 import math
-from collections.abc import AsyncIterator, Iterable, Iterator
+from collections.abc import AsyncIterator, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -40,8 +48,13 @@ from app.prediction.skeleton import NUM_JOINTS
 
 __all__ = [
     "FORMATS",
+    "MAX_BODIES",
+    "StreamBody",
     "StreamMessage",
+    "canonical_bodies",
+    "make_bodies_message",
     "make_message",
+    "message_from_zed_bodies",
     "message_from_zed_body",
     "parse_message",
     "send_messages",
@@ -58,24 +71,59 @@ UNITS = {"m": 1.0, "mm": 0.001}
 
 
 @dataclass(frozen=True)
+class StreamBody:
+    """One body of a parsed message, before conversion to the canonical skeleton.
+
+    Attributes:
+        id: The tracker's id of the body (>= 0; 0 for a single-body message without ``body_id``).
+        joints: Keypoints (N, 3) in metres (units applied), NaN where not seen.
+        confidence: Per-keypoint confidence (N,) in [0, 1], or ``None`` (not sent).
+    """
+
+    id: int
+    joints: np.ndarray
+    confidence: np.ndarray | None
+
+
+@dataclass(frozen=True)
 class StreamMessage:
-    """A parsed message, before conversion to the canonical skeleton.
+    """A parsed message (one capture), before conversion to the canonical skeleton.
 
     Attributes:
         t: Sender's timestamp (s) or ``None``.
-        format: Joint format.
-        joints: Keypoints (N, 3) in metres (units applied), NaN where not seen.
-        confidence: Per-keypoint confidence (N,) in [0, 1], or ``None`` (not sent).
+        format: Joint format (of every body).
         frame: ``"world"`` or ``"camera"``.
-        body_id: The tracker's body id, if sent.
+        bodies: The bodies, in the order sent (ids distinct); empty for a capture with nobody in view.
     """
 
     t: float | None
     format: Format
-    joints: np.ndarray
-    confidence: np.ndarray | None
     frame: Literal["world", "camera"]
-    body_id: int | None = None
+    bodies: tuple[StreamBody, ...]
+
+    def _only(self) -> StreamBody:
+        if len(self.bodies) != 1:
+            raise ValueError(f"the message has {len(self.bodies)} bodies, not one")
+        return self.bodies[0]
+
+    @property
+    def joints(self) -> np.ndarray:
+        """The keypoints (N, 3) of a one-body message (ValueError for another count)."""
+        return self._only().joints
+
+    @property
+    def confidence(self) -> np.ndarray | None:
+        """The confidences (N,) of a one-body message, or ``None`` (not sent)."""
+        return self._only().confidence
+
+    @property
+    def body_id(self) -> int:
+        """The id of a one-body message's body."""
+        return self._only().id
+
+    @property
+    def body_ids(self) -> tuple[int, ...]:
+        return tuple(b.id for b in self.bodies)
 
 
 #: Deepest nesting a message may have (a frame needs 3: object > joints > [x, y, z]; the rest is room for a
@@ -199,15 +247,56 @@ def _check_units(pts: np.ndarray, units: str) -> None:
         )
 
 
+#: Most bodies one message may carry (a tracker reporting more is refused: ``malformed``).
+MAX_BODIES = 16
+
+
+def _body_id(v: Any, k: int) -> int:
+    if not isinstance(v, int) or isinstance(v, bool):
+        raise FrameRejected("malformed", f"body {k}: id must be an integer >= 0, got {short_repr(v)}")
+    if v < 0:
+        raise FrameRejected("malformed", f"body {k}: id must be >= 0, got {v}")
+    return int(v)
+
+
+def _parse_body(obj: dict[str, Any], fmt: str, units: str, body_id: int, label: str | None) -> StreamBody:
+    """One body's ``joints`` and ``confidence``; a rejection's detail starts with ``label`` (which body)."""
+    try:
+        joints = obj.get("joints")
+        if not isinstance(joints, list):
+            raise FrameRejected("malformed", "joints must be a list of [x, y, z]")
+        n = FORMATS[fmt]
+        if len(joints) != n:
+            raise FrameRejected("joint_count", f"format {fmt!r} needs {n} joints, got {len(joints)}")
+        pts = np.array([_point(p, i) for i, p in enumerate(joints)], dtype=np.float64)
+        _check_units(pts, units)
+        pts *= UNITS[units]
+        conf = obj.get("confidence")
+        conf_arr = None
+        if conf is not None:
+            if not isinstance(conf, list) or len(conf) != n:
+                raise FrameRejected("joint_count", f"confidence must be a list of {n} numbers")
+            conf_arr = np.array([_confidence(c, i) for i, c in enumerate(conf)], dtype=np.float64)
+            conf_arr = np.nan_to_num(conf_arr, nan=0.0)
+    except FrameRejected as exc:
+        if label is None:
+            raise
+        raise FrameRejected(exc.reason, f"{label}: {exc.detail}") from None
+    return StreamBody(id=body_id, joints=pts, confidence=conf_arr)
+
+
 def parse_message(message: dict[str, Any] | str | bytes) -> StreamMessage:
     """Parse and check one message (a dict or its JSON text): every input gives a message or a
-    :class:`FrameRejected` with its reason, never another exception.
+    :class:`FrameRejected` with its reason, never another exception. A rejection caused by one body names
+    it: ``body 1 (id 7): joint 4 ...``.
 
     Raises:
-        FrameRejected: ``malformed`` (not JSON, nested too deeply, wrong types), ``unknown_format``
-            (format/frame/units), ``joint_count`` (joints do not match the format), ``non_finite`` (NaN/inf
-            values), ``bad_timestamp``, ``bad_confidence``, ``out_of_range`` (a number too large for a
-            float), ``wrong_units`` (the joints cannot be a person in the units named).
+        FrameRejected: ``malformed`` (not JSON, nested too deeply, wrong types, both ``bodies`` and
+            top-level ``joints``, a body id that is not an integer >= 0 or not distinct, more than
+            :data:`MAX_BODIES` bodies), ``unknown_format`` (format/frame/units), ``joint_count`` (joints do
+            not match the format), ``non_finite`` (NaN/inf values), ``bad_timestamp``, ``bad_confidence``,
+            ``out_of_range`` (a number too large for a float), ``wrong_units`` (the joints cannot be a
+            person in the units named).
     """
     if isinstance(message, bytes | str):
         message = _loads(message)
@@ -222,49 +311,72 @@ def parse_message(message: dict[str, Any] | str | bytes) -> StreamMessage:
     t = message.get("t")
     if t is not None:
         t = checked_timestamp(t)
-    joints = message.get("joints")
-    if not isinstance(joints, list):
-        raise FrameRejected("malformed", "joints must be a list of [x, y, z]")
-    n = FORMATS[fmt]
-    if len(joints) != n:
-        raise FrameRejected("joint_count", f"format {fmt!r} needs {n} joints, got {len(joints)}")
-    pts = np.array([_point(p, i) for i, p in enumerate(joints)], dtype=np.float64)
-    _check_units(pts, units)
-    pts *= UNITS[units]
-    conf = message.get("confidence")
-    conf_arr = None
-    if conf is not None:
-        if not isinstance(conf, list) or len(conf) != n:
-            raise FrameRejected("joint_count", f"confidence must be a list of {n} numbers")
-        conf_arr = np.array([_confidence(c, i) for i, c in enumerate(conf)], dtype=np.float64)
-        conf_arr = np.nan_to_num(conf_arr, nan=0.0)
-    body_id = message.get("body_id")
-    body_id = int(body_id) if isinstance(body_id, int) and not isinstance(body_id, bool) else None
-    return StreamMessage(
-        t=t,
-        format=fmt,
-        joints=pts,
-        confidence=conf_arr,
-        frame=frame,
-        body_id=body_id,  # type: ignore[arg-type]
-    )
+    if "bodies" not in message:  # the single-body message
+        body_id = message.get("body_id")
+        bid = 0 if body_id is None else _body_id(body_id, 0)
+        body = _parse_body(message, fmt, units, bid, None)
+        return StreamMessage(t=t, format=fmt, frame=frame, bodies=(body,))  # type: ignore[arg-type]
+    if "joints" in message or "confidence" in message:
+        raise FrameRejected(
+            "malformed", "a message has either bodies or top-level joints/confidence (one body), not both"
+        )
+    raw = message["bodies"]
+    if not isinstance(raw, list):
+        raise FrameRejected("malformed", 'bodies must be a list of {"id": ..., "joints": [...]}')
+    if len(raw) > MAX_BODIES:
+        raise FrameRejected("malformed", f"{len(raw)} bodies; at most {MAX_BODIES} per message")
+    bodies: list[StreamBody] = []
+    seen: dict[int, int] = {}
+    for k, obj in enumerate(raw):
+        if not isinstance(obj, dict):
+            raise FrameRejected("malformed", f"body {k} must be a JSON object, got {short_repr(obj)}")
+        if "id" not in obj:
+            raise FrameRejected("malformed", f"body {k} has no id (the tracker's id of the body)")
+        bid = _body_id(obj["id"], k)
+        if bid in seen:
+            raise FrameRejected(
+                "malformed", f"body {k} has the id {bid} of body {seen[bid]}: ids must differ"
+            )
+        seen[bid] = k
+        bodies.append(_parse_body(obj, fmt, units, bid, f"body {k} (id {bid})"))
+    return StreamMessage(t=t, format=fmt, frame=frame, bodies=tuple(bodies))  # type: ignore[arg-type]
 
 
 def to_canonical(
     msg: StreamMessage, *, T_world_camera: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Canonical joints (J, 3) in the world frame (NaN where not seen) and confidences (J,).
+    """Canonical joints (J, 3) in the world frame (NaN where not seen) and confidences (J,) of a one-body
+    message (:func:`canonical_bodies` for any number of bodies).
 
     A canonical joint derived from a keypoint that was not seen is itself not seen (NaN, confidence 0).
 
     Raises:
         FrameRejected: ``no_camera_pose`` for a camera-frame message without ``T_world_camera``.
+        ValueError: the message has not exactly one body.
     """
+    return _body_to_canonical(msg, msg._only(), T_world_camera)
+
+
+def canonical_bodies(
+    msg: StreamMessage, *, T_world_camera: np.ndarray | None = None
+) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """Every body of ``msg`` as ``(id, joints (J, 3), confidence (J,))``, canonical, in the world frame (NaN
+    where not seen); see :func:`to_canonical`. A message with no body gives an empty list.
+
+    Raises:
+        FrameRejected: ``no_camera_pose`` for a camera-frame message without ``T_world_camera``.
+    """
+    return [(b.id, *_body_to_canonical(msg, b, T_world_camera)) for b in msg.bodies]
+
+
+def _body_to_canonical(
+    msg: StreamMessage, body: StreamBody, T_world_camera: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray]:
     from app.prediction import adapters
 
-    pts = msg.joints
+    pts = body.joints
     seen = np.all(np.isfinite(pts), axis=1)
-    conf = msg.confidence if msg.confidence is not None else np.ones(len(pts))
+    conf = body.confidence if body.confidence is not None else np.ones(len(pts))
     conf = np.where(seen, conf, 0.0)
     if msg.format == "canonical":
         joints, conf_c = pts.copy(), conf
@@ -293,6 +405,25 @@ def _num(v: float, ndigits: int) -> float | None:
     return round(float(v), ndigits) if math.isfinite(v) else None
 
 
+def _encode_body(
+    joints: np.ndarray, confidence: np.ndarray | None, format: Format, ndigits: int
+) -> dict[str, Any]:
+    j = np.asarray(joints, dtype=np.float64)
+    n = FORMATS[format]
+    if j.shape != (n, 3):
+        raise ValueError(f"format {format!r} needs joints of shape ({n}, 3), got {j.shape}")
+    pts: list[list[float | None] | None] = [
+        None if not np.all(np.isfinite(p)) else [_num(v, ndigits) for v in p] for p in j
+    ]
+    out: dict[str, Any] = {"joints": pts}
+    if confidence is not None:
+        c = np.asarray(confidence, dtype=np.float64)
+        if c.shape != (n,):
+            raise ValueError(f"confidence must have shape ({n},), got {c.shape}")
+        out["confidence"] = [0.0 if not math.isfinite(v) else round(float(v), 3) for v in c]
+    return out
+
+
 def make_message(
     joints: np.ndarray,
     *,
@@ -304,7 +435,8 @@ def make_message(
     body_id: int | None = None,
     ndigits: int = 4,
 ) -> dict[str, Any]:
-    """Build one message (a JSON-ready dict); NaN keypoints become ``null`` ("not seen").
+    """Build one single-body message (a JSON-ready dict); NaN keypoints become ``null`` ("not seen").
+    :func:`make_bodies_message` builds a message of any number of bodies.
 
     Args:
         joints: Keypoints (N, 3) in ``units``, N given by ``format``.
@@ -313,27 +445,51 @@ def make_message(
         confidence: Per-keypoint confidence (N,) in [0, 1].
         frame: Coordinate frame of ``joints``.
         units: Length unit of ``joints``.
-        body_id: The tracker's body id.
+        body_id: The tracker's body id (the receiver takes 0 without it).
         ndigits: Decimals kept (4 in metres = 0.1 mm).
     """
-    j = np.asarray(joints, dtype=np.float64)
-    n = FORMATS[format]
-    if j.shape != (n, 3):
-        raise ValueError(f"format {format!r} needs joints of shape ({n}, 3), got {j.shape}")
-    pts: list[list[float] | None] = []
-    for p in j:
-        pts.append(None if not np.all(np.isfinite(p)) else [_num(v, ndigits) for v in p])  # type: ignore[misc]
-    msg: dict[str, Any] = {"format": format, "frame": frame, "units": units, "joints": pts}
+    msg: dict[str, Any] = {"format": format, "frame": frame, "units": units}
+    msg.update(_encode_body(joints, confidence, format, ndigits))
     if t is not None:
         msg["t"] = float(t)
-    if confidence is not None:
-        c = np.asarray(confidence, dtype=np.float64)
-        if c.shape != (n,):
-            raise ValueError(f"confidence must have shape ({n},), got {c.shape}")
-        msg["confidence"] = [0.0 if not math.isfinite(v) else round(float(v), 3) for v in c]
     if body_id is not None:
         msg["body_id"] = int(body_id)
     return msg
+
+
+def make_bodies_message(
+    bodies: Sequence[tuple[int, np.ndarray, np.ndarray | None]],
+    *,
+    format: Format = "canonical",
+    t: float | None = None,
+    frame: Literal["world", "camera"] = "world",
+    units: Literal["m", "mm"] = "m",
+    ndigits: int = 4,
+) -> dict[str, Any]:
+    """Build one message of every body of a capture (a JSON-ready dict), the inverse of
+    :func:`parse_message`: ``bodies`` are ``(id, joints (N, 3), confidence (N,) or None)``, ids distinct
+    and >= 0; none is a capture with nobody in view. See :func:`make_message` for the other arguments.
+
+    Raises:
+        ValueError: an id repeated or negative, or joints/confidences of the wrong shape.
+    """
+    ids = [int(b[0]) for b in bodies]
+    if len(set(ids)) != len(ids) or any(i < 0 for i in ids):
+        raise ValueError(f"body ids must be distinct and >= 0, got {ids}")
+    encoded = [
+        {"id": i, **_encode_body(j, c, format, ndigits)} for i, (_, j, c) in zip(ids, bodies, strict=True)
+    ]
+    msg: dict[str, Any] = {"format": format, "frame": frame, "units": units, "bodies": encoded}
+    if t is not None:
+        msg["t"] = float(t)
+    return msg
+
+
+def _zed_confidence(keypoint_confidence: np.ndarray | None) -> np.ndarray | None:
+    if keypoint_confidence is None:
+        return None
+    conf = np.nan_to_num(np.asarray(keypoint_confidence, dtype=np.float64), nan=0.0) / 100.0
+    return np.clip(conf, 0.0, 1.0)
 
 
 def message_from_zed_body(
@@ -346,20 +502,35 @@ def message_from_zed_body(
     units: Literal["m", "mm"] = "m",
     body_id: int | None = None,
 ) -> dict[str, Any]:
-    """A message from one ZED ``BodyData``: ``keypoint`` (N, 3) (NaN where not detected) and
+    """A single-body message from one ZED ``BodyData``: ``keypoint`` (N, 3) (NaN where not detected) and
     ``keypoint_confidence`` (N,) in ZED's 0..100 scale (NaN where not detected)."""
-    conf = None
-    if keypoint_confidence is not None:
-        conf = np.nan_to_num(np.asarray(keypoint_confidence, dtype=np.float64), nan=0.0) / 100.0
-        conf = np.clip(conf, 0.0, 1.0)
     return make_message(
         np.asarray(keypoint, dtype=np.float64),
         format=body_format,
         t=t,
-        confidence=conf,
+        confidence=_zed_confidence(keypoint_confidence),
         frame=frame,
         units=units,
         body_id=body_id,
+    )
+
+
+def message_from_zed_bodies(
+    bodies: Sequence[tuple[int, np.ndarray, np.ndarray | None]],
+    *,
+    t: float | None,
+    body_format: Literal["zed34", "zed38"],
+    frame: Literal["world", "camera"] = "camera",
+    units: Literal["m", "mm"] = "m",
+) -> dict[str, Any]:
+    """One message of every body of a ZED capture: ``bodies`` are ``(BodyData.id, keypoint (N, 3),
+    keypoint_confidence (N,) in 0..100)`` (NaN where not detected); none: nobody in view."""
+    return make_bodies_message(
+        [(int(i), np.asarray(kp, dtype=np.float64), _zed_confidence(c)) for i, kp, c in bodies],
+        format=body_format,
+        t=t,
+        frame=frame,
+        units=units,
     )
 
 

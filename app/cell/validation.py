@@ -1,5 +1,13 @@
 """Frame validation in front of every human source, and the stale-stream watchdog.
 
+A frame holds every body the tracker reported (:class:`~app.prediction.skeleton.HumanFrame`); each body is
+checked on its own, and a rejection names the body's id (one bad body rejects the capture: the cell is never
+shown with a person left out). A frame with no body is a valid, person-free capture: the stream is alive and
+the cell empty. Per body id the validator keeps the body's last pose (:class:`BodyTracks`): a body that moved
+faster than a person can since the same id's previous pose *jumped* (reported in :attr:`BodyChanges.jumps`,
+not rejected: the decision layer treats it as an intrusion); a new id is no jump, and an id that vanished
+drops its state.
+
 A frame is validated once, before anything uses it, and rejected (and counted, by reason) when its
 timestamp, joints or confidences are not numbers (strings and booleans included), when it has non-finite
 values, a timestamp out of range, the wrong joint count, a confidence outside [0, 1], no joint seen with at
@@ -16,13 +24,14 @@ import math
 import numbers
 import reprlib
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from app.cell.source import HumanSource
 from app.prediction.skeleton import MIN_JOINT_CONFIDENCE, NUM_JOINTS, HumanFrame
+from app.safety.monitor import is_intrusion
 
 if TYPE_CHECKING:
     from app.config import WorkCell
@@ -30,6 +39,8 @@ if TYPE_CHECKING:
 __all__ = [
     "MAX_ABS_TIME_S",
     "REJECT_REASONS",
+    "BodyChanges",
+    "BodyTracks",
     "CellVolume",
     "FrameRejected",
     "FrameValidator",
@@ -44,7 +55,7 @@ __all__ = [
 REJECT_REASONS: tuple[str, ...] = (
     "non_finite",  # NaN or inf in the timestamp, joints or confidences
     "bad_timestamp",  # a timestamp that is not a number of seconds, or beyond MAX_ABS_TIME_S
-    "joint_count",  # not (J, 3) joints / (J,) confidences
+    "joint_count",  # not (B*J, 3) joints / (B*J,) confidences for B bodies
     "duplicate_timestamp",  # same time as the previous accepted frame
     "backwards_timestamp",  # earlier than the previous accepted frame
     "out_of_range",  # a joint outside the cell volume
@@ -98,7 +109,7 @@ def _numbers(value: Any, shape: tuple[int, ...], what: str) -> np.ndarray:
     if not isinstance(rows, list | tuple) or (len(shape) == 2 and len(rows) != shape[0]):
         n = len(rows) if isinstance(rows, list | tuple) else short_repr(rows)
         raise FrameRejected("joint_count", f"{what} must be {shape} numbers, got {n} rows")
-    flat = out.reshape(len(rows) if len(shape) == 2 else 1, -1)
+    flat = out.reshape(len(rows), shape[1]) if len(shape) == 2 else out.reshape(1, -1)
     for i, row in enumerate(rows):
         if not isinstance(row, list | tuple | np.ndarray) or len(row) != flat.shape[1]:
             raise FrameRejected("joint_count", f"{what} must be {shape}, got {short_repr(row)} at row {i}")
@@ -192,17 +203,109 @@ class CellVolume:
         return np.all((p >= self.lo) & (p <= self.hi), axis=-1)
 
 
+@dataclass(frozen=True, slots=True)
+class BodyChanges:
+    """How the bodies of a frame relate to those of the frame before (matched by tracker id).
+
+    Attributes:
+        jumps: The ids whose body moved faster than a person can since the same id's previous pose, with
+            the fastest joint's speed (m/s) (:func:`app.safety.monitor.is_intrusion`).
+        appeared: Ids not in the frame before (a new id is no jump).
+        vanished: Ids of the frame before that this frame lacks (their state is dropped).
+    """
+
+    jumps: dict[int, float] = field(default_factory=dict)
+    appeared: tuple[int, ...] = ()
+    vanished: tuple[int, ...] = ()
+
+
+class BodyTracks:
+    """The last pose of each tracked body, keyed by its tracker id, and the jump check against it.
+
+    Args:
+        jump_speed_mps: A body whose median joint moved faster than this since the same id's previous pose,
+            or any joint faster than twice this, jumped (``None``: no jump check).
+    """
+
+    def __init__(self, jump_speed_mps: float | None = 5.0) -> None:
+        if jump_speed_mps is not None and not jump_speed_mps > 0:
+            raise ValueError(f"jump_speed_mps must be > 0 or None, got {jump_speed_mps}")
+        self.jump_speed_mps = jump_speed_mps
+        self._last: dict[int, tuple[float, np.ndarray]] = {}
+        self.jumps = 0
+
+    def pose(self, body_id: int) -> np.ndarray | None:
+        """The last pose (J, 3) of ``body_id``, or None (a new id)."""
+        last = self._last.get(int(body_id))
+        return None if last is None else last[1]
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        return tuple(self._last)
+
+    def update(self, frame: HumanFrame) -> BodyChanges:
+        """Take ``frame`` as every body's newest pose; returns what changed against the frame before."""
+        jumps: dict[int, float] = {}
+        appeared: list[int] = []
+        now: dict[int, tuple[float, np.ndarray]] = {}
+        for k, bid in enumerate(frame.body_ids):
+            joints = frame.joints[k * NUM_JOINTS : (k + 1) * NUM_JOINTS]
+            prev = self._last.get(bid)
+            if prev is None:
+                appeared.append(bid)
+            elif self.jump_speed_mps is not None and frame.t > prev[0]:
+                speeds = np.linalg.norm(joints - prev[1], axis=1) / (frame.t - prev[0])
+                if is_intrusion(speeds, body_mps=self.jump_speed_mps):
+                    jumps[bid] = float(speeds.max())
+            now[bid] = (frame.t, joints)
+        vanished = tuple(i for i in self._last if i not in now)
+        self._last = now
+        self.jumps += len(jumps)
+        return BodyChanges(jumps=jumps, appeared=tuple(appeared), vanished=vanished)
+
+    def reset(self) -> None:
+        self._last = {}
+        self.jumps = 0
+
+
+def _body_ids(body_ids: Any) -> tuple[int, ...]:
+    """Tracker ids as sent: integers >= 0 (not booleans), distinct."""
+    if not isinstance(body_ids, list | tuple):
+        raise FrameRejected("malformed", f"body ids must be a list of integers, got {short_repr(body_ids)}")
+    out: list[int] = []
+    for k, i in enumerate(body_ids):
+        if not isinstance(i, numbers.Integral) or isinstance(i, bool | np.bool_) or i < 0:
+            raise FrameRejected("malformed", f"body {k}: id must be an integer >= 0, got {short_repr(i)}")
+        if int(i) in out:
+            raise FrameRejected("malformed", f"body {k}: id {int(i)} is repeated; ids must differ")
+        out.append(int(i))
+    return tuple(out)
+
+
 class FrameValidator:
     """Checks frames before anything else sees them; counts what it accepts and rejects (thread-safe).
 
+    Every body of a frame is checked; a rejection names the body's id. The last pose of each id is kept
+    (:attr:`tracks`): :attr:`last_changes` says which bodies of the last accepted frame jumped, appeared or
+    vanished.
+
     Args:
         volume: Every joint must lie in this box (``None``: no range check).
-        num_joints: Expected joint count (the canonical skeleton by default).
+        num_joints: Expected joint count per body (the canonical skeleton by default).
+        jump_speed_mps: See :class:`BodyTracks`.
     """
 
-    def __init__(self, *, volume: CellVolume | None = None, num_joints: int = NUM_JOINTS) -> None:
+    def __init__(
+        self,
+        *,
+        volume: CellVolume | None = None,
+        num_joints: int = NUM_JOINTS,
+        jump_speed_mps: float | None = 5.0,
+    ) -> None:
         self.volume = volume
         self.num_joints = int(num_joints)
+        self.tracks = BodyTracks(jump_speed_mps)
+        self.last_changes = BodyChanges()
         self._lock = threading.Lock()
         self._last_t: float | None = None
         self._accepted = 0
@@ -221,29 +324,56 @@ class FrameValidator:
             self._rejected[reason] += 1
         return exc
 
-    def validate(self, t: Any, joints: Any, confidence: Any = None) -> HumanFrame:
+    def validate(self, t: Any, joints: Any, confidence: Any = None, body_ids: Any = None) -> HumanFrame:
         """Check raw values and build the frame; every input gives a frame or a counted rejection.
 
         Args:
             t: Timestamp (s, runtime clock): a number (not a boolean) within :data:`MAX_ABS_TIME_S`.
-            joints: Joint positions, expected (J, 3) numbers, metres, world frame.
-            confidence: Per-joint confidence (J,) numbers in [0, 1]; ``None`` means all ones.
+            joints: Joint positions, expected (B*J, 3) numbers, metres, world frame, body after body.
+            confidence: Per-joint confidence (B*J,) numbers in [0, 1]; ``None`` means all ones.
+            body_ids: The tracker's id of each body (B,), distinct integers >= 0; ``None``: one body, id 0.
+                An empty list is a frame with nobody in view (valid).
 
         Raises:
-            FrameRejected: with the reason (counted).
+            FrameRejected: with the reason (counted); a body's fault names its id.
         """
         try:
-            return self._validate(t, joints, confidence)
+            return self._validate(t, joints, confidence, body_ids)
         except FrameRejected as exc:
             with self._lock:
                 self._rejected[exc.reason] += 1
             raise
 
-    def _validate(self, t: Any, joints: Any, confidence: Any) -> HumanFrame:
+    def _validate(self, t: Any, joints: Any, confidence: Any, body_ids: Any) -> HumanFrame:
         J = self.num_joints
-        j = _numbers(joints, (J, 3), "joints")
-        c = np.ones(J) if confidence is None else _numbers(confidence, (J,), "confidence")
+        ids = (0,) if body_ids is None else _body_ids(body_ids)
+        n = len(ids) * J
+        what = "joints" if body_ids is None else f"joints of {len(ids)} bodies"
+        j = _numbers(joints, (n, 3), what)
+        c = np.ones(n) if confidence is None else _numbers(confidence, (n,), f"confidence{what[6:]}")
         t = checked_timestamp(t)
+        for k, bid in enumerate(ids):
+            rows = slice(k * J, (k + 1) * J)
+            try:
+                self._check_body(j[rows], c[rows])
+            except FrameRejected as exc:
+                raise FrameRejected(exc.reason, f"body {bid}: {exc.detail}") from None
+        with self._lock:
+            last = self._last_t
+            if last is not None and t == last:
+                raise FrameRejected("duplicate_timestamp", f"t={t} equals the previous frame's")
+            if last is not None and t < last:
+                raise FrameRejected(
+                    "backwards_timestamp", f"t={t} is {last - t:.3f} s before the previous frame's"
+                )
+            self._last_t = t
+            self._accepted += 1
+            frame = HumanFrame(t=t, joints=j, confidence=c, body_ids=ids)
+            self.last_changes = self.tracks.update(frame)
+        return frame
+
+    def _check_body(self, j: np.ndarray, c: np.ndarray) -> None:
+        """One body's joints (J, 3) and confidences (J,)."""
         if not np.all(np.isfinite(j)):
             bad = np.unique(np.nonzero(~np.isfinite(j))[0]).tolist()
             raise FrameRejected("non_finite", f"joints {bad} are NaN or infinite")
@@ -268,17 +398,6 @@ class FrameValidator:
                     f"joint {k} at {np.round(j[k], 3).tolist()} is outside the cell volume "
                     f"{self.volume.lo.tolist()}..{self.volume.hi.tolist()}",
                 )
-        with self._lock:
-            last = self._last_t
-            if last is not None and t == last:
-                raise FrameRejected("duplicate_timestamp", f"t={t} equals the previous frame's")
-            if last is not None and t < last:
-                raise FrameRejected(
-                    "backwards_timestamp", f"t={t} is {last - t:.3f} s before the previous frame's"
-                )
-            self._last_t = t
-            self._accepted += 1
-        return HumanFrame(t=t, joints=j, confidence=c)
 
     def check(self, frame: HumanFrame) -> HumanFrame:
         """Check a built frame (same rules as :meth:`validate`); returns it when valid.
@@ -286,7 +405,7 @@ class FrameValidator:
         Raises:
             FrameRejected: with the reason (counted).
         """
-        return self.validate(frame.t, frame.joints, frame.confidence)
+        return self.validate(frame.t, frame.joints, frame.confidence, frame.body_ids)
 
     # -- counters ---------------------------------------------------------------------------------------
     @property
@@ -318,9 +437,12 @@ class FrameValidator:
         return self._last_t
 
     def reset(self) -> None:
-        """Forget the last timestamp and zero the counters (a new trial, a new stream)."""
+        """Forget the last timestamp and the bodies' poses and zero the counters (a new trial, a new
+        stream)."""
         with self._lock:
             self._last_t = None
+            self.tracks.reset()
+            self.last_changes = BodyChanges()
             self._accepted = 0
             self._rejected = dict.fromkeys(REJECT_REASONS, 0)
 
@@ -388,7 +510,9 @@ class ValidatedSource:
     source is checked once (asking again for the same frame is not a duplicate). A source with
     ``validates_frames = True`` (the stream source, which validates every pushed message) is not checked
     again: its frames only feed the watchdog, and :attr:`counters` are its own. :meth:`poll` is the
-    runtime's per-tick call: it returns a frame only when a new valid one arrived.
+    runtime's per-tick call: it returns a frame only when a new valid one arrived, and :attr:`last_changes`
+    says which of its bodies jumped, appeared or vanished since the frame it returned before (matched by
+    tracker id, :class:`BodyTracks`).
 
     Args:
         source: The inner source.
@@ -412,6 +536,8 @@ class ValidatedSource:
         self._seen: HumanFrame | None = None
         self._valid: HumanFrame | None = None
         self.last_rejection: FrameRejected | None = None
+        self.tracks = BodyTracks(self.validator.tracks.jump_speed_mps)
+        self.last_changes = BodyChanges()
         self._lock = threading.Lock()
 
     def frame_at(self, t: float) -> HumanFrame | None:
@@ -429,18 +555,21 @@ class ValidatedSource:
         if (
             self._valid is not None
             and frame.t == self._valid.t
+            and frame.body_ids == self._valid.body_ids
             and np.array_equal(frame.joints, self._valid.joints)
         ):
             return  # the same frame, rebuilt by the inner source: not a new one
         if self._prevalidated:
             self._valid = frame
             self.watchdog.feed(max(now, frame.t))
-            return
-        try:
-            self._valid = self.validator.check(frame)
-            self.watchdog.feed(max(now, frame.t) if math.isfinite(frame.t) else now)
-        except FrameRejected as exc:
-            self.last_rejection = exc
+        else:
+            try:
+                self._valid = self.validator.check(frame)
+                self.watchdog.feed(max(now, frame.t) if math.isfinite(frame.t) else now)
+            except FrameRejected as exc:
+                self.last_rejection = exc
+                return
+        self.last_changes = self.tracks.update(self._valid)
 
     def poll(self, now: float) -> HumanFrame | None:
         """The newest valid frame if it is new since the previous :meth:`poll`, else ``None``."""

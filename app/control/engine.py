@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from app.cell.bodies import pad_bodies
 from app.cell.robot import RobotBackend, RobotConnectionError, RobotState
 from app.cell.validation import FrameValidator, StaleWatchdog, ValidatedSource
 from app.config import Settings, WorkCell
@@ -341,6 +342,7 @@ class TrialEngine:
         self._frames_t: list[float] = []
         self._frames_q: list[np.ndarray] = []
         self._frames_sk: list[np.ndarray] = []
+        self._frames_ids: list[tuple[int, ...]] = []
         self.decide_s: list[float] = []
         self.frame_to_decision_s = 0.0
         self._fetcher_id: int | None = None
@@ -439,7 +441,9 @@ class TrialEngine:
         if self.options.record_frames:
             self._frames_t.append(self.elapsed(t))
             self._frames_q.append(np.asarray(self.last_state.q, dtype=np.float32))
-            self._frames_sk.append(np.asarray(people.seen.joints, dtype=np.float32))  # as tracked
+            seen = people.seen  # every body as tracked, with its track id
+            self._frames_ids.append(seen.body_ids)
+            self._frames_sk.append(np.asarray(seen.joints, dtype=np.float32))
         return decision
 
     def _held(self, body: HumanFrame, people: PeopleUpdate, margin_m: float) -> HumanForecast:
@@ -762,13 +766,15 @@ class TrialEngine:
         from another thread while the frame thread records: it takes the frames all three lists hold."""
         if not self.options.record_frames:
             return None
-        n = min(len(self._frames_t), len(self._frames_q), len(self._frames_sk))
+        n = min(len(self._frames_t), len(self._frames_q), len(self._frames_ids), len(self._frames_sk))
         if n <= start:
             return None
+        skeleton, body_ids = pad_bodies(self._frames_sk[start:n], self._frames_ids[start:n])
         return TrialFrames(
             t=np.asarray(self._frames_t[start:n], dtype=np.float64),
             q=np.stack(self._frames_q[start:n]),
-            skeleton=np.stack(self._frames_sk[start:n]),
+            skeleton=skeleton,
+            body_ids=body_ids,
         )
 
     def counters(self) -> dict[str, Any]:

@@ -10,7 +10,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from app.cell.bodies import frame_bodies, recorded_bodies
 from app.control.metrics import TrialEvent, TrialMetrics
+from app.prediction.skeleton import body_count
 from app.safety.modes import PartMode, binding_part, mode_text, region_text
 from app.safety.monitor import MonitorTotals
 
@@ -26,15 +28,36 @@ class TrialFrames:
     Attributes:
         t: (T,) seconds since the trial started.
         q: (T, 6) robot joint positions (rad).
-        skeleton: (T, J, 3) person joints in the world frame (m), or None when none were recorded.
+        skeleton: (T, B, J, 3) every tracked body's joints in the world frame (m), NaN in the body slots a
+            frame does not use (the layout of :mod:`app.cell.bodies`), or None when none were recorded.
+            A single-body array (T, J, 3) is taken as one slot, id 0.
+        body_ids: (T, B) the tracker's id of each body slot, -1 where unused (None: the single-body
+            layout, ids 0; filled in on construction).
     """
 
     t: np.ndarray
     q: np.ndarray
     skeleton: np.ndarray | None
+    body_ids: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.skeleton is not None:
+            sk, ids = recorded_bodies(self.skeleton, self.body_ids)
+            if sk.shape[0] != self.t.shape[0]:
+                raise ValueError(
+                    f"TrialFrames skeleton must have {self.t.shape[0]} frames, got {sk.shape[0]}"
+                )
+            object.__setattr__(self, "skeleton", sk)
+            object.__setattr__(self, "body_ids", ids)
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
+
+    def bodies(self, i: int) -> tuple[np.ndarray, tuple[int, ...]]:
+        """Frame ``i``'s bodies: joints stacked (B_i*J, 3) and their ids (none without a skeleton)."""
+        if self.skeleton is None or self.body_ids is None:
+            return np.zeros((0, 3)), ()
+        return frame_bodies(self.skeleton, self.body_ids, i)
 
 
 @dataclass(frozen=True, slots=True)
@@ -145,8 +168,12 @@ class Snapshot:
         counters: Running counts (completed tasks, replans, deadline misses, frames, ...).
         q: (6,) robot joint positions (rad).
         p_world_tcp: (3,) TCP position (m, world).
-        skeleton: (J, 3) latest person pose (m, world), or None.
-        forecast: (H, J, 3) latest forecast, or None.
+        skeleton: (B*J, 3) the latest pose of every tracked body, stacked as in
+            :class:`~app.prediction.skeleton.HumanFrame` (m, world), or None (no frame yet; a frame with
+            nobody in view has B = 0).
+        body_ids: The tracker's id of each body of ``skeleton`` (B,) (filled in as 0, 1, ... where not given).
+        forecast: (H, B*J, 3) the latest forecast of every body, stacked alike, or None.
+        forecast_body_ids: The id of each body of ``forecast`` (filled in as for ``body_ids``).
         plan_tcp: (K, 3) TCP path of the plan in execution, or None.
         backup_tcp: (K, 3) TCP path of the pending backup plan, or None.
         stale: The human stream is stale.
@@ -189,6 +216,8 @@ class Snapshot:
     part_modes: tuple[PartMode, ...] = ()
     part_names: tuple[str, ...] = ()
     speed_shown: float | None = None
+    body_ids: tuple[int, ...] = ()
+    forecast_body_ids: tuple[int, ...] = ()
 
     @property
     def limiting_part(self) -> int:
@@ -213,6 +242,16 @@ class Snapshot:
                 object.__setattr__(self, name, a)
         if self.q.shape != (6,) or self.p_world_tcp.shape != (3,):
             raise ValueError(f"Snapshot q must be (6,) and p_world_tcp (3,), got {self.q.shape}")
+        for name, ids_name in (("skeleton", "body_ids"), ("forecast", "forecast_body_ids")):
+            v = getattr(self, name)
+            ids = tuple(int(i) for i in getattr(self, ids_name))
+            if v is not None:
+                n = body_count(v.shape[-2]) if v.ndim >= 2 else -1
+                if not ids:
+                    ids = tuple(range(n))
+                if len(ids) != n:
+                    raise ValueError(f"Snapshot {ids_name} {ids} do not match {name} of shape {v.shape}")
+            object.__setattr__(self, ids_name, ids)
         object.__setattr__(self, "counters", dict(self.counters))
 
     def to_json(self) -> dict[str, Any]:
@@ -238,7 +277,9 @@ class Snapshot:
             "q": arr(self.q, 5),
             "p_world_tcp": arr(self.p_world_tcp),
             "skeleton": arr(self.skeleton),
+            "body_ids": list(self.body_ids),
             "forecast": arr(self.forecast),
+            "forecast_body_ids": list(self.forecast_body_ids),
             "plan_tcp": arr(self.plan_tcp),
             "backup_tcp": arr(self.backup_tcp),
             "stale": bool(self.stale),

@@ -728,6 +728,7 @@ class Runtime:
             q=q,
             p_world_tcp=p_tcp,
             skeleton=None if frame is None else frame.joints,
+            body_ids=() if frame is None else frame.body_ids,
             stale=stale,
             estopped=self._estopped,
         )
@@ -760,6 +761,7 @@ class Runtime:
             planning_ms=tuple(1e3 * x for x in times),
             counters=engine.counters(),
             forecast=None if fc is None else _shown_forecast(fc, self._frame_period),
+            forecast_body_ids=() if fc is None else fc.body_ids,
             plan_tcp=self._tcp_path(st.plan),
             backup_tcp=self._tcp_path(st.backup),
             trial_elapsed_s=engine.elapsed(t),

@@ -261,8 +261,9 @@ def export_clips(
     """Write the person's recorded motion of each trial as clips (``.npz``: canonical joints, world frame,
     30 Hz; the format ``hrc hmp train --extra-clips`` and ``hrc hmp calibrate --clips`` read).
 
-    A trial's skeleton is cut where the tracker lost the person (NaN frames); pieces shorter than
-    ``min_frames`` are left out. Files are named ``trial<id>_<participant code>_<piece>.npz``.
+    Each tracked body (tracker id) of a trial is its own person; its skeleton is cut where the tracker lost
+    it (frames without it); pieces shorter than ``min_frames`` are left out. Files are named
+    ``trial<id>_<participant code>_<piece>.npz`` (body id 0) or ``trial<id>_<code>_b<body id>_<piece>.npz``.
     """
     import numpy as np
 
@@ -281,30 +282,47 @@ def export_clips(
             frames = repo.load_frames(trial.id)
             if frames is None or frames.skeleton is None:
                 continue
-            sk = np.asarray(frames.skeleton, dtype=np.float64)
             t = np.asarray(frames.t, dtype=np.float64)
-            ok = np.all(np.isfinite(sk), axis=(1, 2))
-            # pieces: runs of good frames without a gap of more than 0.1 s
-            gap = np.concatenate([[True], np.diff(t) > 0.1])  # a piece starts after a stall...
-            cut = ~ok | gap
-            starts = np.flatnonzero(ok & (gap | np.concatenate([[True], ~ok[:-1]])))  # ...or a lost person
             code = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in str(trial.participant_code))
-            for piece, a in enumerate(starts):
-                b = a + 1
-                while b < len(t) and ok[b] and not cut[b]:
-                    b += 1
-                grid = np.arange(t[a], t[b - 1] + 1e-9, 1.0 / 30.0)  # resampled onto the 30 Hz grid
-                if grid.size < min_frames:
-                    continue
-                flat = sk[a:b].reshape(b - a, -1)
-                res = np.stack([np.interp(grid, t[a:b], flat[:, k]) for k in range(flat.shape[1])], axis=1)
-                path = out_dir / f"trial{trial.id}_{code}_{piece}.npz"
-                np.savez_compressed(
-                    path,
-                    positions=res.reshape(grid.size, -1, 3).astype(np.float32),
-                    fps=np.float64(30.0),
-                    joint_names=np.array(JOINTS),
-                )
-                paths.append(path)
+            all_sk = np.asarray(frames.skeleton, dtype=np.float64)  # (T, B, J, 3), :mod:`app.cell.bodies`
+            ids = np.asarray(frames.body_ids)
+            for body_id in np.unique(ids[ids >= 0]).tolist():  # one person (tracker id) at a time
+                slot = ids == body_id  # (T, B): at most one slot per frame
+                sk = np.full((len(t), *all_sk.shape[2:]), np.nan)
+                rows, slots = np.nonzero(slot)
+                sk[rows] = all_sk[rows, slots]
+                name = f"trial{trial.id}_{code}" + ("" if body_id == 0 else f"_b{body_id}")
+                paths += _export_pieces(sk, t, out_dir / name, min_frames, JOINTS)
     log.info("exported %d clips to %s", len(paths), out_dir)
+    return paths
+
+
+def _export_pieces(sk: Any, t: Any, stem: Path, min_frames: int, joint_names: Any) -> list[Path]:
+    """One person's skeleton (T, J, 3) cut into clips ``<stem>_<piece>.npz`` where it was lost (NaN
+    frames) or the recording stalled; pieces shorter than ``min_frames`` are left out."""
+    import numpy as np
+
+    paths: list[Path] = []
+    ok = np.all(np.isfinite(sk), axis=(1, 2))
+    # pieces: runs of good frames without a gap of more than 0.1 s
+    gap = np.concatenate([[True], np.diff(t) > 0.1])  # a piece starts after a stall...
+    cut = ~ok | gap
+    starts = np.flatnonzero(ok & (gap | np.concatenate([[True], ~ok[:-1]])))  # ...or a lost person
+    for piece, a in enumerate(starts):
+        b = a + 1
+        while b < len(t) and ok[b] and not cut[b]:
+            b += 1
+        grid = np.arange(t[a], t[b - 1] + 1e-9, 1.0 / 30.0)  # resampled onto the 30 Hz grid
+        if grid.size < min_frames:
+            continue
+        flat = sk[a:b].reshape(b - a, -1)
+        res = np.stack([np.interp(grid, t[a:b], flat[:, k]) for k in range(flat.shape[1])], axis=1)
+        path = stem.with_name(f"{stem.name}_{piece}.npz")
+        np.savez_compressed(
+            path,
+            positions=res.reshape(grid.size, -1, 3).astype(np.float32),
+            fps=np.float64(30.0),
+            joint_names=np.array(joint_names),
+        )
+        paths.append(path)
     return paths

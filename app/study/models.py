@@ -286,8 +286,11 @@ class RecordedFrame(Base):
     """A chunk of recorded frames of a trial, for replay: ``n_frames`` consecutive frames stored compactly.
 
     Columns hold little-endian raw arrays: ``t`` float64 (n,) seconds since the trial started; ``q``
-    float32 (n, 6) robot joint positions (rad); ``skeleton`` float32 (n, J, 3) joint positions in the world
-    frame (m), NaN rows where no skeleton was seen, or NULL when the chunk has no skeleton at all.
+    float32 (n, 6) robot joint positions (rad); ``skeleton`` float32 (n, B, J, 3) every tracked body's joint
+    positions in the world frame (m), NaN in the body slots a frame does not use, or NULL when the chunk has
+    no skeleton at all; ``body_ids`` int32 (n, B) the tracker's id of each slot, -1 where unused
+    (:mod:`app.cell.bodies`). Chunks written before revision 0009 have ``n_bodies`` and ``body_ids`` NULL and
+    ``skeleton`` (n, J, 3), one body (NaN rows where nobody was seen).
     """
 
     __tablename__ = "recorded_frames"
@@ -300,6 +303,8 @@ class RecordedFrame(Base):
     t: Mapped[bytes] = mapped_column(LargeBinary)
     q: Mapped[bytes] = mapped_column(LargeBinary)
     skeleton: Mapped[bytes | None] = mapped_column(LargeBinary)
+    n_bodies: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    body_ids: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
 
     __table_args__ = (
         UniqueConstraint("trial_id", "chunk_index", name="uq_recorded_frames_trial_chunk"),

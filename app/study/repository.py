@@ -30,6 +30,7 @@ from sqlalchemy import Engine, delete, func, insert, select, update
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 from sqlalchemy.orm import Session, joinedload, sessionmaker
 
+from app.cell.bodies import recorded_bodies
 from app.control.metrics import METHODS, TrialEvent, TrialMetrics
 from app.control.supervisor_types import TIME_BUDGET
 from app.study.db import session_factory
@@ -121,13 +122,17 @@ class RecordedFrames:
     Attributes:
         t: (T,) seconds since the trial started, non-decreasing.
         q: (T, 6) robot joint positions (rad).
-        skeleton: (T, J, 3) person joint positions in the world frame (m), NaN where no skeleton was seen,
-            or None when none was recorded.
+        skeleton: (T, B, J, 3) every tracked body's joint positions in the world frame (m), NaN in the body
+            slots a frame does not use (:mod:`app.cell.bodies`), or None when none was recorded. A
+            single-body array (T, J, 3) (NaN rows where nobody was seen) is taken as one slot, id 0.
+        body_ids: (T, B) the tracker's id of each body slot, -1 where unused (None: the single-body
+            layout; filled in on construction).
     """
 
     t: np.ndarray
     q: np.ndarray
     skeleton: np.ndarray | None = None
+    body_ids: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=np.float64)
@@ -139,10 +144,11 @@ class RecordedFrames:
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "q", q)
         if self.skeleton is not None:
-            sk = np.asarray(self.skeleton, dtype=np.float32)
-            if sk.ndim != 3 or sk.shape[0] != t.size or sk.shape[2] != 3:
-                raise ValueError(f"frames skeleton must be (T, J, 3) with T = {t.size}, got {sk.shape}")
+            sk, ids = recorded_bodies(self.skeleton, self.body_ids)
+            if sk.shape[0] != t.size:
+                raise ValueError(f"frames skeleton must have T = {t.size} frames, got {sk.shape}")
             object.__setattr__(self, "skeleton", sk)
+            object.__setattr__(self, "body_ids", ids)
 
     def __len__(self) -> int:
         return int(self.t.size)
@@ -216,7 +222,8 @@ def _trial_read(t: Trial) -> TrialRead:
 
 def _frame_chunks(frames: RecordedFrames, trial_id: int, chunk_frames: int) -> list[dict[str, Any]]:
     rows = []
-    n_joints = 0 if frames.skeleton is None else int(frames.skeleton.shape[1])
+    n_joints = 0 if frames.skeleton is None else int(frames.skeleton.shape[2])
+    n_bodies = None if frames.skeleton is None else int(frames.skeleton.shape[1])
     for k, start in enumerate(range(0, len(frames), chunk_frames)):
         sl = slice(start, start + chunk_frames)
         t = frames.t[sl]
@@ -229,6 +236,8 @@ def _frame_chunks(frames: RecordedFrames, trial_id: int, chunk_frames: int) -> l
                 "t": t.astype("<f8").tobytes(),
                 "q": frames.q[sl].astype("<f4").tobytes(),
                 "skeleton": None if frames.skeleton is None else frames.skeleton[sl].astype("<f4").tobytes(),
+                "n_bodies": n_bodies,
+                "body_ids": None if frames.body_ids is None else frames.body_ids[sl].astype("<i4").tobytes(),
             }
         )
     return rows
@@ -730,12 +739,28 @@ class StudyRepository:
             return None
         t = np.concatenate([np.frombuffer(c.t, dtype="<f8") for c in chunks])
         q_arr = np.concatenate([np.frombuffer(c.q, dtype="<f4").reshape(c.n_frames, 6) for c in chunks])
-        skeleton = None
-        if all(c.skeleton is not None for c in chunks):
-            skeleton = np.concatenate(
-                [np.frombuffer(c.skeleton, dtype="<f4").reshape(c.n_frames, c.n_joints, 3) for c in chunks]
-            )
-        return RecordedFrames(t=t, q=q_arr, skeleton=skeleton)
+        if not all(c.skeleton is not None for c in chunks):
+            return RecordedFrames(t=t, q=q_arr)
+        parts = []  # each chunk in the recorded layout; chunks of recordings before revision 0009: one body
+        for c in chunks:
+            if c.n_bodies is None or c.body_ids is None:
+                sk = np.frombuffer(c.skeleton, dtype="<f4").reshape(c.n_frames, c.n_joints, 3)
+                parts.append(recorded_bodies(sk))
+            else:
+                sk = np.frombuffer(c.skeleton, dtype="<f4").reshape(c.n_frames, c.n_bodies, c.n_joints, 3)
+                ids = np.frombuffer(c.body_ids, dtype="<i4").reshape(c.n_frames, c.n_bodies)
+                parts.append((sk, ids))
+        B = max(sk.shape[1] for sk, _ in parts)
+        skeleton = np.concatenate(
+            [
+                np.pad(sk, ((0, 0), (0, B - sk.shape[1]), (0, 0), (0, 0)), constant_values=np.nan)
+                for sk, _ in parts
+            ]
+        )
+        body_ids = np.concatenate(
+            [np.pad(ids, ((0, 0), (0, B - ids.shape[1])), constant_values=-1) for _, ids in parts]
+        )
+        return RecordedFrames(t=t, q=q_arr, skeleton=skeleton, body_ids=body_ids)
 
     # --- analysis -------------------------------------------------------------------------------------
 

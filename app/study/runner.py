@@ -98,8 +98,9 @@ def participant_code(seed: int, index: int) -> str:
 
 def frames_from_result(frames: Any) -> RecordedFrames | None:
     """Recorded frames from whatever the runtime returned: None, a :class:`RecordedFrames`, an object or
-    mapping with ``t``/``times``, ``q`` and ``skeleton``/``joints`` arrays, or a sequence of per-frame
-    objects or mappings with those fields (a None skeleton becomes a NaN row)."""
+    mapping with ``t``/``times``, ``q`` and ``skeleton``/``joints`` arrays (and ``body_ids`` with a
+    skeleton of several bodies, :mod:`app.cell.bodies`), or a sequence of per-frame objects or mappings with
+    those fields (a None skeleton becomes a NaN row)."""
     if frames is None:
         return None
     if isinstance(frames, RecordedFrames):
@@ -119,9 +120,8 @@ def frames_from_result(frames: Any) -> RecordedFrames | None:
         skeleton = get(frames, "skeleton", "joints", "skeletons")
         if len(np.atleast_1d(t)) == 0:
             return None
-        return RecordedFrames(
-            t=np.asarray(t), q=np.asarray(q), skeleton=None if skeleton is None else skeleton
-        )
+        body_ids = get(frames, "body_ids") if skeleton is not None else None
+        return RecordedFrames(t=np.asarray(t), q=np.asarray(q), skeleton=skeleton, body_ids=body_ids)
     seq = list(frames)
     if not seq:
         return None

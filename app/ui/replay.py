@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from app.cell.bodies import frame_bodies, recorded_bodies
 from app.config import WorkCell
 from app.prediction.skeleton import NUM_JOINTS
 from app.ui.scene import CellView, RobotCapsulesFn
@@ -52,7 +53,9 @@ class ReplayFrame:
         state: Supervisor state at ``t`` (from the trial's ``state_changed`` events).
         q: Robot configuration (6,) in rad.
         p_world_tcp: Tool position (3,) in the world frame (m).
-        skeleton: Person joints (J, 3) in the world frame (m), or None where no person was seen.
+        skeleton: Every tracked body's joints stacked (B*J, 3) in the world frame (m), or None where
+            nobody was seen.
+        body_ids: The tracker's id of each body of ``skeleton`` (B,).
         estopped: An E-stop happened at or before ``t``.
     """
 
@@ -66,6 +69,7 @@ class ReplayFrame:
     trial_id: int | None
     trial_elapsed_s: float
     trial_duration_s: float
+    body_ids: tuple[int, ...] = ()
     forecast: None = None
     plan_tcp: None = None
     backup_tcp: None = None
@@ -89,7 +93,10 @@ class ReplayTimeline:
         t: Frame times (T,) in seconds since the trial start, non-decreasing.
         q: Robot configurations (T, 6) in rad.
         p_world_tcp: Tool positions (T, 3) in the world frame (m).
-        skeleton: Person joints (T, J, 3) with NaN rows where no person was seen, or None.
+        skeleton: Every tracked body's joints (T, B, J, 3), NaN in the slots a frame does not use (the
+            recorded layout of :mod:`app.cell.bodies`), or the single-body layout (T, J, 3) with NaN rows
+            where nobody was seen; or None.
+        body_ids: (T, B) the ids of ``skeleton``'s slots, -1 where unused (None: the single-body layout).
         events: The trial's events in time order.
         trial_id: The trial's id.
         method: ``"proactive"`` or ``"reactive"``.
@@ -105,6 +112,7 @@ class ReplayTimeline:
         events: list[ReplayEvent],
         trial_id: int | None = None,
         method: str | None = None,
+        body_ids: np.ndarray | None = None,
     ) -> None:
         t = np.asarray(t, dtype=np.float64)
         T = t.shape[0]
@@ -114,11 +122,15 @@ class ReplayTimeline:
         p = np.asarray(p_world_tcp, dtype=np.float64)
         if q.shape != (T, 6) or p.shape != (T, 3):
             raise ReplayError(f"q must be ({T}, 6) and p_world_tcp ({T}, 3); got {q.shape} and {p.shape}")
+        ids = None
         if skeleton is not None:
-            skeleton = np.asarray(skeleton, dtype=np.float64)
-            if skeleton.shape != (T, NUM_JOINTS, 3):
-                raise ReplayError(f"skeleton must be ({T}, {NUM_JOINTS}, 3), got {skeleton.shape}")
-        self.t, self.q, self.p_world_tcp, self.skeleton = t, q, p, skeleton
+            try:
+                skeleton, ids = recorded_bodies(skeleton, body_ids, dtype=np.float64)
+            except ValueError as exc:
+                raise ReplayError(f"skeleton: {exc}") from None
+            if skeleton.shape[0] != T:
+                raise ReplayError(f"skeleton must have {T} frames, got {skeleton.shape}")
+        self.t, self.q, self.p_world_tcp, self.skeleton, self.body_ids = t, q, p, skeleton, ids
         self.events = sorted(events, key=lambda e: e.t)
         self.trial_id = trial_id
         self.method = method
@@ -154,15 +166,19 @@ class ReplayTimeline:
         """The recorded state at ``t`` (clamped to the recording)."""
         t = float(min(max(t, 0.0), self.duration_s))
         i = self.index_at(t)
-        sk = None
-        if self.skeleton is not None and np.all(np.isfinite(self.skeleton[i])):
-            sk = self.skeleton[i]
+        sk, ids = None, ()
+        if self.skeleton is not None and self.body_ids is not None:
+            joints, ids = frame_bodies(self.skeleton, self.body_ids, i)
+            seen = np.all(np.isfinite(joints.reshape(len(ids), NUM_JOINTS, 3)), axis=(1, 2))
+            ids = tuple(b for b, s in zip(ids, seen, strict=True) if s)  # a body partly lost is not drawn
+            sk = joints.reshape(-1, NUM_JOINTS, 3)[seen].reshape(-1, 3) if ids else None
         return ReplayFrame(
             t=t,
             state=self.state_at(t),
             q=self.q[i],
             p_world_tcp=self.p_world_tcp[i],
             skeleton=sk,
+            body_ids=ids,
             estopped=self._first_estop is not None and t >= self._first_estop,
             method=self.method,
             trial_id=self.trial_id,
@@ -209,6 +225,7 @@ def load_timeline(repo: Any, trial_id: int, cell: WorkCell) -> ReplayTimeline:
         q=q,
         p_world_tcp=p,
         skeleton=frames.skeleton,
+        body_ids=frames.body_ids,
         events=events,
         trial_id=trial_id,
         method=getattr(trial, "method", None),

@@ -56,6 +56,10 @@ COLOR_HOME: RGB = (130, 130, 140)
 COLOR_OPERATOR_AREA: RGB = (255, 190, 120)
 COLOR_PERSON: RGB = (230, 126, 34)
 COLOR_GHOST: RGB = (243, 156, 18)
+#: The colour of each further tracked body (by its position in the frame; the first is COLOR_PERSON).
+COLOR_BODIES: tuple[RGB, ...] = (COLOR_PERSON, (142, 68, 173), (22, 160, 133), (192, 57, 43), (41, 128, 185))
+#: Most bodies whose tracker id is labelled (the labels are made once, like every handle).
+MAX_BODY_LABELS = 8
 COLOR_PLAN: RGB = (41, 98, 255)
 COLOR_BACKUP: RGB = (142, 68, 173)
 COLOR_ROADMAP: RGB = (120, 144, 156)
@@ -133,6 +137,14 @@ def _finite(a: Any, shape_tail: tuple[int, ...]) -> np.ndarray | None:
     if arr.ndim < len(shape_tail) or arr.shape[arr.ndim - len(shape_tail) :] != shape_tail:
         return None
     if arr.size == 0 or not np.all(np.isfinite(arr)):
+        return None
+    return arr
+
+
+def _bodies(a: Any, ndim: int) -> np.ndarray | None:
+    """``a`` as stacked bodies (..., B*J, 3) with ``ndim`` dimensions, B >= 1, all finite; else None."""
+    arr = _finite(a, (3,))
+    if arr is None or arr.ndim != ndim or arr.shape[-2] % NUM_JOINTS:
         return None
     return arr
 
@@ -381,6 +393,9 @@ class CellView:
         )
         joint_scale = np.full((NUM_JOINTS, 3), PERSON_JOINT_RADIUS_M)
         joint_scale[JOINT_INDEX["head"]] = PERSON_HEAD_RADIUS_M
+        self._joint_scale = joint_scale
+        self._shown_bodies: tuple[int, ...] | None = None  # the body ids drawn (their colours and scales)
+        self._label_text = [""] * MAX_BODY_LABELS
         h["person_joints"] = scene.add_batched_meshes_simple(
             "/person/joints",
             sph_v,
@@ -423,6 +438,10 @@ class CellView:
             receive_shadow=False,
             visible=False,
         )
+        h["body_labels"] = [
+            scene.add_label(f"/person/labels/{k}", "", position=(0.0, 0.0, 0.0), visible=False)
+            for k in range(MAX_BODY_LABELS)
+        ]
         h["tcp"] = scene.add_icosphere("/robot/tcp", radius=0.015, color=(30, 30, 30), subdivisions=2)
         h["state_label"] = scene.add_label(
             "/status/state",
@@ -532,34 +551,66 @@ class CellView:
             return COLOR_ROBOT
         return np.array([MODE_COLORS.get(str(getattr(m, "mode", "")), COLOR_ROBOT) for m in modes])
 
-    def _set_person(self, skeleton: np.ndarray | None) -> None:
-        bones, joints = self._handles["person_bones"], self._handles["person_joints"]
+    def _set_person(self, skeleton: np.ndarray | None, body_ids: tuple[int, ...] | None) -> None:
+        """Every tracked body (``skeleton`` (B*J, 3) stacked), coloured by its place in the frame, and its
+        tracker id over its head when ``body_ids`` are known. The instance arrays hold B bodies; colours,
+        scales and labels are sent again only when the bodies change."""
+        h = self._handles
+        bones, joints = h["person_bones"], h["person_joints"]
+        labels = h["body_labels"]
         if skeleton is None:
             bones.visible = False
             joints.visible = False
+            if self._shown_bodies:
+                for label in labels[: len(self._shown_bodies)]:
+                    label.visible = False
+            self._shown_bodies = None
             return
-        pos, wxyz, scale = segment_instances(
-            skeleton[BONES[:, 0]], skeleton[BONES[:, 1]], PERSON_BONE_RADIUS_M
-        )
+        B = len(skeleton) // NUM_JOINTS
+        ids = tuple(body_ids) if body_ids is not None and len(body_ids) == B else None
+        offsets = (np.arange(B) * NUM_JOINTS)[:, None]
+        a = skeleton[(BONES[:, 0][None] + offsets).ravel()]
+        b = skeleton[(BONES[:, 1][None] + offsets).ravel()]
+        pos, wxyz, scale = segment_instances(a, b, PERSON_BONE_RADIUS_M)
         bones.batched_positions = pos
         bones.batched_wxyzs = wxyz
         bones.batched_scales = scale
         joints.batched_positions = skeleton
+        key = ids if ids is not None else (-1,) * B
+        if key != self._shown_bodies:  # another number (or ids) of bodies: their colours, sizes, labels
+            colors = np.array([COLOR_BODIES[k % len(COLOR_BODIES)] for k in range(B)], dtype=np.uint8)
+            bones.batched_colors = np.repeat(colors, len(BONES), axis=0)
+            joints.batched_colors = np.repeat(colors, NUM_JOINTS, axis=0)
+            joints.batched_wxyzs = np.tile([1.0, 0.0, 0.0, 0.0], (B * NUM_JOINTS, 1))
+            joints.batched_scales = np.tile(self._joint_scale, (B, 1))
+            for k, label in enumerate(labels):
+                text = "" if ids is None or k >= B else f"#{ids[k]}"
+                if text != self._label_text[k]:
+                    label.text = text
+                    self._label_text[k] = text
+                label.visible = bool(text)
+            self._shown_bodies = key
+        if ids is not None:
+            heads = skeleton[JOINT_INDEX["head"] :: NUM_JOINTS][: len(labels)]
+            for label, head in zip(labels, heads, strict=False):
+                label.position = (float(head[0]), float(head[1]), float(head[2]) + 0.25)
         bones.visible = True
         joints.visible = True
 
     def _set_forecast(self, forecast: np.ndarray | None) -> None:
+        """Ghosts of every body's forecast (``forecast`` (H, B*J, 3) stacked as the skeleton)."""
         ghosts = self._handles["forecast_ghosts"]
         idx = _ghost_indices(0 if forecast is None else forecast.shape[0], self._n_ghosts)
-        if forecast is None or len(idx) == 0:
+        if forecast is None or len(idx) == 0 or forecast.shape[1] == 0:
             self._has["ghosts"] = False
             ghosts.visible = False
             return
-        nb = len(BONES)
+        B = forecast.shape[1] // NUM_JOINTS
+        nb = len(BONES) * B
         slots = max(self._n_ghosts, 1)
-        poses = forecast[idx]  # (G, J, 3)
-        a = poses[:, BONES[:, 0]].reshape(-1, 3)
-        b = poses[:, BONES[:, 1]].reshape(-1, 3)
+        poses = forecast[idx].reshape(len(idx), B, NUM_JOINTS, 3)  # (G, B, J, 3)
+        a = poses[:, :, BONES[:, 0]].reshape(-1, 3)
+        b = poses[:, :, BONES[:, 1]].reshape(-1, 3)
         pos, wxyz, scale = segment_instances(a, b, GHOST_BONE_RADIUS_M)
         # Fade with the horizon: near ghosts are more opaque than far ones.
         fade = np.linspace(0.5, 0.1, len(idx)) if len(idx) > 1 else np.array([0.35])
@@ -598,7 +649,8 @@ class CellView:
 
         Args:
             snap: A runtime ``Snapshot`` (or an object with the same attributes): ``state``, ``q (6,)``,
-                ``p_world_tcp (3,)``, ``skeleton (J, 3) | None``, ``forecast (H, J, 3) | None``,
+                ``p_world_tcp (3,)``, ``skeleton (B*J, 3) | None`` (every tracked body, stacked) with
+                ``body_ids`` (B,) (optional: the labels), ``forecast (H, B*J, 3) | None``,
                 ``plan_tcp (K, 3) | None``, ``backup_tcp (K, 3) | None``, ``required_separation_m``,
                 ``separation_m``, ``speed_scale``, ``stale``, ``estopped``, ``method``, ``trial_id``,
                 ``trial_elapsed_s``, ``trial_duration_s``.
@@ -619,10 +671,9 @@ class CellView:
             h["tcp"].position = tuple(tcp)
             h["tcp"].color = color
 
-            skeleton = _finite(getattr(snap, "skeleton", None), (NUM_JOINTS, 3))
-            self._set_person(skeleton if skeleton is not None and skeleton.ndim == 2 else None)
-            forecast = _finite(getattr(snap, "forecast", None), (NUM_JOINTS, 3))
-            self._set_forecast(forecast if forecast is not None and forecast.ndim == 3 else None)
+            skeleton = _bodies(getattr(snap, "skeleton", None), 2)
+            self._set_person(skeleton, getattr(snap, "body_ids", None) or None)
+            self._set_forecast(_bodies(getattr(snap, "forecast", None), 3))
             for key, attr in (("plan", "plan_tcp"), ("backup", "backup_tcp")):
                 path = _finite(getattr(snap, attr, None), (3,))
                 self._set_path(key, path if path is not None and path.ndim == 2 else None)

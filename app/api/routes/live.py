@@ -26,6 +26,7 @@ from app.api.live_hub import (
     RateLimiter,
     dumps_strict,
 )
+from app.cell.stream_protocol import MAX_BODIES
 from app.cell.validation import FrameRejected
 from app.control.runtime import IngestUnavailable, Runtime
 
@@ -178,7 +179,8 @@ async def _drain_until_disconnect(websocket: WebSocket) -> None:
 
 @router.websocket("/ingest")
 async def ingest_socket(websocket: WebSocket) -> None:
-    """Skeleton frames from an external tracker into the runtime's ``StreamSource`` (one JSON text each)."""
+    """Skeleton frames from an external tracker into the runtime's ``StreamSource`` (one JSON text each: one
+    capture with every tracked body, :mod:`app.cell.stream_protocol`)."""
     ctx = _ctx(websocket)
     if ctx is None:
         await websocket.close(code=WS_TRY_AGAIN_LATER, reason="server starting or stopping")
@@ -199,6 +201,7 @@ async def ingest_socket(websocket: WebSocket) -> None:
                     "type": "ready",
                     "max_message_bytes": limits.ingest_max_bytes,
                     "max_rate_hz": limits.ingest_rate_hz,
+                    "max_bodies": MAX_BODIES,
                     "human_source": ctx.settings.human_source,
                 }
             )

@@ -250,6 +250,16 @@
   const fmt = (v, digits = 2, unit = "") =>
     v === null || v === undefined || !Number.isFinite(Number(v)) ? "–" : `${Number(v).toFixed(digits)}${unit}`;
 
+  // every tracked body with its tracker id ("2 tracked: #3, #7"), nobody in view, or no frame yet
+  function bodiesText(s) {
+    if (!Array.isArray(s.skeleton)) return "not seen";
+    const ids = Array.isArray(s.body_ids) ? s.body_ids : [];
+    const n = ids.length || Math.round(s.skeleton.length / 19);
+    if (n === 0) return s.stale ? "stale" : "nobody in view";
+    const who = ids.length ? `: ${ids.map((i) => `#${i}`).join(", ")}` : "";
+    return `${n} ${s.stale ? "stale" : "tracked"}${who}`;
+  }
+
   function takeLatest() {
     const text = state.latestText;
     if (text === null) return;
@@ -293,7 +303,7 @@
     renderModes(s);
     const p = s.p_world_tcp;
     $("tcp").textContent = Array.isArray(p) ? p.map((v) => fmt(v, 3)).join(", ") : "–";
-    $("skeleton-status").textContent = s.skeleton ? (s.stale ? "stale" : "tracked") : "not seen";
+    $("skeleton-status").textContent = bodiesText(s);
 
     // trial
     const trialId = s.trial_id === undefined ? null : s.trial_id;

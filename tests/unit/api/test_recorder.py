@@ -54,7 +54,7 @@ def test_events_live_then_result_with_frames_and_reason(repo: Any) -> None:
     assert t.status == "aborted" and t.abort_reason == "estop" and t.metrics.completed_tasks == 2
     assert [e.kind for e in repo.list_events(tid)] == ["trial_started", "task_completed", "trial_ended"]
     stored = repo.load_frames(tid)
-    assert stored is not None and len(stored) == 3 and stored.skeleton.shape == (3, 19, 3)
+    assert stored is not None and len(stored) == 3 and stored.skeleton.shape == (3, 1, 19, 3)
     assert rec.stored == 1 and rec.failed == 0
 
 

@@ -32,3 +32,26 @@ def test_a_snapshot_prints_its_shown_speed_or_else_its_own() -> None:
     )  # fmt: skip
     assert Snapshot(speed_scale=0.3, **base).to_json()["speed_shown"] == 0.3
     assert Snapshot(speed_scale=0.3, speed_shown=0.25, **base).to_json()["speed_shown"] == 0.25
+
+
+def test_a_snapshot_carries_every_tracked_body_with_its_id() -> None:
+    base = dict(
+        t=1.0, trial_id=None, state="nominal", method=None, separation_m=None, required_separation_m=None,
+        planning_ms=(), counters={}, q=np.zeros(6), p_world_tcp=np.zeros(3), speed_scale=0.5,
+    )  # fmt: skip
+    two = np.concatenate([np.zeros((19, 3)), np.ones((19, 3))])
+    snap = Snapshot(
+        skeleton=two, body_ids=(3, 7), forecast=np.stack([two] * 4), forecast_body_ids=(3, 7), **base
+    )
+    out = snap.to_json()
+    assert out["body_ids"] == [3, 7] and out["forecast_body_ids"] == [3, 7]
+    assert np.asarray(out["skeleton"]).shape == (38, 3) and np.asarray(out["forecast"]).shape == (4, 38, 3)
+    # one body without ids (the single-body callers): id 0; nobody in view: no body, no id
+    assert Snapshot(skeleton=np.zeros((19, 3)), **base).body_ids == (0,)
+    empty = Snapshot(skeleton=np.zeros((0, 3)), **base).to_json()
+    assert empty["skeleton"] == [] and empty["body_ids"] == []
+    assert Snapshot(**base).to_json()["body_ids"] == []
+    with pytest.raises(ValueError, match="body_ids"):
+        Snapshot(skeleton=two, body_ids=(3,), **base)
+    with pytest.raises(ValueError, match="multiple of 19"):
+        Snapshot(skeleton=np.zeros((20, 3)), **base)

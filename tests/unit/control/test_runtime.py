@@ -329,7 +329,8 @@ def test_headless_trial_is_reproducible_with_fixed_compute_times(stack: Planning
     assert [(e.t, e.kind) for e in a.events] == [(e.t, e.kind) for e in b.events]
     assert a.metrics.to_dict() == b.metrics.to_dict()
     assert a.frames is not None and a.frames.q.shape == (len(a.frames), 6)
-    assert a.frames.skeleton is not None and a.frames.skeleton.shape[1:] == (NUM_JOINTS, 3)
+    assert a.frames.skeleton is not None and a.frames.skeleton.shape[1:] == (1, NUM_JOINTS, 3)  # one body
+    assert a.frames.body_ids is not None and (a.frames.body_ids == 0).all()
     assert a.metrics.frames_received >= 170  # 30 Hz for 6 s
     summary = a.summary()
     for key in (
@@ -627,3 +628,37 @@ def test_the_time_budget_sums_to_the_trial_and_arrivals_are_compared_with_the_pl
     # the gripper's dwell counts at the pose where it grips or releases, not under the next goal
     gripping = {goal for goal, parts in by_goal.items() if "gripper" in parts}
     assert "pickup" in gripping and gripping <= {"pickup", *(s.name for s in load_workcell().drop_stations)}
+
+
+def test_the_live_snapshot_shows_every_tracked_body_with_its_id(stack: PlanningStack) -> None:
+    """A tracker's capture of two people reaches the operator's screens with both ids; a capture with
+    nobody in view is a frame too (the stream stays alive, no body drawn)."""
+    from app.cell.stream_protocol import make_bodies_message
+
+    cell = load_workcell()
+    stream = StreamSource(validator=FrameValidator.for_workcell(cell))
+    rt = Runtime(Settings(human_source="stream", planner_workers=1), stack=stack, source=stream)
+    op = cell.operator
+    pose = np.zeros((NUM_JOINTS, 3))
+    pose[:, :2] = op.center_xy
+    pose[:, 2] = op.floor_z + np.linspace(0.1, 1.7, NUM_JOINTS)
+    other = pose + np.array([0.0, 0.7, 0.0])
+    with rt:
+        sub = rt.subscribe(maxsize=1)
+        rt.ingest(json.dumps(make_bodies_message([(3, pose, None), (7, other, None)])))
+        for _ in range(50):
+            _wait_for_frame_ticks(sub, 1)
+            snap = rt.snapshot()
+            if snap.body_ids:
+                break
+        assert snap.body_ids == (3, 7) and snap.skeleton is not None and snap.skeleton.shape == (38, 3)
+        assert snap.to_json()["body_ids"] == [3, 7]
+        rt.ingest(json.dumps(make_bodies_message([])))
+        for _ in range(50):
+            _wait_for_frame_ticks(sub, 1)
+            snap = rt.snapshot()
+            if not snap.body_ids:
+                break
+        assert snap.body_ids == () and snap.skeleton is not None and snap.skeleton.shape == (0, 3)
+        assert not snap.stale
+        sub.close()

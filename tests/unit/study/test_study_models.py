@@ -13,7 +13,7 @@ from app.control.metrics import TrialMetrics
 from app.study.db import DatabaseError, alembic_config, current_revision, make_engine, upgrade_to_head
 from app.study.models import METRIC_COLUMNS, Base, TrialMetricsRow, UTCDateTime
 
-HEAD = "0008"
+HEAD = "0009"
 #: The ground-truth monitor's columns (revision 0004).
 _SAFETY_0004 = ("contacts", "violation_time_s", "violations_iso", "intrusions", "min_separation_moving_m")
 #: The time budget's wait for the person and the stops of a moving robot, counted apart (revision 0006).

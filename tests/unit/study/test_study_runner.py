@@ -98,7 +98,8 @@ def test_participant_seeds_are_deterministic_and_do_not_depend_on_n() -> None:
 def test_frames_from_result_accepts_arrays_or_per_frame_records() -> None:
     assert frames_from_result(None) is None and frames_from_result([]) is None
     f = frames_from_result({"t": [0.0, 0.1], "q": np.zeros((2, 6)), "skeleton": np.ones((2, 19, 3))})
-    assert f is not None and f.skeleton is not None and f.skeleton.shape == (2, 19, 3)
+    assert f is not None and f.skeleton is not None and f.skeleton.shape == (2, 1, 19, 3)  # one body, id 0
+    assert f.body_ids is not None and f.body_ids.tolist() == [[0], [0]]
     per_frame = [
         types.SimpleNamespace(t=0.0, q=np.zeros(6), skeleton=None),
         types.SimpleNamespace(t=1 / 30, q=np.ones(6), skeleton=np.ones((19, 3))),
@@ -106,6 +107,7 @@ def test_frames_from_result_accepts_arrays_or_per_frame_records() -> None:
     g = frames_from_result(per_frame)
     assert g is not None and g.q.shape == (2, 6) and g.skeleton is not None
     assert np.isnan(g.skeleton[0]).all() and (g.skeleton[1] == 1).all()
+    assert g.body_ids is not None and g.body_ids.tolist() == [[-1], [0]]  # nobody seen, then body 0
     with pytest.raises(ValueError, match=r"\(T, 6\)"):
         frames_from_result({"t": [0.0], "q": np.zeros((1, 5))})
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from app.config import load_workcell
-from app.prediction.skeleton import BONES, NUM_JOINTS
+from app.prediction.skeleton import BONES, JOINT_INDEX, NUM_JOINTS
 from app.ui.scene import (
     COLOR_DANGER,
     COLOR_IDLE,
@@ -543,3 +543,41 @@ def test_the_robot_is_coloured_by_each_parts_mode_and_the_label_says_what_the_pa
     assert h["state_label"].text.endswith("speed 50%") and snap.to_json()["speed_shown"] == 0.0
     view.apply(replace(snap, t=5.01, estopped=False, speed_scale=0.64, speed_shown=0.64))
     assert h["state_label"].text.endswith("speed 64%") and "**Speed:** 64%" in h["gui_status"].content
+
+
+@dataclass(frozen=True)
+class BodiesSnapshot(FakeSnapshot):
+    body_ids: tuple[int, ...] = ()
+
+
+def test_every_tracked_body_is_drawn_with_its_id(server: Any, cell: Any) -> None:
+    view = CellView(server, cell, robot_capsules=fake_capsules, ghosts=2)
+    h = view.handles
+    a, b = skeleton(1.3, seed=1), skeleton(2.0, seed=2)
+    two = np.concatenate([a, b])
+    forecast = np.stack([two + np.array([0.02 * k, 0.0, 0.0]) for k in range(10)])
+    view.apply(BodiesSnapshot(t=0.0, skeleton=two, body_ids=(3, 7), forecast=forecast))
+    nb = len(BONES)
+    assert h["person_joints"].visible and np.allclose(h["person_joints"].batched_positions, two, atol=1e-5)
+    assert len(h["person_joints"].batched_scales) == 2 * NUM_JOINTS
+    bones = h["person_bones"].batched_positions
+    assert bones.shape == (2 * nb, 3)
+    mids_b = (b[BONES[:, 0]] + b[BONES[:, 1]]) / 2
+    assert np.allclose(bones[nb:], mids_b, atol=1e-5)  # the second body's bones are its own
+    colors = h["person_joints"].batched_colors
+    assert not np.array_equal(colors[0], colors[NUM_JOINTS])  # told apart by colour
+    labels = h["body_labels"]
+    assert [lb.text for lb in labels[:2]] == ["#3", "#7"] and labels[0].visible and labels[1].visible
+    assert not labels[2].visible
+    head = JOINT_INDEX["head"]
+    assert np.allclose(labels[1].position, b[head] + np.array([0.0, 0.0, 0.25]), atol=1e-5)
+    # the ghosts of both bodies' forecasts
+    ghosts = h["forecast_ghosts"]
+    assert ghosts.visible and ghosts.batched_positions.shape == (2 * 2 * nb, 3)
+    # one body left: one body drawn, one label
+    view.apply(BodiesSnapshot(t=0.1, skeleton=b, body_ids=(7,)))
+    assert h["person_joints"].batched_positions.shape == (NUM_JOINTS, 3)
+    assert labels[0].text == "#7" and labels[0].visible and not labels[1].visible
+    # nobody in view: nothing drawn
+    view.apply(BodiesSnapshot(t=0.2, skeleton=np.zeros((0, 3)), body_ids=()))
+    assert not h["person_joints"].visible and not labels[0].visible
