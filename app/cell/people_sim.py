@@ -556,9 +556,14 @@ class SimulatedPeople(HumanSource):
         tk = self.t0 + k / self.fps
         return _frame(tk, self.bodies_at(tk, frames=True))
 
-    def ground_truth(self) -> Callable[[float], np.ndarray]:
-        """The stacked truth, :meth:`pose_at` (its ids at ``t``: :meth:`body_ids_at`)."""
-        return self.pose_at
+    def ground_truth(self) -> Callable[[float], HumanFrame]:
+        """The truth: every person present at ``t``, with their ids (:meth:`true_frame`)."""
+        return self._truth_at
+
+    def _truth_at(self, t: float) -> HumanFrame:
+        frame = self.true_frame(max(float(t), self.t0))
+        assert frame is not None
+        return frame
 
     def notify_block_placed(self, station: str, t: float) -> None:
         """Passed on to the operator who fetches from ``station`` (:attr:`station_owner`)."""

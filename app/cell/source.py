@@ -42,8 +42,9 @@ class HumanSource(Protocol):
         """Zero the validation counters of a source that :attr:`validates_frames` (the default: it has
         none)."""
 
-    def ground_truth(self) -> Callable[[float], np.ndarray] | None:
-        """The person's true pose at any instant, ``t -> (J, 3)`` (m), for the ground-truth monitor: a
-        simulated or recorded person's own ``pose_at``; None (the default) where the source knows the person
-        only as a tracker reports them."""
+    def ground_truth(self) -> Callable[[float], np.ndarray | HumanFrame] | None:
+        """The person's true pose at any instant, ``t -> (J, 3)`` (m), or every person's, ``t ->``
+        :class:`~app.prediction.skeleton.HumanFrame` (their bodies with their ids), for the ground-truth
+        monitor: a simulated or recorded person's own ``pose_at``; None (the default) where the source knows
+        the person only as a tracker reports them."""
         return None

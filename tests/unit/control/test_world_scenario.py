@@ -40,10 +40,11 @@ def test_the_scenario_of_the_settings_puts_its_people_in_the_world(stack: Planni
     assert isinstance(people, SimulatedPeople)
     assert people.operators[OPERATOR_ID].params == OperatorParams.draw(3)  # the trial's participant
     assert not people.operators[OPERATOR_ID].noise  # the truth carries no noise
-    assert world.truth == people.pose_at
     walker = people.walkers[FIRST_WALKER_ID]
     t = walker.passes_until(60.0)[0].t_closest
-    assert world.truth(t).shape == (2 * 19, 3)
+    truth = world.truth(t)  # every person present, with their ids
+    assert truth.body_ids == (OPERATOR_ID, FIRST_WALKER_ID)
+    assert np.array_equal(truth.joints, people.pose_at(t))
     tracked = world.source.source
     assert isinstance(tracked, TrackedSource) and tracked.truth is people
     frame = tracked.frame_at(t)
