@@ -42,9 +42,10 @@ def _pct(values: list[float], qs: tuple[int, ...]) -> dict[str, float | int]:
     return out
 
 
-#: Where the copies of the operator stand (their pelvis moved by this in the floor plane, m): beside the
-#: table, left and right of the robot, and behind the operator's shoulder.
-COPY_OFFSETS_M: tuple[tuple[float, float], ...] = ((-0.8, 1.1), (-0.8, -1.1), (0.1, 0.7))
+#: Where the copies of the operator stand (their pelvis moved by this in the floor plane, m): colleagues
+#: at the operator's left and right along the table's far edge, and one behind the operator, each doing
+#: what the operator does (their hands stay on their side of the table).
+COPY_OFFSETS_M: tuple[tuple[float, float], ...] = ((0.0, 1.2), (0.0, -1.2), (0.7, 0.4))
 
 
 class _Copies:

@@ -420,7 +420,7 @@ class TrialEngine:
                 forecast = self.predictor.update(people.seen)
             else:
                 forecast = self.people.forecast(
-                    people, margin_m=self.options.tracking_margin_m, shape=self._shape
+                    people, margin_m=self.options.tracking_margin_m, shape=self._shape, first=self._fetcher_id
                 )
             forecast = dataclasses.replace(forecast, joints=reach_fingertips(forecast.joints))
             if self.options.plan_margin_m > 0:

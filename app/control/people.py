@@ -54,6 +54,10 @@ class PeopleOptions:
         near_m: A new body within this of the robot (surface to surface, m) is an intrusion: the protective
             separation of the UR5e at full speed (about 1.2 m, see the safety model).
         growth_mps: A lost body's margin grows at this speed (m/s): ISO 13855's body speed.
+        fresh_per_frame: At most this many bodies are forecast anew per capture (:meth:`People.forecast`):
+            two keeps the operator's forecast fresh at every frame and refreshes the others in turn, and it
+            keeps the forecast of four people within the frame's time on a 2-core machine (``hrc bench
+            hmp``, ``people_forecast_ms``).
     """
 
     settle_s: float = 10 / 30
@@ -61,6 +65,7 @@ class PeopleOptions:
     rematch_m: float = 0.5
     near_m: float = 1.2
     growth_mps: float = 1.6
+    fresh_per_frame: int = 2
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -77,6 +82,7 @@ class _Track:
     last_t: float
     last: HumanFrame  #: the body as last seen (one body, the track's id)
     predictor: Predictor | None = None
+    forecast: HumanForecast | None = None  #: the body's newest forecast
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,6 +142,20 @@ class People:
         if self.predictor is not None:
             self.predictor.reset()
 
+    def _predictor_of(self, track: _Track) -> Predictor:
+        """The track's predictor: the first track's is the engine's, the others spawn from it."""
+        assert self.predictor is not None
+        if track.predictor is None:
+            owned = any(tr.predictor is self.predictor for tr in self._tracks.values())
+            if owned:
+                track.predictor = self.predictor.spawn()
+            else:  # the first track's, or one whose person has left the cell
+                track.predictor = self.predictor
+                if self._started_forecasts:
+                    self.predictor.reset()
+            self._started_forecasts = True
+        return track.predictor
+
     def reset_forecast(self, track_ids: list[int]) -> None:
         """Forget what the predictors of these tracks have seen (a body that jumped: another person, or the
         tracker's mistake)."""
@@ -143,6 +163,7 @@ class People:
             tr = self._tracks.get(tid)
             if tr is not None and tr.predictor is not None:
                 tr.predictor.reset()
+                tr.forecast = None
 
     @property
     def tracks(self) -> tuple[int, ...]:
@@ -214,12 +235,30 @@ class People:
         *,
         margin_m: float,
         shape: Callable[[HumanFrame, HumanForecast], HumanForecast] | None = None,
+        first: int | None = None,
     ) -> HumanForecast:
         """The proactive method's forecast of every body of ``update``: each body seen through its track's
         predictor (``shape``: what the engine does to a body's forecast, e.g. the fetch it expects), each
-        lost one held with a margin of ``margin_m`` grown by its age, growing on; stacked."""
+        lost one held with a margin of ``margin_m`` grown by its age, growing on; stacked.
+
+        At most :attr:`PeopleOptions.fresh_per_frame` bodies are forecast anew per capture: the track
+        ``first`` (the engine's: the person expected to fetch), then those whose forecast is oldest. The
+        others' predictors take the capture into their history, and their forecast of the capture before is
+        kept (its times are absolute: it forecasts the same instants, from a frame older).
+        """
         assert self.predictor is not None, "forecasting needs a predictor"
         frame = update.frame
+        seen = [k for k in range(frame.bodies) if update.ages_s[k] == 0.0]
+        budget = self.options.fresh_per_frame
+        fresh = set(seen)
+        if len(seen) > budget:
+
+            def staleness(k: int) -> tuple[bool, float]:
+                track = self._tracks[frame.body_ids[k]]
+                made = -math.inf if track.forecast is None else track.forecast.t0
+                return (frame.body_ids[k] != first, made)
+
+            fresh = set(sorted(seen, key=staleness)[:budget])
         out: list[HumanForecast] = []
         for k in range(frame.bodies):
             body = frame.body(k)
@@ -233,17 +272,13 @@ class People:
                     )
                 )
                 continue
-            if track.predictor is None:
-                owned = any(tr.predictor is self.predictor for tr in self._tracks.values())
-                if owned:
-                    track.predictor = self.predictor.spawn()
-                else:  # the first track's, or one whose person has left the cell
-                    track.predictor = self.predictor
-                    if self._started_forecasts:
-                        self.predictor.reset()
-                self._started_forecasts = True
-            fc = dataclasses.replace(track.predictor.update(body), body_ids=body.body_ids)
-            out.append(fc if shape is None else shape(body, fc))
+            predictor = self._predictor_of(track)
+            if k in fresh or track.forecast is None:
+                fc = dataclasses.replace(predictor.update(body), body_ids=body.body_ids)
+                track.forecast = fc if shape is None else shape(body, fc)
+            else:
+                predictor.observe(body)
+            out.append(track.forecast)
         return stack_forecasts(out, t0=frame.t)
 
 

@@ -132,22 +132,23 @@ class HumanForecast:
 
 
 def stack_forecasts(forecasts: Sequence[HumanForecast], *, t0: float) -> HumanForecast:
-    """One forecast of every body in ``forecasts`` (each of one or more bodies, the same ``t0``), on the
-    sample times of the longest: each body's poses interpolated there (held beyond its own horizon), the
-    margin at each time the largest of theirs (grown beyond a horizon as that forecast grows it), the
-    growth and the bound the largest. No forecast: the person-free cell at ``t0``."""
+    """One forecast at ``t0`` of every body in ``forecasts`` (each of one or more bodies, made at ``t0`` or a
+    frame or two before), on the sample times of the newest (the longest of those): each body's poses
+    interpolated there (held beyond its own horizon), the margin at each time the largest of theirs (grown
+    beyond a horizon as that forecast grows it), the growth and the bound the largest. No forecast: the
+    person-free cell at ``t0``."""
     if not forecasts:
         return HumanForecast(
             t0=t0, times=np.array([t0]), joints=np.zeros((1, 0, 3)), margins=np.zeros(1), body_ids=()
         )
     if len(forecasts) == 1:
         return forecasts[0]
-    ref = max(forecasts, key=lambda f: (f.horizon_end, f.times.shape[0]))
+    ref = max(forecasts, key=lambda f: (f.t0, f.horizon_end, f.times.shape[0]))
     times = ref.times
     joints, margins = [], []
     for f in forecasts:
-        if f.t0 != ref.t0:
-            raise ValueError(f"stack_forecasts: forecasts of different frames (t0 {f.t0} and {ref.t0})")
+        if f.t0 > t0:
+            raise ValueError(f"stack_forecasts: a forecast from after t0 ({f.t0} > {t0})")
         j, m = f.poses_at(times)
         joints.append(j)
         margins.append(m)
@@ -219,6 +220,11 @@ class Predictor(Protocol):
     def reset(self) -> None:
         """Forget the frames seen (a new trial, or another person)."""
         ...
+
+    def observe(self, frame: HumanFrame) -> object:
+        """Take ``frame`` into the history without forecasting (the forecast of the frame before is kept; the
+        default forecasts and drops it)."""
+        return self.update(frame)
 
     @property
     def whole_frame(self) -> bool:

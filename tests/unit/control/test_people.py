@@ -33,6 +33,7 @@ class _Counting(Predictor):
 
     def __init__(self) -> None:
         self.seen = 0
+        self.forecasts = 0
         self.spawned: list[_Counting] = []
 
     def reset(self) -> None:
@@ -43,9 +44,13 @@ class _Counting(Predictor):
         self.spawned.append(twin)
         return twin
 
-    def update(self, frame: HumanFrame) -> HumanForecast:
+    def observe(self, frame: HumanFrame) -> None:
         assert frame.bodies == 1
         self.seen += 1
+
+    def update(self, frame: HumanFrame) -> HumanForecast:
+        self.observe(frame)
+        self.forecasts += 1
         times = frame.t + DT * np.arange(3)
         return HumanForecast(frame.t, times, np.repeat(frame.joints[None], 3, axis=0), np.full(3, 0.05))
 
@@ -112,3 +117,21 @@ def test_no_body_is_an_empty_cell() -> None:
     assert up.frame.bodies == 0
     fc = people.forecast(up, margin_m=0.02)
     assert fc.bodies == 0 and fc.joints.shape == (1, 0, 3)
+
+
+def test_at_most_two_people_are_forecast_anew_per_frame_the_first_always_and_the_others_in_turn() -> None:
+    pred = _Counting()
+    people = People(pred)
+    bodies = {0: _body(1.4), 1: _body(1.4, 1.2), 2: _body(1.4, -1.2), 3: _body(2.1, 0.4)}
+    made: list[tuple[float, ...]] = []
+    for k in range(7):
+        t = k * DT
+        fc = people.forecast(people.update(_frame(t, bodies)), margin_m=0.02, first=0)
+        assert fc.body_ids == (0, 1, 2, 3) and fc.t0 == pytest.approx(t)
+        made.append(tuple(people._tracks[i].forecast.t0 for i in range(4)))  # type: ignore[union-attr]
+    preds = [pred, *pred.spawned]
+    assert all(p.seen == 7 for p in preds)  # every frame in every person's history
+    # frame 0 forecasts everyone; then 2 per frame: body 0 every time, the others in turn
+    assert [p.forecasts for p in preds] == [7, 3, 3, 3]
+    assert all(m[0] == pytest.approx(k * DT) for k, m in enumerate(made))
+    assert made[1][1:] == pytest.approx((DT, 0.0, 0.0)) and made[2][1:] == pytest.approx((DT, 2 * DT, 0.0))

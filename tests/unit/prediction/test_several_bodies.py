@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -70,5 +72,10 @@ def test_forecasts_of_several_bodies_stack_on_the_longest_grid() -> None:
     assert both.growth_mps == 0.4
     nobody = stack_forecasts([], t0=2.0)
     assert nobody.bodies == 0 and nobody.t0 == 2.0
-    with pytest.raises(ValueError, match="different frames"):
+    with pytest.raises(ValueError, match="after t0"):
         stack_forecasts([walking, HumanForecast.hold(HumanFrame(0.5, _pose(1.0), body_ids=(2,)))], t0=0.0)
+    # a forecast kept from the frame before: evaluated at the newest one's times
+    older = HumanForecast(-0.1, times - 0.1, np.stack([_pose(x) for x in (2.0, 2.5, 3.0)]), np.full(3, 0.02))
+    both = stack_forecasts([walking, dataclasses.replace(older, body_ids=(5,))], t0=0.0)
+    assert both.t0 == 0.0 and both.body_ids == (0, 5)
+    np.testing.assert_allclose(both.joints[:2, NUM_JOINTS, 0], [2.1, 2.6])
