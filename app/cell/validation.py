@@ -312,9 +312,11 @@ class FrameValidator:
         self._rejected = dict.fromkeys(REJECT_REASONS, 0)
 
     @classmethod
-    def for_workcell(cls, cell: WorkCell, *, margin_m: float = 1.0) -> FrameValidator:
+    def for_workcell(
+        cls, cell: WorkCell, *, margin_m: float = 1.0, jump_speed_mps: float | None = 5.0
+    ) -> FrameValidator:
         """A validator whose volume is :meth:`CellVolume.from_workcell`."""
-        return cls(volume=CellVolume.from_workcell(cell, margin_m=margin_m))
+        return cls(volume=CellVolume.from_workcell(cell, margin_m=margin_m), jump_speed_mps=jump_speed_mps)
 
     # -- checks -----------------------------------------------------------------------------------------
     def reject(self, reason: str, detail: str = "") -> FrameRejected:

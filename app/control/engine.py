@@ -47,7 +47,7 @@ from app.planning.collision import reach_fingertips
 from app.prediction.forecast import HumanForecast, Predictor, stack_forecasts
 from app.prediction.skeleton import JOINT_INDEX, HumanFrame
 from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw
-from app.safety.monitor import GroundTruthMonitor, is_intrusion
+from app.safety.monitor import GroundTruthMonitor
 from app.safety.pfl import PFLModel
 from app.safety.stopping import UR5E_STOP
 
@@ -322,7 +322,6 @@ class TrialEngine:
             )
         self.truth = truth
         self._truth_prev: tuple[float, HumanFrame] | None = None
-        self._last_tracked: HumanFrame | None = None  # the last capture's people (track ids)
         #: every person in the cell, followed from capture to capture (:mod:`app.control.people`)
         self.people = People(
             predictor if method == "proactive" else None, PeopleOptions(hold_s=settings.stale_timeout_s)
@@ -490,9 +489,6 @@ class TrialEngine:
         """A body that moved faster than a person can since the last capture (or the tracker jumped to
         someone else), or a new body near the robot before it has been tracked long enough to forecast: a
         protective stop, and that body's forecast starts over."""
-        frame = people.frame
-        prev = self._last_tracked
-        self._last_tracked = frame
         for tid in people.appeared:
             self._emit_abs(t, "body_appeared", {"body": tid})
         for tracker_id, tid in people.renamed.items():
@@ -507,25 +503,19 @@ class TrialEngine:
             self.supervisor.intrusion(t)
             self._recent.clear()
             return
-        if prev is None or not frame.t > prev.t or frame.bodies == 0:
-            return
-        speeds = np.linalg.norm(frame.joints - frame.matched(prev), axis=1) / (frame.t - prev.t)
-        per_body = speeds.reshape(frame.bodies, -1)
-        jumped = [
-            k
-            for k in range(frame.bodies)
-            if is_intrusion(per_body[k], body_mps=self.options.intrusion_speed_mps)
-        ]
+        # a body that moved faster than a person can (the validated source's check, by tracker id)
+        jumped = [(self.people.track_id(i), v) for i, v in self.source.last_changes.jumps.items()]
+        jumped = [(tid, v) for tid, v in jumped if tid is not None]
         if not jumped:
             return
-        speed = float(per_body[jumped].max())
+        tid, speed = max(jumped, key=lambda j: j[1])
         self.intrusions += 1
         log.warning("intrusion: a person moved at %.1f m/s between two frames; protective stop", speed)
-        self._emit_abs(t, "intrusion", {"speed_mps": speed, "body": frame.body_ids[jumped[0]]})
+        self._emit_abs(t, "intrusion", {"speed_mps": speed, "body": tid})
         self.supervisor.intrusion(t)
         self._recent.clear()
         if self.predictor is not None:
-            self.people.reset_forecast([frame.body_ids[k] for k in jumped])
+            self.people.reset_forecast([j[0] for j in jumped])
 
     def _new_near(self, people: PeopleUpdate) -> tuple[int, float] | None:
         """A settling body (new, not yet forecast) within ``near_m`` of the robot: its track id and its
@@ -799,13 +789,17 @@ def _nan_if_none(v: float | int | None) -> float:
     return math.nan if v is None else float(v)
 
 
-def make_validated_source(source: Any, cell: WorkCell, *, stale_timeout_s: float = 0.35) -> ValidatedSource:
+def make_validated_source(
+    source: Any, cell: WorkCell, *, stale_timeout_s: float = 0.35, jump_speed_mps: float = 5.0
+) -> ValidatedSource:
     """``source`` behind the cell's frame checks and a stale watchdog (``Settings.stale_timeout_s``; a
-    :class:`ValidatedSource` is returned as it is)."""
+    :class:`ValidatedSource` is returned as it is); a body that moves faster than ``jump_speed_mps``
+    between two frames jumped (:attr:`EngineOptions.intrusion_speed_mps`)."""
     if isinstance(source, ValidatedSource):
         return source
     watchdog = StaleWatchdog(stale_timeout_s)
-    return ValidatedSource(source, validator=FrameValidator.for_workcell(cell), watchdog=watchdog)
+    validator = FrameValidator.for_workcell(cell, jump_speed_mps=jump_speed_mps)
+    return ValidatedSource(source, validator=validator, watchdog=watchdog)
 
 
 _TIME_KEYS = frozenset({"t_switch", "violation_t"})

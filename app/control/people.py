@@ -156,6 +156,13 @@ class People:
             self._started_forecasts = True
         return track.predictor
 
+    def track_id(self, tracker_id: int) -> int | None:
+        """The track of the body the tracker calls ``tracker_id`` now (None: none)."""
+        for tr in self._tracks.values():
+            if tr.tracker_id == tracker_id:
+                return tr.id
+        return None
+
     def reset_forecast(self, track_ids: list[int]) -> None:
         """Forget what the predictors of these tracks have seen (a body that jumped: another person, or the
         tracker's mistake)."""

@@ -492,7 +492,12 @@ def build_trial_world(
         person=person,
         truth=truth_fn,
         tracker=tracker_model,
-        source=make_validated_source(vsource, cell, stale_timeout_s=settings.stale_timeout_s),
+        source=make_validated_source(
+            vsource,
+            cell,
+            stale_timeout_s=settings.stale_timeout_s,
+            jump_speed_mps=options.intrusion_speed_mps,
+        ),
         stream=stream,
         predictor=predictor,
         stack=stack,
