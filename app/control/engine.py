@@ -345,6 +345,7 @@ class TrialEngine:
         self.decide_s: list[float] = []
         self.frame_to_decision_s = 0.0
         self._fetcher_id: int | None = None
+        self._new_stops: set[int] = set()  # the new bodies near the robot that stopped it
         if predictor is not None:
             predictor.reset()
         self._emit_abs(t0, "trial_started", {"method": method, "seed": self.seed})
@@ -496,10 +497,12 @@ class TrialEngine:
         for tid in people.dropped:
             self._emit_abs(t, "body_dropped", {"body": tid})
         near = self._new_near(people)
-        if near is not None:
-            self.intrusions += 1
-            log.warning("intrusion: a new body %d within %.2f m of the robot; protective stop", *near)
-            self._emit_abs(t, "intrusion", {"body": near[0], "separation_m": near[1]})
+        if near is not None:  # held at every frame until it has settled; counted once
+            if near[0] not in self._new_stops:
+                self._new_stops.add(near[0])
+                self.intrusions += 1
+                log.warning("intrusion: a new body %d within %.2f m of the robot; protective stop", *near)
+                self._emit_abs(t, "intrusion", {"body": near[0], "separation_m": near[1]})
             self.supervisor.intrusion(t)
             self._recent.clear()
             return

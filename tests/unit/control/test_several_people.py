@@ -201,7 +201,7 @@ def test_a_body_that_appears_next_to_the_moving_robot_stops_it_within_the_reacti
     # braking from then on: at rest within the stopping time, and held while the body is new and near
     t_rest = stops[0] + 0.6
     assert all(qd < 0.02 for t, qd in speeds if t_rest <= t <= t_appear + 10 / 30), speeds
-    assert result.metrics.intrusions >= 1
+    assert result.metrics.intrusions == 1  # counted once, held at every frame until it settled
 
 
 def test_a_body_whose_id_changes_is_not_lost(stack: PlanningStack) -> None:
