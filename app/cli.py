@@ -99,6 +99,13 @@ app.add_typer(hmp_app, name="hmp")
 db_app = typer.Typer(help="Study database: migrations.", no_args_is_help=True, rich_markup_mode=None)
 app.add_typer(db_app, name="db")
 
+_Scenario = Annotated[
+    Path | None,
+    typer.Option(
+        help="TOML file of who else is in the simulated cell: passers-by, a second operator (default "
+        "HRC_SCENARIO, else the operator alone; e.g. examples/scenario_passer_by.toml)."
+    ),
+]
 _DbUrl = Annotated[
     str | None,
     typer.Option("--url", help="SQLAlchemy URL (default: HRC_DATABASE_URL, else SQLite in HRC_DATA_DIR)."),
@@ -287,13 +294,7 @@ def study(
             "app/assets/population.toml)."
         ),
     ] = None,
-    scenario: Annotated[
-        Path | None,
-        typer.Option(
-            help="TOML file of who else is in the simulated cell: passers-by, a second operator (default "
-            "HRC_SCENARIO, else the operator alone; e.g. examples/scenario_passer_by.toml)."
-        ),
-    ] = None,
+    scenario: _Scenario = None,
     url: _DbUrl = None,
 ) -> None:
     """Headless study: simulated participants x both methods, as Ray tasks or on a process pool, into the DB.
@@ -563,13 +564,7 @@ def simulate(
             "app/assets/population.toml)."
         ),
     ] = None,
-    scenario: Annotated[
-        Path | None,
-        typer.Option(
-            help="TOML file of who else is in the simulated cell: passers-by, a second operator (default "
-            "HRC_SCENARIO, else the operator alone; e.g. examples/scenario_passer_by.toml)."
-        ),
-    ] = None,
+    scenario: _Scenario = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object and nothing else.")] = False,
 ) -> None:
     """Run one headless trial on the simulated clock and print its metrics."""
