@@ -338,11 +338,20 @@ class Supervisor:
             self._v_h_t = -math.inf
             if self._estop or self._fault or self._brake is not None:
                 return
-            if self._s > 1e-6 and self._active.under_way(self._tau):
-                self._stop_and_replan(t, reason="intrusion", violation_t=None)
-            else:
+            if not (self._s > 1e-6 and self._active.under_way(self._tau)):
                 self._pending = None
                 self._generation += 1
+                return
+            self._stop_and_replan(t, reason="intrusion", violation_t=None)
+            brake, frame = self._brake, self._frame
+        # the emergency plan from the stop point (checked against the latest forecast before it is taken):
+        # without one tried, the brake would hold the robot for good
+        if brake is not None and frame is not None:
+            self._plan_emergency(brake, frame, gen_after=self._generation)
+        elif brake is not None:
+            with self._lock:
+                brake.emergency_tried = True
+                brake.emergency_ready_t = t
 
     def estop(self, t: float, *, source: str = "api") -> None:
         """Latch the E-stop: the robot is held (the runtime also stops the robot); needs :meth:`reset`."""
