@@ -496,6 +496,7 @@ class TrialEngine:
             self._emit_abs(t, "body_renamed", {"body": tid, "tracker_id": tracker_id})
         for tid in people.dropped:
             self._emit_abs(t, "body_dropped", {"body": tid})
+            self._new_stops.discard(tid)
         near = self._new_near(people)
         if near is not None:  # held at every frame until it has settled; counted once
             if near[0] not in self._new_stops:
