@@ -564,6 +564,7 @@ class ValidatedSource:
         if self._prevalidated:
             self._valid = frame
             self.watchdog.feed(max(now, frame.t))
+            self.last_changes = self.tracks.update(frame)
         else:
             try:
                 self._valid = self.validator.check(frame)
@@ -571,7 +572,8 @@ class ValidatedSource:
             except FrameRejected as exc:
                 self.last_rejection = exc
                 return
-        self.last_changes = self.tracks.update(self._valid)
+            # the validator has matched the bodies to those of the frame it accepted before: this one
+            self.last_changes = self.validator.last_changes
 
     def poll(self, now: float) -> HumanFrame | None:
         """The newest valid frame if it is new since the previous :meth:`poll`, else ``None``."""
