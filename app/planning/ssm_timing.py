@@ -45,7 +45,8 @@ def part_speeds(collision: Any, q: np.ndarray, qd: np.ndarray, *, fd_step_s: flo
 def _ahead_max(x: np.ndarray, n: int) -> np.ndarray:
     """Per row i the maximum of rows i..i+n (clipped at the end)."""
     out = x.copy()
-    for k in range(1, n + 1):
+    # beyond the last row there is nothing to take (a path of no duration looks ahead ~1e8 rows)
+    for k in range(1, min(n, x.shape[0] - 1) + 1):
         out[:-k] = np.maximum(out[:-k], x[k:])
     return out
 

@@ -322,7 +322,8 @@ class _TrajectoryChecks:
         floor_m: float | None = None,
     ) -> tuple[float | None, float]:
         view: Any = traj
-        if timing is not None and forecast is not None and forecast.bodies > 0:
+        # (a path of no duration, the robot already at its goal, has no motion to govern)
+        if timing is not None and forecast is not None and forecast.bodies > 0 and traj.t_end > traj.t_start:
             view = PredictedTiming.of(traj, forecast, self.collision, timing)
         end = view.t_end + hold_s
         return self._verify(view, forecast, view.t_start, end, floor_m=floor_m), view.t_end

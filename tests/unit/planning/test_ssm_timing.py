@@ -83,6 +83,17 @@ def test_nobody_near_leaves_the_plan_at_full_speed(ur5e: CollisionModel) -> None
     assert np.allclose(view.q(ts), traj.q(ts))
 
 
+@pytest.mark.timeout(60)
+def test_a_path_of_no_duration_is_timed_at_once(ur5e: CollisionModel) -> None:
+    """A path that starts where it ends (one knot: the robot already at its goal) looks ahead over its one
+    point, not over the look-ahead's ~1e8 steps of zero length (a trial with a passer-by hung there)."""
+    q0 = np.array([[0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]])
+    traj = Trajectory(np.array([2.0]), q0, np.zeros((1, 6)))
+    tau, t, scales = predicted_scales(traj, _standing(np.array([0.6, 0.0, 0.5])), ur5e, governor())
+    assert tau.shape == (2,) and t[0] == pytest.approx(2.0) and scales.shape == (1,)
+    assert np.all(np.isfinite(t))
+
+
 def test_a_person_beside_the_path_slows_the_predicted_timing_along_the_same_path(
     ur5e: CollisionModel,
 ) -> None:
