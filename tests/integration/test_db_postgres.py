@@ -29,7 +29,7 @@ from app.study.repository import (
 from app.study.schemas import ParticipantCreate, ParticipantUpdate, StudySessionCreate, StudySessionUpdate
 from app.study.stats import summarize
 
-HEAD = "0008"
+HEAD = "0009"
 
 
 @pytest.fixture
