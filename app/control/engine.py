@@ -44,7 +44,7 @@ from app.control.stack import CellGeometry, PlanningStack
 from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.task import TaskExecutive
 from app.planning.collision import reach_fingertips
-from app.prediction.forecast import HumanForecast, Predictor, stack_forecasts
+from app.prediction.forecast import HumanForecast, Predictor
 from app.prediction.skeleton import JOINT_INDEX, HumanFrame
 from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw
 from app.safety.monitor import GroundTruthMonitor
@@ -405,6 +405,7 @@ class TrialEngine:
             return None
         people = self.people.update(tracked)
         frame = people.frame  # every body seen, and the lost ones held, with their track ids
+        seen = people.seen  # the bodies of this capture alone
         self._check_intrusion(t, people)
         # the bodies as the geometry sees them: the hand capsules out to the fingertips (the predictor keeps
         # the tracked joints it was trained on)
@@ -412,12 +413,12 @@ class TrialEngine:
         # the reactive method's forecast: the people held still where they are now; the proactive method
         # weighs the plan it gives as a candidate against its own at every backup
         margin = self.options.tracking_margin_m + self.options.plan_margin_m
-        held = self._held(body, people, margin)
+        held = self.people.held(people, body, margin_m=margin)
         forecast = held
         if self.method == "proactive":
-            self._fetcher_id = self._fetcher(people.seen)
+            self._fetcher_id = self._fetcher(seen)
             if self.predictor.whole_frame:  # a predictor of every body at once (the oracle)
-                forecast = self.predictor.update(people.seen)
+                forecast = self.predictor.update(seen)
             else:
                 forecast = self.people.forecast(
                     people, margin_m=self.options.tracking_margin_m, shape=self._shape, first=self._fetcher_id
@@ -441,26 +442,9 @@ class TrialEngine:
         if self.options.record_frames:
             self._frames_t.append(self.elapsed(t))
             self._frames_q.append(np.asarray(self.last_state.q, dtype=np.float32))
-            seen = people.seen  # every body as tracked, with its track id
             self._frames_ids.append(seen.body_ids)
             self._frames_sk.append(np.asarray(seen.joints, dtype=np.float32))
         return decision
-
-    def _held(self, body: HumanFrame, people: PeopleUpdate, margin_m: float) -> HumanForecast:
-        """The people of ``body`` held still (the reactive method's forecast); a lost body's margin grown by
-        its age, growing on at the people's growth speed."""
-        if not np.any(people.ages_s > 0.0):
-            return HumanForecast.hold(body, margin_m=margin_m)
-        growth = self.people.options.growth_mps
-        return stack_forecasts(
-            [
-                HumanForecast.hold(
-                    body.body(k), margin_m=margin_m + growth * age, growth_mps=growth if age > 0 else 0.0
-                )
-                for k, age in enumerate(people.ages_s.tolist())
-            ],
-            t0=body.t,
-        )
 
     def _shape(self, body: HumanFrame, forecast: HumanForecast) -> HumanForecast:
         """A body's forecast as the task shapes it: the person who will fetch the block the robot has placed

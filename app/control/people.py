@@ -142,6 +142,28 @@ class People:
         if self.predictor is not None:
             self.predictor.reset()
 
+    def held(self, update: PeopleUpdate, body: HumanFrame, *, margin_m: float) -> HumanForecast:
+        """The people of ``body`` (``update``'s frame as the geometry sees it) held still: the reactive
+        method's forecast; a lost body's margin grown by its age, growing on."""
+        if not np.any(update.ages_s > 0.0):
+            return HumanForecast.hold(body, margin_m=margin_m)
+        return stack_forecasts(
+            [
+                self._lost(body.body(k), margin_m, age)
+                if age > 0.0
+                else HumanForecast.hold(body.body(k), margin_m=margin_m)
+                for k, age in enumerate(update.ages_s.tolist())
+            ],
+            t0=body.t,
+        )
+
+    def _lost(self, body: HumanFrame, margin_m: float, age_s: float) -> HumanForecast:
+        """A lost body held where it was last seen, ``age_s`` ago: its margin grown since, growing on."""
+        grown = margin_m + self.options.growth_mps * age_s
+        return HumanForecast.hold(
+            body, margin_m=grown, growth_mps=self.options.growth_mps, max_margin_m=max(grown, 1.0)
+        )
+
     def _predictor_of(self, track: _Track) -> Predictor:
         """The track's predictor: the first track's is the engine's, the others spawn from it."""
         assert self.predictor is not None
@@ -272,12 +294,7 @@ class People:
             track = self._tracks[body.body_ids[0]]
             age = float(update.ages_s[k])
             if age > 0.0:
-                grown = margin_m + self.options.growth_mps * age
-                out.append(
-                    HumanForecast.hold(
-                        body, margin_m=grown, growth_mps=self.options.growth_mps, max_margin_m=max(grown, 1.0)
-                    )
-                )
+                out.append(self._lost(body, margin_m, age))
                 continue
             predictor = self._predictor_of(track)
             if k in fresh or track.forecast is None:
