@@ -1,5 +1,5 @@
 """``hrc bench hmp``: forecast latency (one person, one CPU thread; and the forecast of 1, 2 and 4 people per
-frame, ``people_forecast_ms``) and MPJPE on the CMU test split.
+frame, before and after the decision, ``people_forecast_ms``) and MPJPE on the CMU test split.
 
 Prints ``infer_ms`` {p50, p95} (Graph-Mixer, one person, the per-frame call ``predict_batch`` on (1, T, J, 3)
 through the path the predictor uses, named by ``single_person_backend``: ``numba``, ``onnxruntime``,
@@ -61,16 +61,19 @@ def _by_backend(predictor, history: np.ndarray, repeats: int) -> dict[str, dict[
     return {name: _percentiles(s) for name, s in samples.items()}
 
 
-def _people_ms(bodies: int, base: np.ndarray, repeats: int) -> dict[str, float]:
+def _people_ms(bodies: int, base: np.ndarray, repeats: int) -> dict[str, dict[str, float]]:
     """Per frame, the forecast of ``bodies`` people walking side by side 0.8 m apart (arbitrated, as the
-    engine forecasts each person)."""
+    engine forecasts each person, body 0 the one expected to fetch): before the decision
+    (:meth:`~app.control.people.People.forecast`) and after it
+    (:meth:`~app.control.people.People.catch_up`)."""
     from app.control.people import People
     from app.prediction.predictor import MotionPredictor
     from app.prediction.skeleton import HumanFrame
 
     people = People(MotionPredictor(kind="graphmixer", arbitrate=True))
     warm = 40 + 10
-    samples = []
+    before: list[float] = []
+    after: list[float] = []
     for k in range(repeats + warm):
         t = k / 30.0
         frame = HumanFrame.stack(
@@ -78,10 +81,13 @@ def _people_ms(bodies: int, base: np.ndarray, repeats: int) -> dict[str, float]:
             [HumanFrame(t, base + np.array([0.03 * k, 0.8 * b, 0.0]), body_ids=(b,)) for b in range(bodies)],
         )
         t_start = time.perf_counter()
-        people.forecast(people.update(frame), margin_m=0.02)
+        people.forecast(people.update(frame), margin_m=0.02, first=0)
+        t_decided = time.perf_counter()
+        people.catch_up()
         if k >= warm:
-            samples.append(time.perf_counter() - t_start)
-    return _percentiles(samples)
+            before.append(t_decided - t_start)
+            after.append(time.perf_counter() - t_decided)
+    return {"before_decision": _percentiles(before), "after_decision": _percentiles(after)}
 
 
 def run(*, quick: bool = False, progress: bool = True) -> dict:

@@ -21,7 +21,10 @@ speeds measured from one capture to the next compare the same person.
 
 The proactive method forecasts every body: one predictor per track (the engine's own for the first,
 :meth:`~app.prediction.forecast.Predictor.spawn` for the others), the forecasts stacked on one time grid
-(:func:`~app.prediction.forecast.stack_forecasts`). A lost body is held with the growing margin.
+(:func:`~app.prediction.forecast.stack_forecasts`). A lost body is held with the growing margin. Only the
+person expected to fetch (and a new body) is forecast before the capture's decision; the others' forecasts,
+made from an earlier capture, stand in at the decision, and they catch up after it
+(:meth:`People.catch_up`), so that the frame's latency does not grow with the number of people.
 """
 
 from __future__ import annotations
@@ -54,10 +57,11 @@ class PeopleOptions:
         near_m: A new body within this of the robot (surface to surface, m) is an intrusion: the protective
             separation of the UR5e at full speed (about 1.2 m, see the safety model).
         growth_mps: A lost body's margin grows at this speed (m/s): ISO 13855's body speed.
-        fresh_per_frame: At most this many bodies are forecast anew per capture (:meth:`People.forecast`):
-            two keeps the operator's forecast fresh at every frame and refreshes the others in turn, and it
-            keeps the forecast of four people within the frame's time on a 2-core machine (``hrc bench
-            hmp``, ``people_forecast_ms``).
+        fresh_per_frame: At most this many bodies are forecast anew per capture (:meth:`People.forecast`
+            and :meth:`People.catch_up`; new bodies apart): two keeps the forecast of the person expected to
+            fetch fresh at every decision and refreshes one other person per capture, after the decision,
+            in turn; the forecasts of four people then cost the frame thread about as much as two
+            (``hrc bench hmp``, ``people_forecast_ms``).
     """
 
     settle_s: float = 10 / 30
@@ -134,10 +138,15 @@ class People:
         self.renamed = 0  #: id changes bridged
         self.dropped = 0  #: lost bodies dropped
         self.max_bodies = 0  #: the most bodies (seen and held) of one capture
+        # the bodies of the last capture that take it after the decision (:meth:`catch_up`)
+        self._pending: list[tuple[_Track, HumanFrame]] = []
+        self._pending_shape: Callable[[HumanFrame, HumanForecast], HumanForecast] | None = None
+        self._pending_budget = 0
 
     def reset(self) -> None:
         """Forget every track (a new trial)."""
         self._tracks.clear()
+        self._pending.clear()
         self._started = self._started_forecasts = False
         if self.predictor is not None:
             self.predictor.reset()
@@ -266,29 +275,24 @@ class People:
         shape: Callable[[HumanFrame, HumanForecast], HumanForecast] | None = None,
         first: int | None = None,
     ) -> HumanForecast:
-        """The proactive method's forecast of every body of ``update``: each body seen through its track's
-        predictor (``shape``: what the engine does to a body's forecast, e.g. the fetch it expects), each
-        lost one held with a margin of ``margin_m`` grown by its age, growing on; stacked.
+        """The proactive method's forecast of every body of ``update`` for this capture's decision: each body
+        seen through its track's predictor (``shape``: what the engine does to a body's forecast, e.g. the
+        fetch it expects), each lost one held with a margin of ``margin_m`` grown by its age, growing on;
+        stacked.
 
-        At most :attr:`PeopleOptions.fresh_per_frame` bodies are forecast anew per capture: the track
-        ``first`` (the engine's: the person expected to fetch), then those whose forecast is oldest. The
-        others' predictors take the capture into their history, and their forecast of the capture before is
-        kept (its times are absolute: it forecasts the same instants, from a frame older).
+        Only the track ``first`` (the engine's: the person expected to fetch; None: every body) and the
+        tracks without a forecast yet are forecast anew from this capture. The others keep the forecast they
+        have, made from an earlier capture (its times are absolute: it forecasts the same instants, from a
+        frame older); they take this capture after the decision, in :meth:`catch_up`, which also forecasts
+        the stalest of them anew for the next capture's decision, up to
+        :attr:`PeopleOptions.fresh_per_frame` bodies per capture in all.
         """
         assert self.predictor is not None, "forecasting needs a predictor"
+        if self._pending:  # the capture before was not caught up (its decision failed): take it now
+            self.catch_up()
         frame = update.frame
-        seen = [k for k in range(frame.bodies) if update.ages_s[k] == 0.0]
-        budget = self.options.fresh_per_frame
-        fresh = set(seen)
-        if len(seen) > budget:
-
-            def staleness(k: int) -> tuple[bool, float]:
-                track = self._tracks[frame.body_ids[k]]
-                made = -math.inf if track.forecast is None else track.forecast.t0
-                return (frame.body_ids[k] != first, made)
-
-            fresh = set(sorted(seen, key=staleness)[:budget])
         out: list[HumanForecast] = []
+        fresh = 0
         for k in range(frame.bodies):
             body = frame.body(k)
             track = self._tracks[body.body_ids[0]]
@@ -297,13 +301,40 @@ class People:
                 out.append(self._lost(body, margin_m, age))
                 continue
             predictor = self._predictor_of(track)
-            if k in fresh or track.forecast is None:
-                fc = dataclasses.replace(predictor.update(body), body_ids=body.body_ids)
-                track.forecast = fc if shape is None else shape(body, fc)
+            if first is None or body.body_ids[0] == first or track.forecast is None:
+                self._made(track, body, predictor.update(body), shape)
+                fresh += 1
+            else:
+                self._pending.append((track, body))
+            out.append(track.forecast)  # type: ignore[arg-type]
+        self._pending_shape, self._pending_budget = shape, self.options.fresh_per_frame - fresh
+        return stack_forecasts(out, t0=frame.t)
+
+    def catch_up(self) -> None:
+        """After the decision: the bodies :meth:`forecast` did not forecast anew take the capture into their
+        predictors' history, and the stalest of them are forecast anew from it (for the next capture's
+        decision), within the capture's budget of :attr:`PeopleOptions.fresh_per_frame`."""
+        pending, self._pending = self._pending, []
+        budget = max(self._pending_budget, 0)
+        stalest = sorted(pending, key=lambda tb: -math.inf if tb[0].forecast is None else tb[0].forecast.t0)
+        anew = {id(track) for track, _ in stalest[:budget]}
+        for track, body in pending:
+            predictor = self._predictor_of(track)
+            if id(track) in anew:
+                self._made(track, body, predictor.update(body), self._pending_shape)
             else:
                 predictor.observe(body)
-            out.append(track.forecast)
-        return stack_forecasts(out, t0=frame.t)
+
+    @staticmethod
+    def _made(
+        track: _Track,
+        body: HumanFrame,
+        forecast: HumanForecast,
+        shape: Callable[[HumanFrame, HumanForecast], HumanForecast] | None,
+    ) -> None:
+        """Keep ``forecast`` as ``track``'s newest, with its id and shaped by ``shape``."""
+        fc = dataclasses.replace(forecast, body_ids=body.body_ids)
+        track.forecast = fc if shape is None else shape(body, fc)
 
 
 def _nearest(tracks: list[_Track], body: HumanFrame, within_m: float) -> _Track | None:

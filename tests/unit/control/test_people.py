@@ -119,19 +119,40 @@ def test_no_body_is_an_empty_cell() -> None:
     assert fc.bodies == 0 and fc.joints.shape == (1, 0, 3)
 
 
-def test_at_most_two_people_are_forecast_anew_per_frame_the_first_always_and_the_others_in_turn() -> None:
+def test_the_first_person_is_forecast_before_the_decision_and_the_others_in_turn_after_it() -> None:
     pred = _Counting()
     people = People(pred)
     bodies = {0: _body(1.4), 1: _body(1.4, 1.2), 2: _body(1.4, -1.2), 3: _body(2.1, 0.4)}
-    made: list[tuple[float, ...]] = []
+    made: list[tuple[float, ...]] = []  # when each body's forecast at the decision was made
     for k in range(7):
         t = k * DT
         fc = people.forecast(people.update(_frame(t, bodies)), margin_m=0.02, first=0)
         assert fc.body_ids == (0, 1, 2, 3) and fc.t0 == pytest.approx(t)
         made.append(tuple(people._tracks[i].forecast.t0 for i in range(4)))  # type: ignore[union-attr]
-    preds = [pred, *pred.spawned]
-    assert all(p.seen == 7 for p in preds)  # every frame in every person's history
-    # frame 0 forecasts everyone; then 2 per frame: body 0 every time, the others in turn
+        preds = [pred, *pred.spawned]
+        # at the decision, the others have not taken this capture yet (except at the first: everyone new)
+        assert [p.seen for p in preds] == ([1, 1, 1, 1] if k == 0 else [k + 1, k, k, k])
+        people.catch_up()
+        assert all(p.seen == k + 1 for p in preds)  # every capture in every person's history
+    # the first capture forecasts everyone; then two per capture: body 0 before every decision, the others in
+    # turn after it, for the next decision
     assert [p.forecasts for p in preds] == [7, 3, 3, 3]
-    assert all(m[0] == pytest.approx(k * DT) for k, m in enumerate(made))
-    assert made[1][1:] == pytest.approx((DT, 0.0, 0.0)) and made[2][1:] == pytest.approx((DT, 2 * DT, 0.0))
+    assert [m[0] for m in made] == pytest.approx([k * DT for k in range(7)])
+    assert made[1][1:] == pytest.approx((0.0, 0.0, 0.0))
+    assert made[2][1:] == pytest.approx((DT, 0.0, 0.0))
+    assert made[4][1:] == pytest.approx((DT, 2 * DT, 3 * DT))
+    assert made[6][1:] == pytest.approx((4 * DT, 5 * DT, 3 * DT))
+
+
+def test_a_capture_not_caught_up_is_taken_before_the_next_forecast() -> None:
+    pred = _Counting()
+    people = People(pred)
+    bodies = {0: _body(1.4), 1: _body(1.4, 1.2)}
+    people.forecast(people.update(_frame(0.0, bodies)), margin_m=0.02, first=0)
+    # no catch_up after this one: its decision failed
+    people.forecast(people.update(_frame(DT, bodies)), margin_m=0.02, first=0)
+    people.forecast(people.update(_frame(2 * DT, bodies)), margin_m=0.02, first=0)
+    other = pred.spawned[0]
+    assert other.seen == 2 and other.forecasts == 2  # the capture at DT taken late and forecast from
+    people.catch_up()
+    assert other.seen == 3 and pred.seen == 3
