@@ -3,10 +3,11 @@
 The live :class:`~app.control.runtime.Runtime` runs on the wall clock with the simulated cell (simulated UR5e,
 simulated operator, the default roadmap and the shipped predictor) and runs a proactive trial. Measured:
 
-- ``frame_to_decision_ms``: from reading a new frame to the supervisor's decision on it (validation,
-  prediction, the check of the plan in execution against the forecast, the separation and speed scaling,
-  the emergency plan when the decision is to stop); the backup plan's own search runs on the planner pool and
-  is not included;
+- ``frame_to_decision_ms``: from the source handing over a new frame to the supervisor's decision on it
+  (validation, the people's tracks, prediction, the check of the plan in execution against the forecast, the
+  separation and speed scaling, the emergency plan when the decision is to stop); the time the source takes to
+  make the frame (here the simulated people and the tracker model; in a cell the tracker's own) is not
+  included, nor is the backup plan's own search, which runs on the planner pool;
 - ``servo_jitter_ms``: how late each tick of the robot command loop woke up after its deadline
   (:class:`~app.cell.clock.RateLoop`, ``servo_rate_hz``), with its overruns;
 - ``planning``: the compute time of every plan of the trial on the planner pool (a plan that sets the robot

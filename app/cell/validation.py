@@ -24,6 +24,7 @@ import math
 import numbers
 import reprlib
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -306,6 +307,9 @@ class FrameValidator:
         self.num_joints = int(num_joints)
         self.tracks = BodyTracks(jump_speed_mps)
         self.last_changes = BodyChanges()
+        #: When the inner source handed over its newest frame (``time.perf_counter()``): where the frame's
+        #: time in the software starts (a tracker's frame received; the simulated person's frame made).
+        self.handed_over = time.perf_counter()
         self._lock = threading.Lock()
         self._last_t: float | None = None
         self._accepted = 0
@@ -546,6 +550,7 @@ class ValidatedSource:
         with self._lock:
             frame = self.source.frame_at(t)
             if frame is not None and frame is not self._seen:
+                self.handed_over = time.perf_counter()
                 self._seen = frame
                 self._accept(frame, t)
             valid = self._valid

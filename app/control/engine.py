@@ -399,10 +399,12 @@ class TrialEngine:
         """Read the source at ``t``; a new valid frame goes through the predictor and the supervisor."""
         if self.finished is not None:
             return None
-        c0 = time.perf_counter()
         tracked = self.source.poll(t)
         if tracked is None:
             return None
+        # the frame's time in the software starts when the source handed it over (the time the source takes
+        # to make it, a simulated person's or a tracker's own, is not the software's)
+        c0 = self.source.handed_over
         people = self.people.update(tracked)
         frame = people.frame  # every body seen, and the lost ones held, with their track ids
         seen = people.seen  # the bodies of this capture alone
@@ -432,7 +434,7 @@ class TrialEngine:
             body, forecast, t_now=t, candidate=candidate, ages_s=people.ages_s
         )
         self.decide_s.append(decision.decide_s)
-        self.frame_to_decision_s = time.perf_counter() - c0  # validation + prediction + decision
+        self.frame_to_decision_s = time.perf_counter() - c0  # validation, people, prediction, decision
         if self.method == "proactive" and not self.predictor.whole_frame:
             self.people.catch_up()  # the other people's predictors take the capture, for the next decision
         self.last_decision = decision

@@ -208,7 +208,8 @@ class _LoopStats:
 
     Attributes:
         decide_ms: The supervisor's decision on each new frame (checks, separation; no backup search).
-        frame_to_decision_ms: From reading the source to the decision: validation, prediction, decision.
+        frame_to_decision_ms: From the source handing over a new frame to the decision on it: validation,
+            the people's tracks, prediction, decision.
         frame_ms: A whole frame tick, snapshot publication included.
         servo_late_ms: How late each servo tick woke up after its deadline.
         servo_overruns: Servo ticks that overran their period.
