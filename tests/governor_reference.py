@@ -1,7 +1,8 @@
 """NumPy references of the speed governor's compiled loops, for the tests only (the product never imports
 them): the braking envelope's largest safe scale (:func:`app.safety._kernels.max_scale`), the servo tick's
 target scale (:func:`app.safety._kernels.governed_scale`) and the governor's scale predicted along a path
-(:func:`app.planning._kernels.timing.predicted_scales_kernel`)."""
+(:func:`app.planning._kernels.timing.predicted_scales_kernel`), and power and force limiting's separations
+per permissible speed (:func:`app.safety.pfl.pfl_levels`)."""
 
 from __future__ import annotations
 
@@ -139,3 +140,27 @@ def predicted_scales_reference(
         scales[i] = max(s, model.min_scale)
         t[i + 1] = t[i] + (tau[i + 1] - tau[i]) / scales[i]
     return tau, t, scales
+
+
+def pfl_levels_reference(
+    d_pairs: np.ndarray, caps_mps: np.ndarray, v_pairs: np.ndarray | None = None, *, band_m: float = 0.25
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The NumPy form of :func:`app.safety.pfl.pfl_levels` (which runs the compiled
+    :func:`app.safety._kernels.pfl_extra`)."""
+    d = np.asarray(d_pairs, dtype=np.float64)
+    caps = np.asarray(caps_mps, dtype=np.float64)
+    levels = np.unique(np.append(caps, -1.0))
+    nearest = d.min(axis=1)
+    extra = np.full((d.shape[0], levels.shape[0]), np.inf)
+    v_h = np.full((d.shape[0], levels.shape[0]), np.inf)
+    for k, c in enumerate(levels):
+        sel = caps <= c
+        if not sel.any():
+            continue
+        d_sel = d[:, sel]
+        near_k = d_sel.min(axis=1)
+        extra[:, k] = np.maximum(near_k - nearest, 0.0)
+        if v_pairs is not None:
+            v_sel = np.asarray(v_pairs, dtype=np.float64)[:, sel]
+            v_h[:, k] = np.where(d_sel <= near_k[:, None] + band_m, v_sel, 0.0).max(axis=1)
+    return levels, extra, v_h

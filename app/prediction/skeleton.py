@@ -151,7 +151,16 @@ class HumanFrame:
         if not 0 <= k < self.bodies:
             raise IndexError(f"body {k} of a frame with {self.bodies} body(ies)")
         rows = slice(k * NUM_JOINTS, (k + 1) * NUM_JOINTS)
-        return HumanFrame(self.t, self.joints[rows], self.confidence[rows], (self.body_ids[k],))
+        # a part of a checked frame needs no check of its own (read-only views of its arrays)
+        part = object.__new__(HumanFrame)
+        for name, value in (
+            ("t", self.t),
+            ("joints", self.joints[rows]),
+            ("confidence", self.confidence[rows]),
+            ("body_ids", (self.body_ids[k],)),
+        ):
+            object.__setattr__(part, name, value)
+        return part
 
     def matched(self, before: HumanFrame) -> np.ndarray:
         """(B*J, 3) ``before``'s joints of this frame's bodies, matched by id, in this frame's order; a body

@@ -37,7 +37,7 @@ from functools import cached_property
 
 import numpy as np
 
-from app.safety._kernels import PFLLevels
+from app.safety._kernels import PFLLevels, pfl_extra
 
 __all__ = [
     "BODY_REGIONS",
@@ -49,6 +49,8 @@ __all__ = [
     "capsule_region",
     "effective_mass_kg",
     "permissible_speed_mps",
+    "pfl_extra",
+    "pfl_levels",
 ]
 
 #: ISO 13855:2010's approach speed of a hand or an arm reaching toward a hazard (m/s).
@@ -332,20 +334,13 @@ def pfl_levels(
     ``S_p`` from the no-contact ones alone; with PFL off (every cap -1) ``extra`` is 0 and ``S_p`` holds
     from all.
     """
-    d = np.asarray(d_pairs, dtype=np.float64)
-    caps = np.asarray(caps_mps, dtype=np.float64)
+    d = np.ascontiguousarray(d_pairs, dtype=np.float64)
+    caps = np.ascontiguousarray(caps_mps, dtype=np.float64)
     levels = np.unique(np.append(caps, -1.0))
-    nearest = d.min(axis=1)
-    extra = np.full((d.shape[0], levels.shape[0]), np.inf)
-    v_h = np.full((d.shape[0], levels.shape[0]), np.inf)
-    for k, c in enumerate(levels):
-        sel = caps <= c
-        if not sel.any():
-            continue
-        d_sel = d[:, sel]
-        near_k = d_sel.min(axis=1)
-        extra[:, k] = np.maximum(near_k - nearest, 0.0)
-        if v_pairs is not None:
-            v_sel = np.asarray(v_pairs, dtype=np.float64)[:, sel]
-            v_h[:, k] = np.where(d_sel <= near_k[:, None] + band_m, v_sel, 0.0).max(axis=1)
+    extra = np.empty((d.shape[0], levels.shape[0]))
+    v_h = np.empty((d.shape[0], levels.shape[0]))
+    v = np.zeros_like(d) if v_pairs is None else np.ascontiguousarray(v_pairs, dtype=np.float64)
+    pfl_extra(d, v, caps, levels, float(band_m), extra, v_h)  # compiled; the tests hold its NumPy form
+    if v_pairs is None:
+        v_h[:] = np.inf
     return levels, extra, v_h

@@ -19,6 +19,7 @@ import numpy as np
 from app.jit import jit
 from app.planning._kernels.base import _seg_dist
 from app.safety.governor import approach, law_scale, max_scale
+from app.safety.pfl import pfl_extra
 
 __all__ = ["TimingGovernor", "TimingPath", "TimingPerson", "predicted_scales_kernel", "toward_steps"]
 
@@ -85,37 +86,6 @@ class TimingGovernor(NamedTuple):
     caps: np.ndarray
     levels: np.ndarray
     floors: np.ndarray
-
-
-@jit
-def pfl_extra(
-    d: np.ndarray,
-    v: np.ndarray,
-    caps: np.ndarray,
-    levels: np.ndarray,
-    band: float,
-    out: np.ndarray,
-    out_v: np.ndarray,
-) -> None:
-    """``out`` (L, K): each part's separation from the capsules whose permissible speed is at most each of
-    ``levels``, beyond its nearest separation (inf where none is), from the distances ``d`` (L, M); ``out_v``
-    (L, K): the fastest approach ``v`` (L, M) of those capsules within ``band`` of their nearest: the
-    compiled twin of :func:`app.safety.pfl.pfl_levels`."""
-    for p in range(d.shape[0]):
-        near = np.inf
-        for m in range(d.shape[1]):
-            near = min(near, d[p, m])
-        for k in range(levels.shape[0]):
-            best = np.inf
-            for m in range(d.shape[1]):
-                if caps[m] <= levels[k]:
-                    best = min(best, d[p, m])
-            out[p, k] = max(best - near, 0.0) if best < np.inf else np.inf
-            vk = 0.0 if best < np.inf else np.inf
-            for m in range(d.shape[1]):
-                if caps[m] <= levels[k] and d[p, m] <= best + band:
-                    vk = max(vk, v[p, m])
-            out_v[p, k] = vk
 
 
 @jit

@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from governor_reference import pfl_levels_reference
 
 from app.config import Settings, load_workcell
 from app.control.engine import approach_floors, pfl_model
@@ -171,3 +172,19 @@ def test_the_levels_keep_s_p_from_the_regions_a_part_would_touch_too_fast() -> N
     assert v_h[0].tolist() == [1.6, 1.6, 2.0]
     _, _, no_v = pfl_levels(d, caps)
     assert np.all(np.isinf(no_v))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_compiled_pfl_levels_match_their_numpy_form(seed: int) -> None:
+    """Random separations of 7 parts to 1-4 stacked bodies, with and without the approach speeds, some
+    capsules of no permitted contact."""
+    rng = np.random.default_rng(seed)
+    m = len(HUMAN_CAPSULES) * int(rng.integers(1, 5))
+    d = rng.uniform(-0.05, 2.0, size=(7, m))
+    caps = rng.choice([-1.0, 0.6, 0.75, 1.3, 1.4], size=m)
+    v = rng.uniform(-1.0, 3.0, size=(7, m))
+    for v_pairs in (v, None):
+        got = pfl_levels(d, caps, v_pairs, band_m=0.1)
+        want = pfl_levels_reference(d, caps, v_pairs, band_m=0.1)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(g, w)
