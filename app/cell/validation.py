@@ -307,9 +307,6 @@ class FrameValidator:
         self.num_joints = int(num_joints)
         self.tracks = BodyTracks(jump_speed_mps)
         self.last_changes = BodyChanges()
-        #: When the inner source handed over its newest frame (``time.perf_counter()``): where the frame's
-        #: time in the software starts (a tracker's frame received; the simulated person's frame made).
-        self.handed_over = time.perf_counter()
         self._lock = threading.Lock()
         self._last_t: float | None = None
         self._accepted = 0
@@ -544,6 +541,9 @@ class ValidatedSource:
         self.last_rejection: FrameRejected | None = None
         self.tracks = BodyTracks(self.validator.tracks.jump_speed_mps)
         self.last_changes = BodyChanges()
+        #: When the inner source handed over its newest frame (``time.perf_counter()``): where the frame's
+        #: time in the software starts (a tracker's frame received; the simulated person's frame made).
+        self.handed_over = time.perf_counter()
         self._lock = threading.Lock()
 
     def frame_at(self, t: float) -> HumanFrame | None:

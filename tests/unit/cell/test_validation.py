@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -212,6 +213,26 @@ def test_validated_source_passes_only_valid_new_frames() -> None:
     assert src.is_stale(clock.now() + 0.2)
     src.notify_block_placed("A", 1.0)
     assert src.source.notified == [("A", 1.0)]
+
+
+def test_the_frames_time_in_the_software_starts_when_the_source_hands_it_over() -> None:
+    """``handed_over`` (where the engine's frame-to-decision time starts) moves when the inner source hands
+    over a new frame, after the source has made it, and not when the same frame is asked for again."""
+    frames = [HumanFrame(k / 30, _pose(0.001 * k)) for k in range(3)]
+    inner = _ListSource(frames)
+    made: list[float] = []
+
+    def frame_at(t: float) -> HumanFrame | None:
+        made.append(time.perf_counter())  # the source at work: not the software's time
+        return _ListSource.frame_at(inner, t)
+
+    inner.frame_at = frame_at  # type: ignore[method-assign]
+    src = ValidatedSource(inner, validator=FrameValidator.for_workcell(CELL))
+    assert src.poll(0.0) is not None
+    first = src.handed_over
+    assert first >= made[-1]
+    assert src.poll(0.01) is None and src.handed_over == first  # the same frame again
+    assert src.poll(1 / 30) is not None and src.handed_over > first and src.handed_over >= made[-1]
 
 
 @pytest.mark.parametrize(
