@@ -435,8 +435,7 @@ class TrialEngine:
         )
         self.decide_s.append(decision.decide_s)
         self.frame_to_decision_s = time.perf_counter() - c0  # validation, people, prediction, decision
-        if self.method == "proactive" and not self.predictor.whole_frame:
-            self.people.catch_up()  # the other people's predictors take the capture, for the next decision
+        self.people.catch_up()  # the other people's predictors take the capture, for the next decision
         self.last_decision = decision
         sep = decision.separation_m + self.config.tracking_margin_m
         self.min_separation_m = min(self.min_separation_m, sep)

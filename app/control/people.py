@@ -60,8 +60,8 @@ class PeopleOptions:
         fresh_per_frame: At most this many bodies are forecast anew per capture (:meth:`People.forecast`
             and :meth:`People.catch_up`; new bodies apart): two keeps the forecast of the person expected to
             fetch fresh at every decision and refreshes one other person per capture, after the decision,
-            in turn; the forecasts of four people then cost the frame thread about as much as two
-            (``hrc bench hmp``, ``people_forecast_ms``).
+            in turn; what is forecast before the decision then costs about as much with four people as
+            with two (``hrc bench hmp``, ``people_forecast_ms``).
     """
 
     settle_s: float = 10 / 30
@@ -313,7 +313,8 @@ class People:
     def catch_up(self) -> None:
         """After the decision: the bodies :meth:`forecast` did not forecast anew take the capture into their
         predictors' history, and the stalest of them are forecast anew from it (for the next capture's
-        decision), within the capture's budget of :attr:`PeopleOptions.fresh_per_frame`."""
+        decision), within the capture's budget of :attr:`PeopleOptions.fresh_per_frame`. Nothing to do
+        after a capture :meth:`forecast` did not take (the reactive method's, the oracle's)."""
         pending, self._pending = self._pending, []
         budget = max(self._pending_budget, 0)
         stalest = sorted(pending, key=lambda tb: -math.inf if tb[0].forecast is None else tb[0].forecast.t0)

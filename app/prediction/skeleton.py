@@ -153,13 +153,10 @@ class HumanFrame:
         rows = slice(k * NUM_JOINTS, (k + 1) * NUM_JOINTS)
         # a part of a checked frame needs no check of its own (read-only views of its arrays)
         part = object.__new__(HumanFrame)
-        for name, value in (
-            ("t", self.t),
-            ("joints", self.joints[rows]),
-            ("confidence", self.confidence[rows]),
-            ("body_ids", (self.body_ids[k],)),
-        ):
-            object.__setattr__(part, name, value)
+        object.__setattr__(part, "t", self.t)
+        object.__setattr__(part, "joints", self.joints[rows])
+        object.__setattr__(part, "confidence", self.confidence[rows])
+        object.__setattr__(part, "body_ids", (self.body_ids[k],))
         return part
 
     def matched(self, before: HumanFrame) -> np.ndarray:
