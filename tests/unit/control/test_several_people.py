@@ -233,3 +233,19 @@ def test_a_capture_with_no_body_is_a_person_free_frame(stack: PlanningStack) -> 
     budget = result.summary()["time_budget_s"]
     assert budget["waiting_for_person"] == 0.0 and budget["braking"] == 0.0 and budget["stopped"] == 0.0
     assert budget["moving_full"] > 2 * budget["moving_scaled"]
+
+
+def test_every_person_takes_every_capture_before_the_next_one(stack: PlanningStack) -> None:
+    """The engine forecasts the person expected to fetch before a capture's decision and lets the others
+    catch up after it: at every servo tick each person's predictor has taken the same captures."""
+    source = _Scripted(_operator(stack), second_xy=(0.0, -1.2))
+    source.appear_at = 0.0  # in the cell from the start: not a new body
+    counts: list[tuple[int, ...]] = []
+
+    def observe(t: float, engine: Any) -> None:
+        tracks = engine.people._tracks.values()
+        counts.append(tuple(tr.predictor.counters["frames"] for tr in tracks if tr.predictor is not None))
+
+    _trial(stack, source, 2.0, observe, method="proactive")
+    assert len(counts[-1]) == 2 and counts[-1][0] >= 55  # two people, about 60 captures
+    assert all(c[0] == c[1] for c in counts if len(c) == 2), [c for c in counts if len(set(c)) > 1][:5]
