@@ -7,6 +7,10 @@ A cache written by an older version of the app is recompiled, never an error: nu
 index before it checks that the index belongs to the source it caches, so an index that names a type since
 renamed or moved (``Can't get attribute ...``) would stop the kernel from loading at all; importing this
 module makes numba treat such an index as stale (:func:`_tolerate_foreign_cache_indexes`).
+
+Every kernel releases the interpreter lock while it runs (``nogil``; none touches a Python object): the live
+runtime's threads (the robot command loop, the frame thread, the planner pool) share one interpreter, and a
+kernel of one need not hold up the others.
 """
 
 from __future__ import annotations
@@ -48,9 +52,12 @@ _tolerate_foreign_cache_indexes()
 
 
 def jit(fn: Callable[..., Any] | None = None, **options: Any) -> Any:
-    """``numba.njit(cache=True, **options)``, or in-memory compilation where no cache location is writable.
+    """``numba.njit(cache=True, nogil=True, **options)``, or in-memory compilation where no cache location is
+    writable.
 
     Use as ``@jit`` or ``@jit(inline="always", ...)``."""
+
+    options.setdefault("nogil", True)
 
     def wrap(f: Callable[..., Any]) -> Any:
         global _warned_no_cache

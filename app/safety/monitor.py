@@ -73,8 +73,13 @@ def is_intrusion(joint_speeds_mps: np.ndarray, *, body_mps: float = 5.0) -> bool
     faster than ``body_mps`` (a person walks at up to 2 m/s and runs at 3-5 m/s), or any joint faster than
     twice that (a hand in fast work reaches 2-3 m/s and in a throw up to about 10 m/s; beyond, a joint of the
     skeleton jumped: a tracking or recording glitch, or another person)."""
-    v = np.asarray(joint_speeds_mps, dtype=np.float64)
-    return bool(float(np.median(v)) > body_mps or float(v.max()) > 2.0 * body_mps)
+    v = np.sort(np.asarray(joint_speeds_mps, dtype=np.float64).ravel())  # (NaN sorts last)
+    top = float(v[-1])
+    if math.isnan(top):
+        return False
+    mid = v.size // 2
+    median = float(v[mid]) if v.size % 2 else 0.5 * (float(v[mid - 1]) + float(v[mid]))  # np.median's
+    return median > body_mps or top > 2.0 * body_mps
 
 
 class BodyGeometry(Protocol):

@@ -265,6 +265,20 @@ def test_what_counts_as_an_intrusion() -> None:
     assert is_intrusion(np.full(NUM_JOINTS, 6.0))  # the whole body moved 20 cm in a frame: someone else
 
 
+def test_the_intrusion_rule_is_the_median_and_the_fastest_joint() -> None:
+    """The rule's sort-based median is NumPy's median, including an even count and a NaN speed."""
+    from app.safety.monitor import is_intrusion
+
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        v = rng.exponential(3.0, size=int(rng.integers(1, 40))) * rng.choice([0.5, 1.0, 2.0, 4.0])
+        if rng.random() < 0.05:
+            v[rng.integers(v.size)] = np.nan
+        with np.errstate(invalid="ignore"):
+            expected = bool(float(np.median(v)) > 5.0 or float(v.max()) > 10.0)
+        assert is_intrusion(v, body_mps=5.0) == expected, v
+
+
 def test_a_true_jump_starts_an_intrusion_whose_violation_is_counted_apart(geometry) -> None:
     mon = _monitor(geometry)
     q, qd, person, direction = _scene(geometry, 0.15)
