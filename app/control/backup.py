@@ -1,15 +1,19 @@
 """Plan jobs: the backup plans the supervisor asks for under the deadline D, computed by a
 :class:`BackupComputer` inline (:class:`InlinePlanJobs`, headless runs) or on a pool of planner threads
-(:class:`PoolPlanJobs`, the live runtime)."""
+(:class:`PoolPlanJobs`, the live runtime), which let each frame's decision go first
+(:class:`ForegroundGate`)."""
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
+import copy
 import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 
@@ -126,6 +130,10 @@ class PlanJobs(Protocol):
         """The outcome if it is already known without computing anything, else None."""
         ...
 
+    def foreground(self) -> AbstractContextManager[None]:
+        """While the caller is inside it, its work goes before the jobs' (a frame's decision)."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -155,6 +163,13 @@ class BackupComputer:
         self.profile_window_s = profile_window_s
         #: Give the planner the deadline (live, measured headless); False when compute times are fixed.
         self.enforce_deadline = True
+
+    def reading_clock(self, timer: Callable[[], float]) -> BackupComputer:
+        """This computer with its compute times, and its planner's deadlines, read from ``timer``."""
+        other = copy.copy(self)
+        other.timer = timer
+        other.planner = self.planner.with_timer(timer)
+        return other
 
     def __call__(self, req: BackupRequest) -> PlanOutcome:
         """Plan, build the trajectory and its speed profile; ``ok`` or ``deadline_miss`` by the measured
@@ -306,8 +321,67 @@ class InlinePlanJobs:
     def peek(self, key: int) -> PlanOutcome | None:
         return None
 
+    def foreground(self) -> AbstractContextManager[None]:
+        return contextlib.nullcontext()  # a plan is computed only when a decision takes it
+
     def close(self) -> None:
         self._pending.clear()
+
+
+class ForegroundGate:
+    """Lets one thread's work at a time go before the plan jobs that share the interpreter with it.
+
+    The live runtime's plan jobs run on threads of the process that also runs the frame thread, and the
+    interpreter runs one thread's Python at a time: a job between two of its compiled kernels keeps it until
+    it is made to switch (every ``sys.getswitchinterval()``, 5 ms), so a frame that arrived while plans were
+    computed waited for them, often more than once. While a thread is inside :meth:`foreground` (the frame
+    thread, from reading the source to its decision), a job that reads the clock through :meth:`now` (the
+    planner does at every step of its search and at every deadline check; the backup computer between its
+    steps) waits there until that work is done, ``max_wait_s`` at most, and then goes on. The wait counts in
+    the job's compute time and against its deadline, as any delay does. The thread in the foreground never
+    waits for itself.
+
+    Args:
+        max_wait_s: The longest a job waits at one reading of the clock (a foreground that does not end does
+            not stop the jobs).
+        timer: The clock read (s).
+    """
+
+    def __init__(self, *, max_wait_s: float = 0.02, timer: Callable[[], float] = time.perf_counter) -> None:
+        if not max_wait_s > 0:
+            raise ValueError(f"ForegroundGate: max_wait_s must be > 0, got {max_wait_s}")
+        self.max_wait_s = float(max_wait_s)
+        self._timer = timer
+        self._free = threading.Event()
+        self._free.set()
+        self._owner: int | None = None
+        self._lock = threading.Lock()
+        #: How long the jobs waited for the foreground in all (s), and how often.
+        self.waited_s = 0.0
+        self.waits = 0
+
+    @contextlib.contextmanager
+    def foreground(self) -> Iterator[None]:
+        """The caller's work goes first until the block ends (not reentrant)."""
+        self._owner = threading.get_ident()
+        self._free.clear()
+        try:
+            yield
+        finally:
+            self._free.set()
+
+    def now(self) -> float:
+        """The time (s), read after the work in the foreground is done where some is under way and the
+        caller is not the thread doing it."""
+        if self._free.is_set() or threading.get_ident() == self._owner:
+            return self._timer()
+        t0 = self._timer()
+        self._free.wait(self.max_wait_s)
+        t = self._timer()
+        with self._lock:
+            self.waited_s += t - t0
+            self.waits += 1
+        return t
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -318,14 +392,21 @@ class PoolPlanJobs:
     """Live plan jobs: every frame's backup plan runs on a pool of ``ceil(D / F)`` workers (more requests
     in flight are skipped); a result is taken at ``T_i + D`` and counts only if it was ready by then.
 
+    The jobs read their clock through a :class:`ForegroundGate`: a thread inside :meth:`foreground` (the
+    frame thread, up to its decision) goes before them.
+
     Args:
         compute: The backup computer (the planner gets the deadline D).
         max_jobs: Jobs in flight at most.
         clock: For the in-flight bookkeeping.
+        gate: The jobs' clock (default: a :class:`ForegroundGate` on the computer's timer).
     """
 
-    def __init__(self, compute: BackupComputer, *, max_jobs: int, clock: Clock) -> None:
-        self.compute = compute
+    def __init__(
+        self, compute: BackupComputer, *, max_jobs: int, clock: Clock, gate: ForegroundGate | None = None
+    ) -> None:
+        self.gate = ForegroundGate(timer=compute.timer) if gate is None else gate
+        self.compute = compute.reading_clock(self.gate.now)
         self.max_jobs = int(max_jobs)
         self.clock = clock
         self._pool = cf.ThreadPoolExecutor(max_workers=self.max_jobs, thread_name_prefix="hrc-planner")
@@ -367,6 +448,9 @@ class PoolPlanJobs:
         if job is None or not job[0].done():
             return None
         return job[0].result()
+
+    def foreground(self) -> AbstractContextManager[None]:
+        return self.gate.foreground()
 
     def close(self) -> None:
         with self._lock:

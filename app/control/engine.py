@@ -399,42 +399,47 @@ class TrialEngine:
         """Read the source at ``t``; a new valid frame goes through the predictor and the supervisor."""
         if self.finished is not None:
             return None
-        tracked = self.source.poll(t)
-        if tracked is None:
-            return None
-        # the frame's time in the software starts when the source handed it over (the time the source takes
-        # to make it, a simulated person's or a tracker's own, is not the software's)
-        c0 = self.source.handed_over
-        people = self.people.update(tracked)
-        frame = people.frame  # every body seen, and the lost ones held, with their track ids
-        seen = people.seen  # the bodies of this capture alone
-        self._check_intrusion(t, people)
-        # the bodies as the geometry sees them: the hand capsules out to the fingertips (the predictor keeps
-        # the tracked joints it was trained on)
-        body = dataclasses.replace(frame, joints=reach_fingertips(frame.joints))
-        # the reactive method's forecast: the people held still where they are now; the proactive method
-        # weighs the plan it gives as a candidate against its own at every backup
-        margin = self.options.tracking_margin_m + self.options.plan_margin_m
-        held = self.people.held(people, body, margin_m=margin)
-        forecast = held
-        if self.method == "proactive":
-            self._fetcher_id = self._fetcher(seen)
-            if self.predictor.whole_frame:  # a predictor of every body at once (the oracle)
-                forecast = self.predictor.update(seen)
-            else:
-                forecast = self.people.forecast(
-                    people, margin_m=self.options.tracking_margin_m, shape=self._shape, first=self._fetcher_id
-                )
-            forecast = dataclasses.replace(forecast, joints=reach_fingertips(forecast.joints))
-            if self.options.plan_margin_m > 0:
-                extra = self.options.plan_margin_m
-                forecast = dataclasses.replace(forecast, margins=forecast.margins + extra)
-        candidate = held if self.settings.reactive_candidate else None
-        decision = self.supervisor.on_frame(
-            body, forecast, t_now=t, candidate=candidate, ages_s=people.ages_s
-        )
-        self.decide_s.append(decision.decide_s)
-        self.frame_to_decision_s = time.perf_counter() - c0  # validation, people, prediction, decision
+        # the frame goes before the planner pool's jobs until its decision (ForegroundGate, live)
+        with self.jobs.foreground():
+            tracked = self.source.poll(t)
+            if tracked is None:
+                return None
+            # the frame's time in the software starts when the source handed it over (the time the source
+            # takes to make it, a simulated person's or a tracker's own, is not the software's)
+            c0 = self.source.handed_over
+            people = self.people.update(tracked)
+            frame = people.frame  # every body seen, and the lost ones held, with their track ids
+            seen = people.seen  # the bodies of this capture alone
+            self._check_intrusion(t, people)
+            # the bodies as the geometry sees them: the hand capsules out to the fingertips (the predictor
+            # keeps the tracked joints it was trained on)
+            body = dataclasses.replace(frame, joints=reach_fingertips(frame.joints))
+            # the reactive method's forecast: the people held still where they are now; the proactive method
+            # weighs the plan it gives as a candidate against its own at every backup
+            margin = self.options.tracking_margin_m + self.options.plan_margin_m
+            held = self.people.held(people, body, margin_m=margin)
+            forecast = held
+            if self.method == "proactive":
+                self._fetcher_id = self._fetcher(seen)
+                if self.predictor.whole_frame:  # a predictor of every body at once (the oracle)
+                    forecast = self.predictor.update(seen)
+                else:
+                    forecast = self.people.forecast(
+                        people,
+                        margin_m=self.options.tracking_margin_m,
+                        shape=self._shape,
+                        first=self._fetcher_id,
+                    )
+                forecast = dataclasses.replace(forecast, joints=reach_fingertips(forecast.joints))
+                if self.options.plan_margin_m > 0:
+                    extra = self.options.plan_margin_m
+                    forecast = dataclasses.replace(forecast, margins=forecast.margins + extra)
+            candidate = held if self.settings.reactive_candidate else None
+            decision = self.supervisor.on_frame(
+                body, forecast, t_now=t, candidate=candidate, ages_s=people.ages_s
+            )
+            self.decide_s.append(decision.decide_s)
+            self.frame_to_decision_s = time.perf_counter() - c0  # validation, people, prediction, decision
         self.people.catch_up()  # the other people's predictors take the capture, for the next decision
         self.last_decision = decision
         sep = decision.separation_m + self.config.tracking_margin_m

@@ -71,6 +71,10 @@ class PlannerLike(Protocol):
         self, traj: Any, forecast: HumanForecast | None, *, timing: Any = None
     ) -> tuple[float | None, float]: ...
 
+    def with_timer(self, timer: Callable[[], float]) -> PlannerLike:
+        """This planner reading deadlines and compute times from ``timer``."""
+        ...
+
 
 class RobotGeometry(Protocol):
     """The robot's body as ``L`` parts (see :class:`app.control.stack.CellGeometry`: one per capsule)."""

@@ -7,6 +7,7 @@ checks, heuristic), :mod:`.moves` (move checks), :mod:`.astar` (the search loops
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import inspect
 import math
@@ -307,6 +308,13 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         return (ia[None] + off).ravel(), (ib[None] + off).ravel(), np.tile(r, bodies)
 
     # ------------------------------------------------------------------------------------------ public
+    def with_timer(self, timer: Callable[[], float]) -> Planner:
+        """This planner reading deadlines and compute times from ``timer``: the same tables (a query keeps
+        its state in its own arrays, so the two serve queries side by side)."""
+        other = copy.copy(self)
+        other._timer = timer
+        return other
+
     def plan(
         self,
         *,
