@@ -17,7 +17,6 @@ import logging
 import multiprocessing as mp
 import os
 import secrets
-import socket
 import statistics
 import tempfile
 import threading
@@ -27,17 +26,13 @@ from typing import Any
 
 import numpy as np
 
+from app.bench.served import free_port
+
 logger = logging.getLogger(__name__)
 
 LIVE_CLIENTS = 20
 REST_RATE_HZ = 50.0
 REST_ROUTE = "/api/robot"
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _pct(samples: list[float], q: float) -> float | None:
@@ -180,7 +175,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
             data_dir=Path(tmp),
             api_token=token,
             database_url=f"sqlite:///{Path(tmp) / 'bench.db'}",
-            port=_free_port(),
+            port=free_port(),
             robot="sim",
             human_source="sim",
         )

@@ -36,22 +36,30 @@ log = logging.getLogger(__name__)
 SEED = 11
 TOKEN_BYTES = 24
 SERVER_START_TIMEOUT_S = 240.0
+#: Headless Chromium as the benchmarks and the end-to-end tests run it.
 CHROMIUM_ARGS = (
     "--headless",
     "--no-sandbox",
     "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    # WebGL in software (SwiftShader) for the viser 3D view on machines without a GPU.
     "--enable-unsafe-swiftshader",
     "--use-angle=swiftshader",
 )
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A free TCP port on the loopback address."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
-def _chromium() -> str | None:
+def chromium_path() -> str | None:
+    """Debian's Chromium: ``HRC_CHROMIUM`` where set (None if no file is there), else the system's."""
     configured = os.environ.get("HRC_CHROMIUM")
     if configured:
         return configured if Path(configured).is_file() else None
@@ -86,6 +94,25 @@ def _browser_cpu_s() -> float:
     return total
 
 
+def serve_env(*, token: str, data_dir: Path, port: int, viser_port: int) -> dict[str, str]:
+    """The environment of an ``hrc serve`` subprocess on loopback ``port`` (and ``viser_port``) with the
+    simulated cell, ``token`` and ``data_dir``: this process's environment without its ``HRC_`` settings."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("HRC_")}
+    env.update(
+        HRC_API_TOKEN=token,
+        HRC_DATA_DIR=str(data_dir),
+        HRC_HOST="127.0.0.1",
+        HRC_PORT=str(port),
+        HRC_VISER_PORT=str(viser_port),
+        HRC_ROBOT="sim",
+        HRC_HUMAN_SOURCE="sim",
+        OMP_NUM_THREADS="1",
+        MKL_NUM_THREADS="1",
+        PYTHONUNBUFFERED="1",
+    )
+    return env
+
+
 class _Server:
     """``hrc serve`` on free loopback ports with the simulated cell, in a temporary data directory."""
 
@@ -95,18 +122,8 @@ class _Server:
         import httpx
 
         self.token = secrets.token_hex(TOKEN_BYTES)
-        port, viser_port = _free_port(), _free_port()
-        env = {k: v for k, v in os.environ.items() if not k.startswith("HRC_")}
-        env.update(
-            HRC_API_TOKEN=self.token,
-            HRC_DATA_DIR=str(work / "data"),
-            HRC_HOST="127.0.0.1",
-            HRC_PORT=str(port),
-            HRC_VISER_PORT=str(viser_port),
-            HRC_ROBOT="sim",
-            HRC_HUMAN_SOURCE="sim",
-            OMP_NUM_THREADS="1",
-        )
+        port, viser_port = free_port(), free_port()
+        env = serve_env(token=self.token, data_dir=work / "data", port=port, viser_port=viser_port)
         self.base_url = f"http://127.0.0.1:{port}"
         self.log_path = work / "server.log"
         self._log = self.log_path.open("wb")
@@ -214,7 +231,7 @@ def run(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
             if progress:
                 log.info("bench served: a %.0f-s trial with no page open", duration)
             out["no_page"] = _trial(server, participant["id"], duration)
-            chromium = _chromium()
+            chromium = chromium_path()
             try:
                 from playwright.sync_api import sync_playwright
             except ImportError:

@@ -8,10 +8,8 @@ skip with a clear reason when the browser or Playwright is missing. Screenshots 
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -23,39 +21,15 @@ from typing import Any
 import httpx
 import pytest
 
+from app.bench.served import CHROMIUM_ARGS, serve_env
+from app.bench.served import chromium_path as _chromium_path
+from app.bench.served import free_port as _free_port
+
 REPO_ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = REPO_ROOT / "test-artifacts"
 TOKEN = "e2e-operator-token-0123456789abcdef"
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-    # WebGL in software (SwiftShader) for the viser 3D view on machines without a GPU.
-    "--enable-unsafe-swiftshader",
-    "--use-angle=swiftshader",
-]
 #: Longest wait for the server's first health answer (migrations, roadmap build or cache load, runtime start).
 SERVER_START_TIMEOUT_S = 180.0
-
-
-def _chromium_path() -> str | None:
-    configured = os.environ.get("HRC_CHROMIUM")
-    if configured:
-        return configured if Path(configured).is_file() else None
-    for candidate in ("/usr/bin/chromium", "/usr/bin/chromium-browser"):
-        if Path(candidate).is_file():
-            return candidate
-    return shutil.which("chromium")
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass(frozen=True)
@@ -113,19 +87,7 @@ def hrc_server(tmp_path_factory: pytest.TempPathFactory, chromium_path: str) -> 
     work = tmp_path_factory.mktemp("hrc-e2e")
     data_dir = work / "data"
     port, viser_port = _free_port(), _free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("HRC_")}
-    env.update(
-        HRC_API_TOKEN=TOKEN,
-        HRC_DATA_DIR=str(data_dir),
-        HRC_HOST="127.0.0.1",
-        HRC_PORT=str(port),
-        HRC_VISER_PORT=str(viser_port),
-        HRC_ROBOT="sim",
-        HRC_HUMAN_SOURCE="sim",
-        OMP_NUM_THREADS="1",
-        MKL_NUM_THREADS="1",
-        PYTHONUNBUFFERED="1",
-    )
+    env = serve_env(token=TOKEN, data_dir=data_dir, port=port, viser_port=viser_port)
     log_path = work / "server.log"
     log = log_path.open("wb")
     # cwd = the temporary directory, so that a developer's .env does not leak into the test server.
@@ -174,7 +136,7 @@ def browser(chromium_path: str) -> Iterator[Any]:
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=chromium_path, args=CHROMIUM_ARGS)
+        b = p.chromium.launch(executable_path=chromium_path, args=list(CHROMIUM_ARGS))
         try:
             yield b
         finally:
