@@ -11,8 +11,9 @@ simulated operator, the default roadmap and the shipped predictor) and runs a pr
 - ``servo_jitter_ms``: how late each tick of the robot command loop woke up after its deadline
   (:class:`~app.cell.clock.RateLoop`, ``servo_rate_hz``), with its overruns;
 - ``planning``: the compute time of every plan of the trial on the planner pool (a plan that sets the robot
-  off also weighs the reactive method's plan: both searches and the check), against the deadline ``D``, and
-  the missed deadlines per minute.
+  off also weighs the reactive method's plan: both searches and the check), against the deadline ``D``, the
+  missed deadlines per minute, and how long the plans waited for the frames' decisions in all
+  (``waited_for_frames_ms``, ``waits_for_frames``: :class:`~app.control.backup.ForegroundGate`).
 
 With ``bodies`` N > 1 the cell holds N people: the simulated operator, seen through the tracker model, and
 N - 1 copies of what the tracker reports of them, standing elsewhere around the table (:class:`_Copies`):
@@ -141,7 +142,7 @@ def run(
         late = list(rt.stats.servo_late_ms)
         overruns = rt.stats.servo_overruns - overruns0
         counters = rt.snapshot().counters
-        plans_s, misses = rt.planning_record()
+        record = rt.planning_record()
         rt.stop_trial(reason="benchmark done")
     finally:
         rt.stop()
@@ -157,9 +158,11 @@ def run(
         "servo_ticks": len(late),
         "planning": {
             "deadline_ms": round(1e3 * settings.deadline_s, 3),
-            "plan_ms": _pct([1e3 * x for x in plans_s], (50, 95)),
-            "deadline_misses": misses,
-            "deadline_misses_per_min": round(60.0 * misses / duration, 2),
+            "plan_ms": _pct([1e3 * x for x in record.times_s], (50, 95)),
+            "deadline_misses": record.deadline_misses,
+            "deadline_misses_per_min": round(60.0 * record.deadline_misses / duration, 2),
+            "waited_for_frames_ms": round(1e3 * record.waited_s, 1),
+            "waits_for_frames": record.waits,
         },
         "start_s": round(build_s, 3),
         "trial_counters": {k: v for k, v in counters.items() if isinstance(v, int)},

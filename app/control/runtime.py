@@ -31,7 +31,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -40,13 +40,12 @@ from app.cell.robot import RobotBackend, RobotConnectionError
 from app.cell.source import HumanSource
 from app.cell.validation import REJECT_REASONS, ValidatedSource
 from app.config import Settings, WorkCell
-from app.control.backup import BackupComputer, PoolPlanJobs
+from app.control.backup import ForegroundGate, PoolPlanJobs
 from app.control.engine import EngineOptions, TrialEngine
 from app.control.headless import run_headless_trial
 from app.control.metrics import METHODS, Method, TrialEvent, TrialMetrics
 from app.control.results import ShownSpeed, Snapshot, TrialFrames, TrialResult, robot_mode
 from app.control.stack import PlanningStack
-from app.control.supervisor import SupervisorConfig
 from app.control.world import PredictorInfo, TrialWorld, build_trial_world, predictor_info
 from app.planning.collision import ROBOT_LINKS
 from app.prediction.forecast import HumanForecast, Predictor
@@ -222,6 +221,22 @@ class _LoopStats:
     servo_overruns: int = 0
 
 
+class PlanningRecord(NamedTuple):
+    """A live trial's planning so far.
+
+    Attributes:
+        times_s: The compute time (s) of every plan.
+        deadline_misses: Its missed deadlines.
+        waited_s: How long its plan jobs waited for the frames' decisions in all (s;
+            :class:`~app.control.backup.ForegroundGate`), and ``waits`` how often.
+    """
+
+    times_s: list[float]
+    deadline_misses: int
+    waited_s: float
+    waits: int
+
+
 class Runtime:
     """The live cell: see the module docstring.
 
@@ -267,6 +282,7 @@ class Runtime:
         self._lock = threading.RLock()
         self._engine: TrialEngine | None = None
         self._trial_id: int | None = None
+        self._gate: ForegroundGate | None = None  # the running trial's plan jobs' (PoolPlanJobs)
         self._world: TrialWorld | None = None
         self._source: ValidatedSource | None = None
         self._sim_source = False
@@ -416,14 +432,14 @@ class Runtime:
         with self._lock:
             return self._trial_id if self._engine is not None and self._engine.running else None
 
-    def planning_record(self) -> tuple[list[float], int]:
-        """The compute time (s) of every plan of the trial so far and its missed deadlines ([], 0: none)."""
+    def planning_record(self) -> PlanningRecord:
+        """The planning of the trial so far (empty before the first)."""
         with self._lock:
-            engine = self._engine
-        if engine is None:
-            return [], 0
+            engine, gate = self._engine, self._gate
+        if engine is None or gate is None:
+            return PlanningRecord([], 0, 0.0, 0)
         c = engine.supervisor.counters
-        return list(c.planning_times_s), c.deadline_misses
+        return PlanningRecord(list(c.planning_times_s), c.deadline_misses, gate.waited_s, gate.waits)
 
     def start_trial(self, *, trial_id: int, method: Method, duration_s: float, seed: int) -> None:
         """Start a trial now.
@@ -452,11 +468,14 @@ class Runtime:
                 self._source.reset_counters()  # the trial counts its own frames and rejections
             assert self._world is not None
             clock = self.clock
+            gate = self._gate = ForegroundGate()
             self._engine = self._world.engine(
                 method=method,
                 duration_s=duration_s,
                 t0=clock.now(),
-                jobs_factory=lambda computer, cfg: _pool_jobs(computer, cfg, clock),
+                jobs_factory=lambda computer, cfg: PoolPlanJobs(
+                    computer, max_jobs=cfg.max_jobs, clock=clock, gate=gate
+                ),
                 on_event=lambda ev, tid=trial_id: self._post_event(tid, ev),
                 seed=seed,
             )
@@ -782,10 +801,6 @@ def _shown_forecast(fc: HumanForecast, period_s: float) -> np.ndarray:
     double the live messages)."""
     n = math.floor((fc.horizon_end - fc.t0) / period_s + 1e-6)
     return fc.poses_at(fc.t0 + period_s * np.arange(n + 1))[0]
-
-
-def _pool_jobs(computer: BackupComputer, cfg: SupervisorConfig, clock: Clock) -> PoolPlanJobs:
-    return PoolPlanJobs(computer, max_jobs=cfg.max_jobs, clock=clock)
 
 
 _COMPILED_READY = False

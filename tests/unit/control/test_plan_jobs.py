@@ -140,14 +140,6 @@ def test_the_pool_plans_on_the_gate_clock_and_a_frame_in_the_foreground_goes_fir
         jobs.close()
 
 
-def test_the_headless_jobs_have_no_foreground_to_wait_for() -> None:
-    computer = BackupComputer(_ClockedPlanner(), lambda plan, qd0: None, None, deadline_s=LONG_S, workers=1)  # type: ignore[arg-type]
-    jobs = InlinePlanJobs(computer, fixed_compute_s=0.01)
-    with jobs.foreground():
-        jobs.submit(_request(1))
-        assert jobs.take(1).status == "failed"  # computed inside a foreground, without waiting for it
-
-
 def test_the_engine_holds_the_foreground_from_reading_the_source_to_the_decision(
     stack: PlanningStack, monkeypatch: pytest.MonkeyPatch
 ) -> None:
