@@ -113,59 +113,78 @@ def serve_env(*, token: str, data_dir: Path, port: int, viser_port: int) -> dict
     return env
 
 
-class _Server:
-    """``hrc serve`` on free loopback ports with the simulated cell, in a temporary data directory."""
+class ServeProcess:
+    """``hrc serve`` in a subprocess on free loopback ports with the simulated cell, its data and its log
+    in ``work`` (also its working directory, so that no ``.env`` of the caller's leaks in); the benchmark's
+    and the end-to-end tests' server.
 
-    def __init__(self, work: Path) -> None:
+    Args:
+        work: A directory of its own.
+        token: The operator token (default: a random one).
+        log_level: ``hrc serve --log-level``.
+    """
+
+    def __init__(self, work: Path, *, token: str | None = None, log_level: str = "info") -> None:
         import secrets
 
-        import httpx
-
-        self.token = secrets.token_hex(TOKEN_BYTES)
-        port, viser_port = free_port(), free_port()
-        env = serve_env(token=self.token, data_dir=work / "data", port=port, viser_port=viser_port)
-        self.base_url = f"http://127.0.0.1:{port}"
+        self.token = secrets.token_hex(TOKEN_BYTES) if token is None else token
+        self.port, self.viser_port = free_port(), free_port()
+        self.data_dir = work / "data"
+        env = serve_env(token=self.token, data_dir=self.data_dir, port=self.port, viser_port=self.viser_port)
+        self.base_url = f"http://127.0.0.1:{self.port}"
         self.log_path = work / "server.log"
         self._log = self.log_path.open("wb")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "app.cli", "serve"],
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "app.cli", "serve", "--log-level", log_level],
             cwd=work,
             env=env,
             stdout=self._log,
             stderr=subprocess.STDOUT,
         )
-        self.client = httpx.Client(
-            base_url=self.base_url, headers={"Authorization": f"Bearer {self.token}"}, timeout=10.0
-        )
-        deadline = time.monotonic() + SERVER_START_TIMEOUT_S
+
+    def wait_healthy(self, timeout_s: float = SERVER_START_TIMEOUT_S) -> None:
+        """Return once ``/api/health`` answers 200.
+
+        Raises:
+            RuntimeError: the server exited first, or did not answer within ``timeout_s`` (with its log's
+                tail).
+        """
+        import httpx
+
+        deadline = time.monotonic() + timeout_s
         while True:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"hrc serve exited ({self.proc.returncode}):\n{self._tail()}")
+            if self.process.poll() is not None:
+                raise RuntimeError(
+                    f"hrc serve exited ({self.process.returncode}) before it was healthy:\n{self.log_tail()}"
+                )
             with contextlib.suppress(httpx.HTTPError):
-                if self.client.get("/api/health").status_code == 200:
-                    break
+                if httpx.get(f"{self.base_url}/api/health", timeout=2.0).status_code == 200:
+                    return
             if time.monotonic() > deadline:
-                raise RuntimeError(f"hrc serve was not healthy within {SERVER_START_TIMEOUT_S:.0f} s")
+                raise RuntimeError(f"hrc serve was not healthy within {timeout_s:.0f} s:\n{self.log_tail()}")
             time.sleep(0.5)
 
-    def _tail(self) -> str:
-        return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-40:])
+    def log_tail(self, n: int = 60) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-n:])
+        except OSError:
+            return "<no log>"
 
-    def close(self) -> None:
-        self.client.close()
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
+    def stop(self) -> None:
+        """Stop the server (SIGTERM, then a kill after 30 s) and close its log."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
             try:
-                self.proc.wait(timeout=30)
+                self.process.wait(timeout=30)
             except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
+                self.process.kill()
+                self.process.wait(timeout=10)
         self._log.close()
 
 
-def _trial(server: _Server, participant_id: int, duration_s: float) -> dict[str, Any]:
+def _trial(server: ServeProcess, client: Any, participant_id: int, duration_s: float) -> dict[str, Any]:
     """A proactive trial of ``duration_s`` over REST; its plans' compute times and CPU use."""
-    r = server.client.post(
+    r = client.post(
         "/api/trials",
         json={
             "participant_id": participant_id,
@@ -177,12 +196,12 @@ def _trial(server: _Server, participant_id: int, duration_s: float) -> dict[str,
     if r.status_code not in (200, 201):
         raise RuntimeError(f"starting the trial failed: {r.status_code} {r.text}")
     trial_id = r.json()["id"]
-    cpu0 = (_proc_cpu_s(server.proc.pid), _browser_cpu_s())
+    cpu0 = (_proc_cpu_s(server.process.pid), _browser_cpu_s())
     plans: list[float] = []
     counted = 0
     t_end = time.monotonic() + duration_s + 3.0
     while time.monotonic() < t_end:
-        state = server.client.get("/api/state").json()
+        state = client.get("/api/state").json()
         recent = list(state.get("planning_ms") or [])
         computed = int((state.get("counters") or {}).get("plans_computed", 0))
         new = computed - counted
@@ -190,9 +209,9 @@ def _trial(server: _Server, participant_id: int, duration_s: float) -> dict[str,
             plans.extend(recent[-min(new, len(recent)) :])
             counted = computed
         time.sleep(0.5)
-    cpu1 = (_proc_cpu_s(server.proc.pid), _browser_cpu_s())
+    cpu1 = (_proc_cpu_s(server.process.pid), _browser_cpu_s())
     for _ in range(40):  # the trial's end is recorded a moment later
-        trial = server.client.get(f"/api/trials/{trial_id}").json()
+        trial = client.get(f"/api/trials/{trial_id}").json()
         if trial.get("status") != "running":
             break
         time.sleep(0.5)
@@ -222,15 +241,21 @@ def run(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
     duration = 15.0 if quick else 120.0
     out: dict[str, Any] = {"duration_s": duration, "seed": SEED, "cores": os.cpu_count()}
     with tempfile.TemporaryDirectory(prefix="hrc-bench-served-") as tmp:
-        server = _Server(Path(tmp))
+        import httpx
+
+        server = ServeProcess(Path(tmp))
+        client = httpx.Client(
+            base_url=server.base_url, headers={"Authorization": f"Bearer {server.token}"}, timeout=10.0
+        )
         try:
-            info = server.client.get("/api/info").json()
+            server.wait_healthy()
+            info = client.get("/api/info").json()
             deadline_s = info.get("deadline_s")
             out["deadline_ms"] = None if deadline_s is None else round(1e3 * float(deadline_s), 3)
-            participant = server.client.post("/api/participants", json={"code": "BENCH-SERVED"}).json()
+            participant = client.post("/api/participants", json={"code": "BENCH-SERVED"}).json()
             if progress:
                 log.info("bench served: a %.0f-s trial with no page open", duration)
-            out["no_page"] = _trial(server, participant["id"], duration)
+            out["no_page"] = _trial(server, client, participant["id"], duration)
             chromium = chromium_path()
             try:
                 from playwright.sync_api import sync_playwright
@@ -251,9 +276,10 @@ def run(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
                     page.get_by_test_id("login-submit").click()
                     page.get_by_test_id("app-view").wait_for()
                     time.sleep(3.0)  # the 3D view loads its scene
-                    out["dashboard"] = _trial(server, participant["id"], duration)
+                    out["dashboard"] = _trial(server, client, participant["id"], duration)
                 finally:
                     browser.close()
         finally:
-            server.close()
+            client.close()
+            server.stop()
     return out

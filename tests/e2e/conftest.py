@@ -9,21 +9,15 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-import signal
-import subprocess
-import sys
-import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
 
-from app.bench.served import CHROMIUM_ARGS, serve_env
+from app.bench.served import CHROMIUM_ARGS, ServeProcess
 from app.bench.served import chromium_path as _chromium_path
-from app.bench.served import free_port as _free_port
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 ARTIFACTS = REPO_ROOT / "test-artifacts"
@@ -32,17 +26,8 @@ TOKEN = "e2e-operator-token-0123456789abcdef"
 SERVER_START_TIMEOUT_S = 180.0
 
 
-@dataclass(frozen=True)
-class HrcServer:
-    """A running ``hrc serve``: where it listens, its token and its log."""
-
-    base_url: str
-    port: int
-    viser_port: int
-    token: str
-    data_dir: Path
-    log_path: Path
-    process: subprocess.Popen[bytes]
+class HrcServer(ServeProcess):
+    """A running ``hrc serve``: where it listens, its token and its log, and REST calls with the token."""
 
     @property
     def headers(self) -> dict[str, str]:
@@ -53,12 +38,6 @@ class HrcServer:
         headers = {**self.headers, **kwargs.pop("headers", {})}
         timeout = kwargs.pop("timeout", 30.0)
         return httpx.request(method, f"{self.base_url}{path}", headers=headers, timeout=timeout, **kwargs)
-
-    def log_tail(self, n: int = 60) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-n:])
-        except OSError:
-            return "<no log>"
 
 
 @pytest.fixture(scope="session")
@@ -84,49 +63,18 @@ def artifacts_dir() -> Path:
 @pytest.fixture(scope="session")
 def hrc_server(tmp_path_factory: pytest.TempPathFactory, chromium_path: str) -> Iterator[HrcServer]:
     """``hrc serve`` on free ports (simulated robot and person) until the end of the session."""
-    work = tmp_path_factory.mktemp("hrc-e2e")
-    data_dir = work / "data"
-    port, viser_port = _free_port(), _free_port()
-    env = serve_env(token=TOKEN, data_dir=data_dir, port=port, viser_port=viser_port)
-    log_path = work / "server.log"
-    log = log_path.open("wb")
-    # cwd = the temporary directory, so that a developer's .env does not leak into the test server.
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "app.cli", "serve", "--log-level", "info"],
-        cwd=work,
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-    )
-    server = HrcServer(f"http://127.0.0.1:{port}", port, viser_port, TOKEN, data_dir, log_path, proc)
+    server = HrcServer(tmp_path_factory.mktemp("hrc-e2e"), token=TOKEN)
     try:
-        deadline = time.monotonic() + SERVER_START_TIMEOUT_S
-        while True:
-            if proc.poll() is not None:
-                pytest.fail(
-                    f"hrc serve exited ({proc.returncode}) before it was healthy:\n{server.log_tail()}"
-                )
-            with contextlib.suppress(httpx.HTTPError):
-                if httpx.get(f"{server.base_url}/api/health", timeout=2.0).status_code == 200:
-                    break
-            if time.monotonic() > deadline:
-                pytest.fail(
-                    f"hrc serve was not healthy within {SERVER_START_TIMEOUT_S:.0f} s:\n{server.log_tail()}"
-                )
-            time.sleep(0.5)
+        try:
+            server.wait_healthy(SERVER_START_TIMEOUT_S)
+        except RuntimeError as exc:
+            pytest.fail(str(exc))
         yield server
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=10)
-        log.close()
+        server.stop()
         if ARTIFACTS.is_dir():
             with contextlib.suppress(OSError):
-                shutil.copy(log_path, ARTIFACTS / "e2e-server.log")
+                shutil.copy(server.log_path, ARTIFACTS / "e2e-server.log")
 
 
 @pytest.fixture(scope="module")
