@@ -434,6 +434,16 @@ class Settings(BaseSettings):
         "than S_p to a body region while its speed toward it stays within the region's permissible contact "
         "speed (none for skull, face, neck); false: SSM alone, the paper's setting",
     )
+    plan_contact_regions: Literal["none", "checks", "all"] = Field(
+        "none",
+        description="with pfl: which of the planner's checks judge the forecast person where they are "
+        "forecast (without the forecast's margins) and ask of a body region that admits contact (hands, "
+        "arms, torso, legs) only that the robot does not touch it (Z_d), leaving the speed near it to the "
+        "governor (the region's permissible contact speed); skull, face and neck keep the whole "
+        "clearance. 'none': every region keeps it, with the margins (as SSM alone); 'checks': the "
+        "trajectory checks (a plan's verification, the supervisor's check of the plan in execution, the "
+        "reactive candidate's check under the forecast); 'all': the search's too (with its margins)",
+    )
     pfl_payload_kg: float = Field(
         1.0,
         ge=0.0,

@@ -103,17 +103,29 @@ class PlanningStack:
 
     @classmethod
     def for_cell(
-        cls, cell: WorkCell, *, t_reaction_s: float | None = None, cache_dir: str | Path | None = None
+        cls,
+        cell: WorkCell,
+        *,
+        t_reaction_s: float | None = None,
+        cache_dir: str | Path | None = None,
+        contact_only: tuple[bool, ...] = (),
+        contact_only_search: bool = False,
     ) -> PlanningStack:
         """The stack of ``cell`` (roadmap from the on-disk cache, built when missing), its planner's clearance
         with the reaction time ``t_reaction_s`` of the installation
         (:meth:`app.config.Settings.reaction_time_s`: the ``T_r`` of the governor and the monitor; default
-        :class:`app.safety.ssm.SSMParams`'). Cached per process, cell and ``T_r``."""
-        key = (cell.fingerprint(), None if cache_dir is None else str(cache_dir), t_reaction_s)
+        :class:`app.safety.ssm.SSMParams`') and ``contact_only``, ``contact_only_search``
+        (:class:`app.planning.search.PlannerConfig`'s, see :func:`contact_only_capsules`). Cached per
+        process, cell, ``T_r`` and those two."""
+        soft = (tuple(contact_only), bool(contact_only_search) and bool(contact_only))
+        key = (cell.fingerprint(), None if cache_dir is None else str(cache_dir), t_reaction_s, soft)
         with _STACK_LOCK:
             stack = _STACKS.get(key)
             if stack is None:
-                stack = _build_stack(cell, key[1], t_reaction_s=t_reaction_s)
+                from app.planning.search import PlannerConfig
+
+                config = PlannerConfig(contact_only=soft[0], contact_only_search=soft[1])
+                stack = _build_stack(cell, key[1], planner_config=config, t_reaction_s=t_reaction_s)
                 _STACKS[key] = stack
                 while len(_STACKS) > 4:
                     _STACKS.pop(next(iter(_STACKS)))
@@ -161,7 +173,21 @@ class PlanningStack:
         return list(self.roadmap.station_nodes)
 
 
-_STACKS: dict[tuple[str, str | None, float | None], PlanningStack] = {}
+_STACKS: dict[tuple[str, str | None, float | None, tuple[tuple[bool, ...], bool]], PlanningStack] = {}
+
+
+def contact_only_capsules(settings: Any) -> tuple[bool, ...]:
+    """Per person capsule (:data:`app.planning.collision.HUMAN_CAPSULES`), whether the planner asks of it
+    contact clearance only (:attr:`app.planning.search.PlannerConfig.contact_only`): with power and force
+    limiting and ``Settings.plan_contact_regions`` other than ``none``, the capsules whose region admits
+    contact (a permissible transient speed above zero: not skull, face or neck); else none (empty)."""
+    if not settings.pfl or settings.plan_contact_regions == "none":
+        return ()
+    from app.control.engine import pfl_model
+
+    return tuple(bool(v > 0.0) for v in pfl_model(settings).transient_mps)
+
+
 _STACK_LOCK = threading.Lock()
 
 

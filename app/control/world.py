@@ -36,7 +36,7 @@ from app.control.engine import (
 )
 from app.control.metrics import Method
 from app.control.results import TrialResult
-from app.control.stack import PlanningStack
+from app.control.stack import PlanningStack, contact_only_capsules
 from app.control.supervisor import SupervisorConfig
 from app.prediction.forecast import Predictor
 
@@ -481,7 +481,12 @@ def build_trial_world(
         if require_weights and reason is not None and not settings.hmp_fallback:
             raise PredictorUnavailable(fallback_message(reason))
     if stack is None:  # after the tracker's latency is known: T_r of the planner's clearance
-        stack = PlanningStack.for_cell(cell, t_reaction_s=settings.reaction_time_s(options.servo_period_s))
+        stack = PlanningStack.for_cell(
+            cell,
+            t_reaction_s=settings.reaction_time_s(options.servo_period_s),
+            contact_only=contact_only_capsules(settings),
+            contact_only_search=settings.plan_contact_regions == "all",
+        )
     if robot is None:
         assert make_robot is not None
         robot = make_robot(np.asarray(cell.robot.home_q, dtype=np.float64))

@@ -556,7 +556,7 @@ class CollisionModel:
             )
         )
         self._k_people: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        self._k_geometries: dict[int, _kernels.KernelGeometry] = {}
+        self._k_geometries: dict[tuple[int, bytes], _kernels.KernelGeometry] = {}
         self._k_geometry = self.kernel_geometry_for(1)
 
     # ------------------------------------------------------------------ geometry
@@ -575,13 +575,23 @@ class CollisionModel:
             got = self._k_people[bodies] = (ia, ib, rh)
         return got
 
-    def kernel_geometry_for(self, bodies: int) -> _kernels.KernelGeometry:
-        """:meth:`kernel_geometry` for a stacked pose of ``bodies`` bodies (cached)."""
-        geo = self._k_geometries.get(bodies)
+    def kernel_geometry_for(
+        self, bodies: int, contact_only: tuple[bool, ...] = ()
+    ) -> _kernels.KernelGeometry:
+        """:meth:`kernel_geometry` for a stacked pose of ``bodies`` bodies (cached); ``contact_only``: per
+        capsule of one body (the order of :data:`HUMAN_CAPSULES`), whether the checks ask of it contact
+        clearance only (:attr:`app.planning._kernels.PersonCapsules.soft`); empty: none."""
+        if contact_only and len(contact_only) != len(HUMAN_CAPSULES):
+            n = len(HUMAN_CAPSULES)
+            raise ValueError(f"contact_only needs one flag per person capsule ({n}), got {len(contact_only)}")
+        one = np.array(contact_only if contact_only else [False] * len(HUMAN_CAPSULES), dtype=np.float64)
+        key = (bodies, one.tobytes())
+        geo = self._k_geometries.get(key)
         if geo is None:
-            person = _kernels.PersonCapsules(*self.people(bodies * NUM_JOINTS))
+            soft = np.ascontiguousarray(np.tile(one, bodies))
+            person = _kernels.PersonCapsules(*self.people(bodies * NUM_JOINTS), soft)
             geo = _kernels.KernelGeometry(robot=self._k_robot, person=_kernels.pack(person))
-            self._k_geometries[bodies] = geo
+            self._k_geometries[key] = geo
         return geo
 
     def _robot_segments(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -69,6 +69,10 @@ class PersonCapsules(NamedTuple):
     ia: np.ndarray  #: (M,) int64
     ib: np.ndarray  #: (M,) int64
     rh: np.ndarray  #: (M,) radii (m)
+    #: (M,) 1.0 where the capsule is checked for contact only (a body region that power and force limiting
+    #: lets the robot touch at its permissible speed: the governor slows the robot to it at run time), 0.0
+    #: where it needs the whole clearance (skull, face, neck; every capsule with SSM alone)
+    soft: np.ndarray
 
 
 class KernelGeometry(NamedTuple):

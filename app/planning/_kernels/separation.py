@@ -34,9 +34,12 @@ def _too_close(
     rh: np.ndarray,
     req: float,
     SB: np.ndarray,
+    soft: np.ndarray,
+    req_soft: float,
 ) -> bool:
     """Whether some robot capsule flagged ``near`` (segments ``SA``/``SD`` (L, 3)) comes closer than ``req``
-    to some person capsule ``C`` (M, 6) (a NaN distance counts as too close). ``SB`` (L, 4): scratch.
+    to some person capsule ``C`` (M, 6), or than ``req_soft`` to one flagged ``soft`` (M,) (checked for
+    contact only: :attr:`PersonCapsules.soft`) (a NaN distance counts as too close). ``SB`` (L, 4): scratch.
 
     A pair whose bounding spheres (centre of the axis, half its length plus the radius) are at least
     ``req`` apart cannot be too close (the surface distance is never below the spheres' gap) and is not
@@ -54,10 +57,11 @@ def _too_close(
         cy = C[m, 1] + 0.5 * C[m, 4]
         cz = C[m, 2] + 0.5 * C[m, 5]
         rm = 0.5 * math.sqrt(C[m, 3] * C[m, 3] + C[m, 4] * C[m, 4] + C[m, 5] * C[m, 5]) + rh[m]
+        rq = req_soft if soft[m] > 0.0 else req
         for i in range(L):
             if not near[i]:
                 continue
-            lim = req + SB[i, 3] + rm
+            lim = rq + SB[i, 3] + rm
             dx = SB[i, 0] - cx
             dy = SB[i, 1] - cy
             dz = SB[i, 2] - cz
@@ -67,7 +71,7 @@ def _too_close(
                 SA[i, 0], SA[i, 1], SA[i, 2], SD[i, 0], SD[i, 1], SD[i, 2],
                 C[m, 0], C[m, 1], C[m, 2], C[m, 3], C[m, 4], C[m, 5],
             )  # fmt: skip
-            if not (s - (ra[i] + rh[m]) >= req):
+            if not (s - (ra[i] + rh[m]) >= rq):
                 return True
     return False
 
@@ -129,6 +133,7 @@ def sample_separation_ok(
     forecast: PersonForecast,
     robot: RobotArrays,
     person: PersonCapsules,
+    prm: np.ndarray,
 ) -> tuple[np.ndarray, int]:
     """The planner's sample check (:meth:`app.planning.search.separation._Separation.check`) in one pass.
 
@@ -141,6 +146,9 @@ def sample_separation_ok(
     differences; the ends held). With ``n_groups > 0`` the samples of one group (``groups`` (S,)) matter
     only together: once one fails, the group's remaining samples are reported failing without computing.
 
+    Capsules flagged :attr:`PersonCapsules.soft` need only :func:`_required_soft` (``prm``:
+    :attr:`Requirement.params`).
+
     Returns ``(ok (S,) bool, exact)``: the verdicts and how many (sample, offset) pairs needed the exact
     distance.
     """
@@ -150,7 +158,7 @@ def sample_separation_ok(
     times, joints, djoints, dtimes = forecast.times, forecast.joints, forecast.djoints, forecast.dtimes
     lo_pair, hi_pair = forecast.lo_pair, forecast.hi_pair
     ra = robot.ra
-    ia, ib, rh = person.ia, person.ib, person.rh
+    ia, ib, rh, soft = person.ia, person.ib, person.rh, person.soft
     S = q.shape[0]
     n_off = t.shape[0]
     L = ra.shape[0]
@@ -188,7 +196,7 @@ def sample_separation_ok(
             _pose_at(ts, times, joints, djoints, dtimes, pose[0])
             _person_capsules(pose, 0, ia, ib, C)
             exact += 1
-            if _too_close(SA, SD, near, ra, C, rh, rq, SB):
+            if _too_close(SA, SD, near, ra, C, rh, rq, SB, soft, min(_required_soft(prm), rq)):
                 ok[s] = False
                 if n_groups > 0:
                     failed[groups[s]] = True
@@ -264,6 +272,16 @@ def _required(v: float, w: float, margin: float, prm: np.ndarray) -> float:
 
 
 @_jit
+def _required_soft(prm: np.ndarray) -> float:
+    """The separation (m) asked of a capsule checked for contact only (:attr:`PersonCapsules.soft`): the
+    sensing uncertainty ``Z_d`` + the extra distance, capped at the floor (``prm``:
+    :attr:`Requirement.params`): no contact with the person where the forecast expects them. The forecast's
+    margin (where the person may be instead) does not enter: a region that admits contact is no obstacle
+    where it only may be, the governor holds the robot to its permissible speed there."""
+    return min(prm[5] + prm[6], prm[7])
+
+
+@_jit
 def moves_separation_ok(
     moves: Moves,
     tables: CapsuleBounds,
@@ -315,7 +333,7 @@ def moves_separation_ok(
     lo_pair, hi_pair = forecast.lo_pair, forecast.hi_pair
     margins, lo_tab, hi_tab = forecast.margins, forecast.lo_tab, forecast.hi_tab
     ra = robot.ra
-    ia, ib, rh = person.ia, person.ib, person.rh
+    ia, ib, rh, soft = person.ia, person.ib, person.rh, person.soft
     M = q_a.shape[0]
     L = ra.shape[0]
     NP = pts_a.shape[1]
@@ -436,7 +454,7 @@ def moves_separation_ok(
                 _pose_at(to, times, joints, djoints, dtimes, pose[0])
                 _person_capsules(pose, 0, ia, ib, C)
                 n_exact += 1
-                if _too_close(SA, SD, near, ra, C, rh, rq, SB):
+                if _too_close(SA, SD, near, ra, C, rh, rq, SB, soft, min(_required_soft(prm), rq)):
                     ok[k] = False
                     break
             if not ok[k]:

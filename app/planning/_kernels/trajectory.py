@@ -69,7 +69,8 @@ def trajectory_first_violation(
     capsule end between the configurations at ``tq0[k]`` and ``tq1[k]`` (the path time of ``ts[k] + eps``),
     over ``eps``. Person: the ``forecast`` interpolated as :meth:`HumanForecast.poses_at` does (the last pose
     held, the margin growing at ``growth`` m/s up to ``cap``); requirement
-    :func:`app.safety.ssm.forecast_clearance` (the ``clearance`` terms), capped at ``floor_m``. Samples are
+    :func:`app.safety.ssm.forecast_clearance` (the ``clearance`` terms), capped at ``floor_m``; from a capsule
+    flagged :attr:`PersonCapsules.soft`, only ``Z_d`` (no contact where the person is forecast). Samples are
     checked in order and the check stops at the first failure; a NaN counts as a failure.
     """
     knots = Knots(*knots)
@@ -86,7 +87,7 @@ def trajectory_first_violation(
     z_robot_m, z_human_m, floor_m = clearance.z_robot_m, clearance.z_human_m, clearance.floor_m
     decel, joint_decel, delay = clearance.decel_mps2, clearance.joint_decel_radps2, clearance.delay_s
     ra = robot.ra
-    ia, ib, rh = person.ia, person.ib, person.rh
+    ia, ib, rh, soft = person.ia, person.ib, person.rh, person.soft
     N = ts.shape[0]
     L = ra.shape[0]
     M = ia.shape[0]
@@ -177,6 +178,6 @@ def trajectory_first_violation(
         if not any_near:
             continue
         _person_capsules(pose, 0, ia, ib, C)
-        if _too_close(SA, SD, near, ra, C, rh, req, SB):
+        if _too_close(SA, SD, near, ra, C, rh, req, SB, soft, min(z_human_m, req)):
             return k
     return -1

@@ -123,6 +123,16 @@ class PlannerConfig:
         shortcut_rounds: Bound on the vectorised checks of shortcut candidates (each checks every shortcut
             from one waypoint); one more call then checks the move straight to the goal and the rest of the
             search's waypoints, re-timed.
+        contact_only: Per person capsule (the order of :data:`app.planning.collision.HUMAN_CAPSULES`),
+            whether the compiled trajectory checks (a plan's verification, the supervisor's check of the plan
+            in execution against each new forecast, the check of the reactive candidate under the forecast)
+            ask of it only ``Z_d``, no contact where the forecast expects the person, instead of the whole
+            clearance: the body regions that power and force limiting lets the robot approach at their
+            permissible contact speed, which the governor holds it to at run time (and the SSM-aware timing
+            predicts). Empty: every capsule needs the whole clearance (SSM alone). The NumPy checks of a
+            model without compiled ones ignore it.
+        contact_only_search: The search's own checks (moves, samples, waits) take :attr:`contact_only` too;
+            else they keep the whole clearance, and the plans they find pass the verification a fortiori.
     """
 
     ssm: SSMParams = field(default_factory=SSMParams)
@@ -159,6 +169,8 @@ class PlannerConfig:
     qdd_max: tuple[float, ...] | None = None
     shortcut: bool = True
     shortcut_rounds: int = 3
+    contact_only: tuple[bool, ...] = ()
+    contact_only_search: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 < self.speed_fraction <= 1.0:

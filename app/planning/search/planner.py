@@ -292,11 +292,16 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
             stopping=self.config.stopping,
         )
 
-    def _kernel_geometry_for(self, forecast: HumanForecast | None) -> Any:
-        """The compiled geometry for ``forecast``'s bodies (None where the planner checks in NumPy)."""
-        if self._kernel_geometry is None or forecast is None or forecast.bodies == 1:
+    def _kernel_geometry_for(self, forecast: HumanForecast | None, *, verify: bool = False) -> Any:
+        """The compiled geometry for ``forecast``'s bodies (None where the planner checks in NumPy): of the
+        search's checks, or (``verify``) of the trajectory checks, with the capsules that
+        :attr:`PlannerConfig.contact_only` asks only contact clearance of (the search's with
+        :attr:`PlannerConfig.contact_only_search`)."""
+        cfg = self.config
+        soft = cfg.contact_only if (verify or cfg.contact_only_search) else ()
+        if self._kernel_geometry is None or forecast is None or (forecast.bodies == 1 and not soft):
             return self._kernel_geometry
-        return self.collision.kernel_geometry_for(forecast.bodies)  # type: ignore[attr-defined]
+        return self.collision.kernel_geometry_for(forecast.bodies, soft)  # type: ignore[attr-defined]
 
     def _cap_ends_for(self, forecast: HumanForecast | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Which joints each capsule of ``forecast``'s stacked bodies runs between, and its radius."""

@@ -585,7 +585,18 @@ class _Run:
                 sep.k_requirement, sep.k_forecast,
             )  # fmt: skip
             ok, exact = _kernels.sample_separation_ok(
-                qs, t_all, req, cen, rad, True, _NO_IDS, 0, sep.k_forecast, geo.robot, geo.person
+                qs,
+                t_all,
+                req,
+                cen,
+                rad,
+                True,
+                _NO_IDS,
+                0,
+                sep.k_forecast,
+                geo.robot,
+                geo.person,
+                sep.k_requirement[1],
             )
             sep.samples += t_all.size
             sep.exact_samples += exact

@@ -384,6 +384,7 @@ class _Separation:
             self._k_forecast,
             geo.robot,
             geo.person,
+            self.k_requirement[1],
         )
         self.samples += n_off * S
         self.exact_samples += exact

@@ -1,0 +1,120 @@
+"""The planner's compiled checks with contact clearance for the body regions that admit contact
+(``PlannerConfig.contact_only``): a forecast hand next to the robot is no obstacle, only touching it is; a
+forecast head keeps the whole clearance; and without the flags every region keeps it (SSM alone)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.config import Settings, load_workcell
+from app.control.stack import PlanningStack, contact_only_capsules
+from app.planning.collision import HUMAN_CAPSULES
+from app.planning.search import Planner, PlannerConfig
+from app.planning.trajectory import Trajectory
+from app.prediction.forecast import HumanForecast
+from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS, HumanFrame
+from app.safety.pfl import capsule_region
+from app.safety.ssm import forecast_clearance
+
+NO_CONTACT = {"skull_forehead", "face", "neck"}
+
+
+@pytest.fixture(scope="module")
+def stack() -> PlanningStack:
+    return PlanningStack.for_cell(load_workcell())
+
+
+@pytest.fixture(scope="module")
+def flags() -> tuple[bool, ...]:
+    return tuple(capsule_region(c) not in NO_CONTACT for c in HUMAN_CAPSULES)
+
+
+def _planner(stack: PlanningStack, contact_only: tuple[bool, ...], *, search: bool = True) -> Planner:
+    config = PlannerConfig(contact_only=contact_only, contact_only_search=search)
+    return Planner(stack.roadmap, stack.collision, config=config)
+
+
+def _at_rest(q: np.ndarray) -> Trajectory:
+    return Trajectory(np.array([0.0, 1.0]), np.stack([q, q]), np.zeros((2, 6)))
+
+
+def _person_with(stack: PlanningStack, q: np.ndarray, joint: str, gap_m: float) -> HumanForecast:
+    """A person far from the robot but for one joint, placed straight below the tool capsule's round end so
+    that the capsules ending there are ``gap_m`` (surface to surface) from the robot at ``q``."""
+    joints = np.full((NUM_JOINTS, 3), 6.0) + np.linspace(0.0, 0.3, NUM_JOINTS)[:, None]
+    tip = stack.collision.robot_capsules(q[None])[1][0, -1]  # the tool capsule's round end (downward)
+    joints[JOINT_INDEX[joint]] = tip
+    # lowered below the tip by bisection on the real distance (the capsules' radii and directions included)
+    lo, hi = tip[2] - 1.0, tip[2]
+    d = np.nan
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        joints[JOINT_INDEX[joint], 2] = mid
+        d = float(stack.collision.distance_to_human_paired(q[None], joints[None])[0])
+        lo, hi = (mid, hi) if d > gap_m else (lo, mid)
+    assert abs(d - gap_m) < 1e-4
+    return HumanForecast.hold(HumanFrame(0.0, joints))
+
+
+def test_the_product_asks_contact_only_of_the_regions_that_admit_contact_and_only_with_pfl() -> None:
+    on = contact_only_capsules(Settings(pfl=True, plan_contact_regions="checks"))
+    assert len(on) == len(HUMAN_CAPSULES)
+    for name, soft in zip(HUMAN_CAPSULES, on, strict=True):
+        assert soft == (capsule_region(name) not in NO_CONTACT), name
+    assert contact_only_capsules(Settings(pfl=True, plan_contact_regions="all")) == on
+    assert contact_only_capsules(Settings(pfl=False, plan_contact_regions="all")) == ()
+    assert contact_only_capsules(Settings(pfl=True, plan_contact_regions="none")) == ()
+
+
+def test_a_forecast_hand_next_to_the_robot_blocks_it_only_without_contact_clearance(stack, flags) -> None:  # type: ignore[no-untyped-def]
+    q = np.asarray(stack.cell.robot.home_q, dtype=np.float64)
+    ssm = stack.planner.config.ssm
+    full = float(forecast_clearance(0.0, 0.0, ssm, w_top_radps=0.0))
+    soft = ssm.z_human_m
+    assert full - soft > 0.05  # the scene tells the two requirements apart
+    gap = 0.5 * (soft + full)
+    hand = _person_with(stack, q, "r_hand", gap)
+    traj = _at_rest(q)
+    strict, lax = _planner(stack, ()), _planner(stack, flags)
+    assert strict.first_violation(traj, hand, t_from=0.0, t_to=1.0) is not None
+    assert lax.first_violation(traj, hand, t_from=0.0, t_to=1.0) is None
+    # touching the hand (closer than the forecast's margin) is refused with contact clearance too
+    touching = _person_with(stack, q, "r_hand", 0.5 * soft)
+    assert lax.first_violation(traj, touching, t_from=0.0, t_to=1.0) is not None
+
+
+def test_a_forecast_head_next_to_the_robot_keeps_the_whole_clearance(stack, flags) -> None:  # type: ignore[no-untyped-def]
+    q = np.asarray(stack.cell.robot.home_q, dtype=np.float64)
+    ssm = stack.planner.config.ssm
+    full = float(forecast_clearance(0.0, 0.0, ssm, w_top_radps=0.0))
+    head = _person_with(stack, q, "head", 0.5 * (ssm.z_human_m + full))
+    traj = _at_rest(q)
+    for planner in (_planner(stack, ()), _planner(stack, flags)):
+        assert planner.first_violation(traj, head, t_from=0.0, t_to=1.0) is not None
+    # and beyond the whole clearance both accept it
+    clear = _person_with(stack, q, "head", full + 0.02)
+    for planner in (_planner(stack, ()), _planner(stack, flags)):
+        assert planner.first_violation(traj, clear, t_from=0.0, t_to=1.0) is None
+
+
+def test_the_search_plans_past_a_forecast_hand_only_with_contact_clearance(stack, flags) -> None:  # type: ignore[no-untyped-def]
+    """A hand held at the goal's approach pose: the strict search cannot end there, the one with contact
+    clearance can (the goal itself is not touched)."""
+    goal = "B_approach"
+    node = stack.roadmap.station_nodes[goal]
+    q_goal = stack.roadmap.ik[node][stack.roadmap.valid[node]][0]
+    full = float(forecast_clearance(0.0, 0.0, stack.planner.config.ssm, w_top_radps=0.0))
+    soft = stack.planner.config.ssm.z_human_m
+    hand = _person_with(stack, q_goal, "r_hand", soft + 0.6 * (full - soft))
+    q0 = np.asarray(stack.cell.robot.home_q, dtype=np.float64)
+    strict = _planner(stack, ()).plan(q_start=q0, t_start=0.0, goal=goal, forecast=hand)
+    lax = _planner(stack, flags).plan(q_start=q0, t_start=0.0, goal=goal, forecast=hand)
+    assert not strict.ok
+    assert lax.ok, lax.reason
+    # with contact clearance in the trajectory checks alone, the search stays as strict, and its plans pass
+    checks_only = _planner(stack, flags, search=False)
+    assert not checks_only.plan(q_start=q0, t_start=0.0, goal=goal, forecast=hand).ok
+    t_end = lax.trajectory.t_end
+    assert checks_only.first_violation(lax.trajectory, hand, t_from=0.0, t_to=t_end) is None
+    assert _planner(stack, ()).first_violation(lax.trajectory, hand, t_from=0.0, t_to=t_end) is not None
