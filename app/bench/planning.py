@@ -241,13 +241,19 @@ def count_violations(
 
 
 def _planner_config() -> Any:
-    """The runtime's planner settings: its clearance with the ``T_r`` of the default installation
-    (:meth:`app.control.stack.PlanningStack.for_cell`)."""
+    """The runtime's planner settings: its clearance with the ``T_r`` of the default installation and its
+    contact clearance per body region (:meth:`app.control.stack.PlanningStack.for_cell`)."""
     from app.config import Settings
     from app.control.engine import EngineOptions
+    from app.control.stack import contact_only_capsules
     from app.planning.search import PlannerConfig
 
-    return PlannerConfig().with_reaction_time(Settings().reaction_time_s(EngineOptions().servo_period_s))
+    settings = Settings()
+    config = PlannerConfig(
+        contact_only=contact_only_capsules(settings),
+        contact_only_search=settings.plan_contact_regions == "all",
+    )
+    return config.with_reaction_time(settings.reaction_time_s(EngineOptions().servo_period_s))
 
 
 def _governor_model(ssm: Any) -> Any:

@@ -40,7 +40,7 @@ from app.control.backup import BackupComputer, PlanJobs
 from app.control.metrics import Method, TrialEvent, TrialMetrics
 from app.control.people import People, PeopleOptions, PeopleUpdate
 from app.control.results import Snapshot, TrialFrames, TrialResult, TrialStatus
-from app.control.stack import CellGeometry, PlanningStack
+from app.control.stack import CellGeometry, PlanningStack, pfl_model
 from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.task import TaskExecutive
 from app.planning.collision import reach_fingertips
@@ -162,14 +162,6 @@ def governor_model(
         pfl_caps_mps=tuple(float(v) for v in pfl.transient_mps) if pfl.enabled else (),
         approach_floor_mps=() if floors is None else tuple(float(v) for v in floors),
     )
-
-
-def pfl_model(settings: Settings) -> PFLModel:
-    """The power and force limiting of a trial (:class:`app.safety.pfl.PFLModel`): the person's capsules,
-    the UR5e's moving mass and the declared payload; ``enabled`` by ``Settings.pfl``."""
-    from app.planning.collision import HUMAN_CAPSULES
-
-    return PFLModel.for_capsules(HUMAN_CAPSULES, payload_kg=settings.pfl_payload_kg, enabled=settings.pfl)
 
 
 def approach_floors(settings: Settings, pfl: PFLModel | None = None) -> np.ndarray | None:

@@ -15,9 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from app.config import WorkCell
+from app.config import Settings, WorkCell
 from app.planning.ssm_timing import part_speeds
 from app.safety.governor import directed_approach
+from app.safety.pfl import PFLModel
 
 __all__ = ["CellGeometry", "PlanningStack"]
 
@@ -176,16 +177,22 @@ class PlanningStack:
 _STACKS: dict[tuple[str, str | None, float | None, tuple[tuple[bool, ...], bool]], PlanningStack] = {}
 
 
-def contact_only_capsules(settings: Any) -> tuple[bool, ...]:
+def contact_only_capsules(settings: Settings) -> tuple[bool, ...]:
     """Per person capsule (:data:`app.planning.collision.HUMAN_CAPSULES`), whether the planner asks of it
     contact clearance only (:attr:`app.planning.search.PlannerConfig.contact_only`): with power and force
     limiting and ``Settings.plan_contact_regions`` other than ``none``, the capsules whose region admits
     contact (a permissible transient speed above zero: not skull, face or neck); else none (empty)."""
     if not settings.pfl or settings.plan_contact_regions == "none":
         return ()
-    from app.control.engine import pfl_model
-
     return tuple(bool(v > 0.0) for v in pfl_model(settings).transient_mps)
+
+
+def pfl_model(settings: Settings) -> PFLModel:
+    """The power and force limiting of a trial (:class:`app.safety.pfl.PFLModel`): the person's capsules,
+    the UR5e's moving mass and the declared payload; ``enabled`` by ``Settings.pfl``."""
+    from app.planning.collision import HUMAN_CAPSULES
+
+    return PFLModel.for_capsules(HUMAN_CAPSULES, payload_kg=settings.pfl_payload_kg, enabled=settings.pfl)
 
 
 _STACK_LOCK = threading.Lock()

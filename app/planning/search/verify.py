@@ -121,17 +121,13 @@ class _TrajectoryChecks:
         geo = self._kernel_geometry_for(forecast, verify=True)
         assert geo is not None
         pack = _kernels.pack
-        # with contact clearance (PlannerConfig.contact_only) the check judges the forecast person where they
-        # are forecast: its margins, where they may be instead, are the search's caution, not a harm
-        point = bool(self.config.contact_only)
-        margins = np.zeros_like(forecast.margins) if point else forecast.margins
         fc = pack(
             _kernels.ForecastPoses(
                 times=f64(forecast.times),
                 joints=f64(forecast.joints),
-                margins=f64(margins),
-                growth=0.0 if point else float(forecast.growth_mps),
-                cap=0.0 if point else max(float(forecast.max_margin_m), float(forecast.margins.max())),
+                margins=f64(forecast.margins),
+                growth=float(forecast.growth_mps),
+                cap=max(float(forecast.max_margin_m), float(forecast.margins.max())),
                 r_max=self._human_r_max,
             )
         )
