@@ -171,13 +171,13 @@ def test_segment_box_distance_is_exact(p: np.ndarray, q: np.ndarray, half: np.nd
     assert ours >= sdf.min() - np.linalg.norm(q - p) / 4000 - 1e-12
     # python-fcl agrees on the sign, and on the value within its GJK tolerance (its capsule-box distances are
     # always on the high side, usually by about 0.2 % but by several % for some segments, e.g. 5.6 % at
-    # 7 cm, and by millimetres at a few millimetres: 8.8 mm for an exact 5.9 mm, found by this test; the
-    # brute force above is the exact reference)
+    # 7 cm, and by up to about a centimetre at a few millimetres: 8.8 mm for an exact 5.9 mm and 15.5 mm for
+    # an exact 3.9 mm, both found by this test; the brute force above is the exact reference)
     cap = fcl_capsule(p, q, r)
     box = fcl.CollisionObject(fcl.Box(*(2 * half)), fcl.Transform())
     if ours - r > 1e-3:
         d_fcl = _fcl_distance(cap, box)
-        assert ours - r - 1e-6 <= d_fcl <= 1.1 * (ours - r) + 5e-3
+        assert ours - r - 1e-6 <= d_fcl <= 1.1 * (ours - r) + 1.5e-2
         assert not _fcl_collide(cap, box)
     elif ours - r < -1e-3:
         assert _fcl_collide(cap, box)
