@@ -20,7 +20,7 @@ from app.planning.ssm_timing import part_speeds
 from app.safety.governor import directed_approach
 from app.safety.pfl import PFLModel
 
-__all__ = ["CellGeometry", "PlanningStack"]
+__all__ = ["CellGeometry", "PlanningStack", "contact_only_capsules", "pfl_model"]
 
 log = logging.getLogger(__name__)
 
@@ -175,6 +175,7 @@ class PlanningStack:
 
 
 _STACKS: dict[tuple[str, str | None, float | None, tuple[tuple[bool, ...], bool]], PlanningStack] = {}
+_STACK_LOCK = threading.Lock()
 
 
 def contact_only_capsules(settings: Settings) -> tuple[bool, ...]:
@@ -193,9 +194,6 @@ def pfl_model(settings: Settings) -> PFLModel:
     from app.planning.collision import HUMAN_CAPSULES
 
     return PFLModel.for_capsules(HUMAN_CAPSULES, payload_kg=settings.pfl_payload_kg, enabled=settings.pfl)
-
-
-_STACK_LOCK = threading.Lock()
 
 
 def _build_stack(
