@@ -245,14 +245,11 @@ def _planner_config() -> Any:
     contact clearance per body region (:meth:`app.control.stack.PlanningStack.for_cell`)."""
     from app.config import Settings
     from app.control.engine import EngineOptions
-    from app.control.stack import contact_only_capsules
+    from app.control.stack import contact_clearance
     from app.planning.search import PlannerConfig
 
     settings = Settings()
-    config = PlannerConfig(
-        contact_only=contact_only_capsules(settings),
-        contact_only_search=settings.plan_contact_regions == "all",
-    )
+    config = PlannerConfig(**contact_clearance(settings))
     return config.with_reaction_time(settings.reaction_time_s(EngineOptions().servo_period_s))
 
 

@@ -20,7 +20,7 @@ from app.planning.ssm_timing import part_speeds
 from app.safety.governor import directed_approach
 from app.safety.pfl import PFLModel
 
-__all__ = ["CellGeometry", "PlanningStack", "contact_only_capsules", "pfl_model"]
+__all__ = ["CellGeometry", "PlanningStack", "contact_clearance", "contact_only_capsules", "pfl_model"]
 
 log = logging.getLogger(__name__)
 
@@ -186,6 +186,16 @@ def contact_only_capsules(settings: Settings) -> tuple[bool, ...]:
     if not settings.pfl or settings.plan_contact_regions == "none":
         return ()
     return tuple(bool(v > 0.0) for v in pfl_model(settings).transient_mps)
+
+
+def contact_clearance(settings: Settings) -> dict[str, Any]:
+    """The planner's contact clearance under ``settings``, as the keyword arguments of
+    :class:`app.planning.search.PlannerConfig` and :meth:`PlanningStack.for_cell` take it:
+    ``contact_only`` (:func:`contact_only_capsules`) and ``contact_only_search`` (``all``)."""
+    return {
+        "contact_only": contact_only_capsules(settings),
+        "contact_only_search": settings.plan_contact_regions == "all",
+    }
 
 
 def pfl_model(settings: Settings) -> PFLModel:

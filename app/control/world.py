@@ -36,7 +36,7 @@ from app.control.engine import (
 )
 from app.control.metrics import Method
 from app.control.results import TrialResult
-from app.control.stack import PlanningStack, contact_only_capsules
+from app.control.stack import PlanningStack, contact_clearance
 from app.control.supervisor import SupervisorConfig
 from app.prediction.forecast import Predictor
 
@@ -484,8 +484,7 @@ def build_trial_world(
         stack = PlanningStack.for_cell(
             cell,
             t_reaction_s=settings.reaction_time_s(options.servo_period_s),
-            contact_only=contact_only_capsules(settings),
-            contact_only_search=settings.plan_contact_regions == "all",
+            **contact_clearance(settings),
         )
     if robot is None:
         assert make_robot is not None

@@ -556,7 +556,7 @@ class CollisionModel:
             )
         )
         self._k_people: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        self._k_geometries: dict[tuple[int, bytes], _kernels.KernelGeometry] = {}
+        self._k_geometries: dict[tuple[int, tuple[bool, ...]], _kernels.KernelGeometry] = {}
         self._k_geometry = self.kernel_geometry_for(1)
 
     # ------------------------------------------------------------------ geometry
@@ -581,13 +581,13 @@ class CollisionModel:
         """:meth:`kernel_geometry` for a stacked pose of ``bodies`` bodies (cached); ``contact_only``: per
         capsule of one body (the order of :data:`HUMAN_CAPSULES`), whether the checks ask of it contact
         clearance only (:attr:`app.planning._kernels.PersonCapsules.soft`); empty: none."""
-        if contact_only and len(contact_only) != len(HUMAN_CAPSULES):
-            n = len(HUMAN_CAPSULES)
+        n = len(HUMAN_CAPSULES)
+        if contact_only and len(contact_only) != n:
             raise ValueError(f"contact_only needs one flag per person capsule ({n}), got {len(contact_only)}")
-        one = np.array(contact_only if contact_only else [False] * len(HUMAN_CAPSULES), dtype=np.float64)
-        key = (bodies, one.tobytes())
+        key = (bodies, tuple(bool(f) for f in contact_only) if any(contact_only) else ())
         geo = self._k_geometries.get(key)
         if geo is None:
+            one = np.array(key[1] or [False] * len(HUMAN_CAPSULES), dtype=np.float64)
             soft = np.ascontiguousarray(np.tile(one, bodies))
             person = _kernels.PersonCapsules(*self.people(bodies * NUM_JOINTS), soft)
             geo = _kernels.KernelGeometry(robot=self._k_robot, person=_kernels.pack(person))

@@ -79,7 +79,7 @@ def test_a_forecast_hand_next_to_the_robot_blocks_it_only_without_contact_cleara
     strict, lax = _planner(stack, ()), _planner(stack, flags)
     assert strict.first_violation(traj, hand, t_from=0.0, t_to=1.0) is not None
     assert lax.first_violation(traj, hand, t_from=0.0, t_to=1.0) is None
-    # touching the hand (closer than the forecast's margin) is refused with contact clearance too
+    # touching the hand (closer than Z_d, the sensing uncertainty) is refused with contact clearance too
     touching = _person_with(stack, q, "r_hand", 0.5 * soft)
     assert lax.first_violation(traj, touching, t_from=0.0, t_to=1.0) is not None
 
@@ -118,3 +118,12 @@ def test_the_search_plans_past_a_forecast_hand_only_with_contact_clearance(stack
     t_end = lax.trajectory.t_end
     assert checks_only.first_violation(lax.trajectory, hand, t_from=0.0, t_to=t_end) is None
     assert _planner(stack, ()).first_violation(lax.trajectory, hand, t_from=0.0, t_to=t_end) is not None
+
+
+def test_contact_flags_of_the_wrong_length_are_refused_and_equal_flags_share_a_geometry(stack, flags) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(ValueError, match="one flag per person capsule"):
+        stack.collision.kernel_geometry_for(1, (True, False))
+    geo = stack.collision.kernel_geometry_for
+    assert geo(2, flags) is geo(2, tuple(flags))
+    none = (False,) * len(HUMAN_CAPSULES)
+    assert geo(1, none) is geo(1)
