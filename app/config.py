@@ -136,6 +136,12 @@ class Tool(_Strict):
             )
         return self
 
+    @property
+    def fingertip_depth_m(self) -> float:
+        """How far the open fingertips reach beyond the TCP along the gripper's axis (m; 0 where they end
+        before it)."""
+        return max(self.gripper_length_m - float(np.linalg.norm(self.tcp_xyz)), 0.0)
+
     def T_flange_tcp(self) -> np.ndarray:
         return pose_matrix(self.tcp_xyz, self.tcp_rpy)
 
@@ -172,7 +178,13 @@ class WorkCell(_Strict):
     conveyor: Conveyor
     drop_stations: Annotated[list[Station], Field(min_length=1)]
     home: Station
-    approach_height_m: float = Field(0.12, ge=0.0, le=0.5)
+    approach_height_m: float = Field(
+        0.06,
+        ge=0.0,
+        le=0.5,
+        description="how far above the pickup and each drop station the robot's vertical approach and rise "
+        "begin (m): it must lift the open fingertips clear of the part's top",
+    )
     operator: OperatorArea
     obstacles: list[Box] = []
 
@@ -190,6 +202,17 @@ class WorkCell(_Strict):
         for s in [*self.drop_stations, self.home, self.conveyor.pickup]:
             if s.xyz[2] <= top:
                 raise ValueError(f"station {s.name!r} at z={s.xyz[2]} is not above the table top z={top}")
+        return self
+
+    @model_validator(mode="after")
+    def _approach_clears_the_part(self) -> WorkCell:
+        need = self.tool.fingertip_depth_m + self.tool.part_size_m[2] / 2
+        if self.approach_height_m < need - 1e-9:
+            raise ValueError(
+                f"approach_height_m = {self.approach_height_m} m does not lift the open fingertips of "
+                f"the {self.tool.gripper} ({self.tool.fingertip_depth_m:.3f} m below the TCP) over the top "
+                f"of the part {self.tool.part_size_m} (its centre at the TCP): it must be >= {need:.3f} m"
+            )
         return self
 
     @cached_property

@@ -50,6 +50,20 @@ def test_unknown_field_and_bad_toml_rejected(tmp_path: Path) -> None:
         load_workcell(tmp_path / "missing.toml")
 
 
+def test_the_approach_must_lift_the_open_fingertips_over_the_part(tmp_path: Path) -> None:
+    cell = load_workcell()
+    # the shipped gripper: fingertips 161 mm from the flange, the TCP at 150 mm, a 40 mm block centred on it
+    assert cell.tool.fingertip_depth_m == pytest.approx(0.011)
+    assert cell.approach_height_m >= 0.011 + 0.02
+    text = (Path(__file__).resolve().parents[2] / "app/assets/workcell.toml").read_text()
+    p = tmp_path / "cell.toml"
+    p.write_text(text.replace("approach_height_m = 0.06", "approach_height_m = 0.03"))
+    with pytest.raises(WorkCellError, match=r"approach_height_m.*must be >= 0\.031 m"):
+        load_workcell(p)
+    p.write_text(text.replace("approach_height_m = 0.06", "approach_height_m = 0.031"))
+    assert load_workcell(p).approach_height_m == pytest.approx(0.031)
+
+
 def test_rpy_matrix_is_rotation() -> None:
     R = rpy_to_matrix([0.3, -0.2, 1.1])
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
