@@ -78,6 +78,10 @@ class Box(_Strict):
         return pose_matrix(self.center, [0.0, 0.0, self.yaw])
 
 
+#: The UR5e's joint position limits (rad, +-): +-2 pi, the elbow +-pi (:data:`app.planning.kinematics.Q_MAX`).
+UR5E_Q_LIMIT = (2 * math.pi, 2 * math.pi, math.pi, 2 * math.pi, 2 * math.pi, 2 * math.pi)
+
+
 class RobotMount(_Strict):
     """Pose of the robot base in the world frame."""
 
@@ -91,6 +95,38 @@ class RobotMount(_Strict):
         -1.5708,
         0.0,
     ]
+
+    q_min: Annotated[list[float], Field(min_length=6, max_length=6)] | None = Field(
+        None,
+        description="the planner's lower joint position limits (rad, 6); default: the UR5e's (-2 pi, -pi "
+        "for the elbow). Set the arm's own safety configuration to the same limits",
+    )
+    q_max: Annotated[list[float], Field(min_length=6, max_length=6)] | None = Field(
+        None, description="the planner's upper joint position limits (rad, 6); default: the UR5e's"
+    )
+
+    @model_validator(mode="after")
+    def _limits_within_the_arm(self) -> RobotMount:
+        arm = np.asarray(UR5E_Q_LIMIT, dtype=np.float64)
+        lo = -arm if self.q_min is None else np.asarray(self.q_min, dtype=np.float64)
+        hi = arm if self.q_max is None else np.asarray(self.q_max, dtype=np.float64)
+        for j in range(6):
+            if not (-UR5E_Q_LIMIT[j] - 1e-4 <= lo[j] < hi[j] <= UR5E_Q_LIMIT[j] + 1e-4):
+                raise ValueError(
+                    f"robot joint {j + 1}: limits [{lo[j]}, {hi[j]}] rad must satisfy q_min < q_max "
+                    f"within the UR5e's [{-UR5E_Q_LIMIT[j]:.4f}, {UR5E_Q_LIMIT[j]:.4f}]"
+                )
+            if not lo[j] <= self.home_q[j] <= hi[j]:
+                raise ValueError(f"robot.home_q[{j}] = {self.home_q[j]} lies outside [{lo[j]}, {hi[j]}] rad")
+        return self
+
+    def joint_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """The planner's joint position limits ``(q_min, q_max)``, each (6,) rad: the cell's, else the
+        UR5e's."""
+        arm = np.asarray(UR5E_Q_LIMIT, dtype=np.float64)
+        lo = -arm if self.q_min is None else np.asarray(self.q_min, dtype=np.float64)
+        hi = arm if self.q_max is None else np.asarray(self.q_max, dtype=np.float64)
+        return np.clip(lo, -arm, arm), np.clip(hi, -arm, arm)
 
     def T_world_base(self) -> np.ndarray:
         return pose_matrix(self.base_xyz, self.base_rpy)

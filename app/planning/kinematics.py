@@ -267,7 +267,13 @@ class UR5e:
     @classmethod
     def from_workcell(cls, cell: WorkCell) -> UR5e:
         """Kinematics placed as in a work cell (robot mount and tool)."""
-        return cls(T_world_base=cell.robot.T_world_base(), T_flange_tcp=cell.tool.T_flange_tcp())
+        q_min, q_max = cell.robot.joint_limits()
+        return cls(
+            T_world_base=cell.robot.T_world_base(),
+            T_flange_tcp=cell.tool.T_flange_tcp(),
+            q_min=q_min,
+            q_max=q_max,
+        )
 
     # ------------------------------------------------------------------ forward kinematics
     def _chain(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

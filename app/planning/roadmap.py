@@ -432,7 +432,6 @@ def build_roadmap(
     from scipy.spatial import cKDTree
 
     from app.planning.collision import CollisionModel
-    from app.planning.kinematics import Q_MAX, Q_MIN
 
     cfg = config or RoadmapConfig()
     t_build = time.perf_counter()
@@ -528,7 +527,7 @@ def build_roadmap(
     clear = clear.reshape(N, NUM_BRANCHES, n_links)
     self_d = self_d.reshape(N, NUM_BRANCHES, -1)
     qa = ik[pairs[:, 0]]  # (E, 8, 6)
-    qb = _aligned_to(ik[pairs[:, 1]], qa, Q_MIN, Q_MAX)
+    qb = _aligned_to(ik[pairs[:, 1]], qa, kin.q_min, kin.q_max)
     both = valid[pairs[:, 0]] & valid[pairs[:, 1]]
     span = np.abs(qb - qa)
     both &= span.max(axis=-1) <= cfg.max_edge_rad

@@ -64,6 +64,27 @@ def test_the_approach_must_lift_the_open_fingertips_over_the_part(tmp_path: Path
     assert load_workcell(p).approach_height_m == pytest.approx(0.031)
 
 
+def test_the_cell_sets_the_planners_joint_limits_within_the_arms(tmp_path: Path) -> None:
+    from app.config import UR5E_Q_LIMIT
+    from app.planning.kinematics import Q_MAX, Q_MIN, UR5e
+
+    assert np.allclose(UR5E_Q_LIMIT, Q_MAX) and np.allclose(Q_MIN, -Q_MAX)
+    cell = load_workcell()
+    lo, hi = cell.robot.joint_limits()
+    assert hi[4] == 0.0 and lo[4] == pytest.approx(-np.pi, abs=1e-4)  # the shipped cell: wrist 2 in [-pi, 0]
+    kin = UR5e.from_workcell(cell)
+    q, valid = kin.ik_down(np.array([[0.6, 0.11, 0.15]]), yaw=0.0)
+    assert valid.any() and np.all(q[valid][:, 4] <= 0.0)  # every usable branch keeps wrist 2 on its side
+    text = (Path(__file__).resolve().parents[2] / "app/assets/workcell.toml").read_text()
+    p = tmp_path / "cell.toml"
+    p.write_text(text.replace("6.2832, 0.0, 6.2832]", "6.2832, -2.0, 6.2832]"))
+    with pytest.raises(WorkCellError, match=r"home_q\[4\] = -1.5708 lies outside"):
+        load_workcell(p)
+    p.write_text(text.replace("q_max = [6.2832,", "q_max = [7.0,"))
+    with pytest.raises(WorkCellError, match="robot joint 1: limits"):
+        load_workcell(p)
+
+
 def test_rpy_matrix_is_rotation() -> None:
     R = rpy_to_matrix([0.3, -0.2, 1.1])
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)

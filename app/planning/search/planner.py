@@ -93,8 +93,9 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
                 raise ValueError(f"Planner: joint limits must have 6 entries, got {arr.shape}")
             return arr
 
-        self.q_min = pick(cfg.q_min, kinematics.Q_MIN)
-        self.q_max = pick(cfg.q_max, kinematics.Q_MAX)
+        kin = getattr(collision, "kin", None)  # the cell's joint limits (its kinematics), else the UR5e's
+        self.q_min = pick(cfg.q_min, kinematics.Q_MIN if kin is None else kin.q_min)
+        self.q_max = pick(cfg.q_max, kinematics.Q_MAX if kin is None else kin.q_max)
         self.qd_max = pick(cfg.qd_max, kinematics.QD_MAX)
         self.qdd_max = pick(cfg.qdd_max, kinematics.QDD_MAX)
         self._inv_qd = 1.0 / self.qd_max
