@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.config import Settings, WorkCellError, load_workcell, rpy_to_matrix
+from app.config import Settings, WorkCell, WorkCellError, load_workcell, rpy_to_matrix
 
 
 def test_default_workcell_loads() -> None:
@@ -50,18 +50,26 @@ def test_unknown_field_and_bad_toml_rejected(tmp_path: Path) -> None:
         load_workcell(tmp_path / "missing.toml")
 
 
+def _shipped_with(tmp_path: Path, old: str, new: str) -> WorkCell:
+    """The shipped cell's file with ``old`` replaced by ``new``, loaded."""
+    text = (Path(__file__).resolve().parents[2] / "app/assets/workcell.toml").read_text()
+    assert old in text
+    p = tmp_path / "cell.toml"
+    p.write_text(text.replace(old, new))
+    return load_workcell(p)
+
+
 def test_the_approach_must_lift_the_open_fingertips_over_the_part(tmp_path: Path) -> None:
     cell = load_workcell()
     # the shipped gripper: fingertips 161 mm from the flange, the TCP at 150 mm, a 40 mm block centred on it
     assert cell.tool.fingertip_depth_m == pytest.approx(0.011)
     assert cell.approach_height_m >= 0.011 + 0.02
-    text = (Path(__file__).resolve().parents[2] / "app/assets/workcell.toml").read_text()
-    p = tmp_path / "cell.toml"
-    p.write_text(text.replace("approach_height_m = 0.06", "approach_height_m = 0.03"))
+    shipped = "approach_height_m = 0.06"
     with pytest.raises(WorkCellError, match=r"approach_height_m.*must be >= 0\.031 m"):
-        load_workcell(p)
-    p.write_text(text.replace("approach_height_m = 0.06", "approach_height_m = 0.031"))
-    assert load_workcell(p).approach_height_m == pytest.approx(0.031)
+        _shipped_with(tmp_path, shipped, "approach_height_m = 0.03")
+    assert _shipped_with(tmp_path, shipped, "approach_height_m = 0.031").approach_height_m == pytest.approx(
+        0.031
+    )
 
 
 def test_the_cell_sets_the_planners_joint_limits_within_the_arms(tmp_path: Path) -> None:
@@ -75,14 +83,10 @@ def test_the_cell_sets_the_planners_joint_limits_within_the_arms(tmp_path: Path)
     kin = UR5e.from_workcell(cell)
     q, valid = kin.ik_down(np.array([[0.6, 0.11, 0.15]]), yaw=0.0)
     assert valid.any() and np.all(q[valid][:, 4] <= 0.0)  # every usable branch keeps wrist 2 on its side
-    text = (Path(__file__).resolve().parents[2] / "app/assets/workcell.toml").read_text()
-    p = tmp_path / "cell.toml"
-    p.write_text(text.replace("6.2832, 0.0, 6.2832]", "6.2832, -2.0, 6.2832]"))
     with pytest.raises(WorkCellError, match=r"home_q\[4\] = -1.5708 lies outside"):
-        load_workcell(p)
-    p.write_text(text.replace("q_max = [6.2832,", "q_max = [7.0,"))
+        _shipped_with(tmp_path, "6.2832, 0.0, 6.2832]", "6.2832, -2.0, 6.2832]")
     with pytest.raises(WorkCellError, match="robot joint 1: limits"):
-        load_workcell(p)
+        _shipped_with(tmp_path, "q_max = [6.2832,", "q_max = [7.0,")
 
 
 def test_rpy_matrix_is_rotation() -> None:
