@@ -216,11 +216,20 @@ def summarise(runs: dict[str, list[Run]], generous: Sequence[bool | None]) -> di
 
 
 def count_violations(
-    traj: Any, forecast: Any, model: Any, ssm: Any, *, hold_s: float, stopping: StoppingModel
+    traj: Any,
+    forecast: Any,
+    model: Any,
+    ssm: Any,
+    *,
+    hold_s: float,
+    stopping: StoppingModel,
+    contact_only: tuple[bool, ...] = (),
 ) -> int:
     """1 if the trajectory breaks the limits or the separation anywhere on a 100 Hz grid, else 0: the
     clearance of :func:`app.safety.ssm.forecast_clearance` with the robot's speeds there (central
-    differences) and the planner's stopping model ``stopping``."""
+    differences) and the planner's stopping model ``stopping``; from a person capsule flagged in
+    ``contact_only`` (one flag per capsule of :data:`app.planning.collision.HUMAN_CAPSULES`, the planner's
+    ``PlannerConfig.contact_only``) only ``Z_d``, as the planner's trajectory checks ask of it."""
     from app.planning.kinematics import Q_MAX, Q_MIN
     from app.safety.ssm import forecast_clearance
 
@@ -237,7 +246,16 @@ def count_violations(
     joints, margins = forecast.poses_at(t)
     d = model.distance_to_human_paired(q, joints)
     need = forecast_clearance(v, margins, ssm, w_top_radps=w, stopping=stopping)
-    return int(np.any(d < need - 1e-9))
+    short = np.flatnonzero(d < need - 1e-9)
+    if short.size == 0 or not any(contact_only):
+        return int(short.size > 0)
+    soft = np.asarray(contact_only, dtype=bool)
+    for k in short.tolist():  # the few samples too close to some capsule: each capsule's own requirement
+        pair = model.pair_distances(q[k], joints[k][None])[0].min(axis=0)  # (M,) over the robot's parts
+        req = np.where(soft, min(ssm.z_human_m, float(need[k])), float(need[k]))
+        if np.any(pair < req - 1e-9):
+            return 1
+    return 0
 
 
 def _planner_config() -> Any:
@@ -444,6 +462,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     ssm,
                     hold_s=planner.config.goal_hold_s,
                     stopping=planner.config.stopping,
+                    contact_only=planner.config.contact_only,
                 )
                 checked += 1
         if results["plan"].ok or results["parallel_plan"].ok:
@@ -468,6 +487,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     ssm,
                     hold_s=planner.config.goal_hold_s,
                     stopping=planner.config.stopping,
+                    contact_only=planner.config.contact_only,
                 )
                 checked += 1
         em = results["emergency"]
@@ -485,6 +505,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     ssm,
                     hold_s=planner.config.emergency_hold_s,
                     stopping=planner.config.stopping,
+                    contact_only=planner.config.contact_only,
                 )
                 checked += 1
         if progress and (i + 1) % 10 == 0:
