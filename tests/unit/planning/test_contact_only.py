@@ -127,3 +127,20 @@ def test_contact_flags_of_the_wrong_length_are_refused_and_equal_flags_share_a_g
     assert geo(2, flags) is geo(2, tuple(flags))
     none = (False,) * len(HUMAN_CAPSULES)
     assert geo(1, none) is geo(1)
+
+
+def test_the_planning_benchs_independent_check_asks_of_each_region_what_the_checks_ask(stack, flags) -> None:  # type: ignore[no-untyped-def]
+    from app.bench.planning import count_violations
+
+    q = np.asarray(stack.cell.robot.home_q, dtype=np.float64)
+    ssm, stopping = stack.planner.config.ssm, stack.planner.config.stopping
+    gap = 0.5 * (ssm.z_human_m + float(forecast_clearance(0.0, 0.0, ssm, w_top_radps=0.0)))
+    hold = _at_rest(q)
+    hand = _person_with(stack, q, "r_hand", gap)  # inside the whole clearance, beyond Z_d
+    kw = {"hold_s": 0.0, "stopping": stopping}
+    assert count_violations(hold, hand, stack.collision, ssm, **kw) == 1
+    assert count_violations(hold, hand, stack.collision, ssm, contact_only=flags, **kw) == 0
+    head = _person_with(stack, q, "head", gap)  # a head keeps the whole clearance either way
+    assert count_violations(hold, head, stack.collision, ssm, contact_only=flags, **kw) == 1
+    touching = _person_with(stack, q, "r_hand", 0.5 * ssm.z_human_m)
+    assert count_violations(hold, touching, stack.collision, ssm, contact_only=flags, **kw) == 1
