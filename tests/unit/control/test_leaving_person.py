@@ -245,10 +245,12 @@ def test_the_proactive_robot_sets_off_at_reduced_speed(runs: dict[str, Run]) -> 
     1 within about a quarter of a second)."""
     pro = runs["proactive"]
     assert pro.start_s is not None, pro.summary()
-    first = pro.scales(pro.start_s, pro.start_s + 0.5)
+    first = pro.scales(pro.start_s, pro.start_s + 1.0)
     assert first[0] < 1.0, pro.summary()
-    assert max(first) < 1.0, f"scales {[round(s, 3) for s in first]}\n{pro.summary()}"
-    assert pro.budget_s["moving_scaled"] > pro.budget_s["moving_full"], pro.summary()
+    # past the ramp (about a quarter of a second) the governor holds it below full speed nearly throughout
+    full = sum(s >= 1.0 for s in first) / len(first)
+    assert full <= 0.1, f"scales {[round(s, 3) for s in first]}\n{pro.summary()}"
+    assert pro.budget_s["moving_scaled"] > 10 * pro.budget_s["moving_full"], pro.summary()
 
 
 def test_the_proactive_robot_arrives_first(runs: dict[str, Run]) -> None:

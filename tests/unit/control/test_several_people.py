@@ -232,7 +232,9 @@ def test_a_capture_with_no_body_is_a_person_free_frame(stack: PlanningStack) -> 
     # nothing holds the robot for a person: slowed only by its own ramp from rest at each move's start
     budget = result.summary()["time_budget_s"]
     assert budget["waiting_for_person"] == 0.0 and budget["braking"] == 0.0 and budget["stopped"] == 0.0
-    assert budget["moving_full"] > 2 * budget["moving_scaled"]
+    moves = result.arrival_error_s["n"] + 1  # the legs that arrived and the one under way at the end
+    assert budget["moving_scaled"] <= 0.5 * moves, (budget, moves)  # a ramp of about a quarter second each
+    assert budget["moving_full"] > budget["moving_scaled"]
 
 
 def test_every_person_takes_every_capture_before_the_next_one(stack: PlanningStack) -> None:

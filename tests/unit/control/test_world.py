@@ -133,9 +133,11 @@ def test_the_proactive_and_the_reactive_trial_differ_only_in_the_forecast(
 def test_with_the_exact_future_the_proactive_plan_never_arrives_later_than_the_reactive_one(
     stack: PlanningStack, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Every backup of a proactive trial with the simulated person's exact future as its forecast (the
-    oracle): wherever the plan the reactive method would take passes the check under that future, the plan
-    the proactive method executes is predicted to arrive no later (the forecast's own plan, or that one)."""
+    """Every decision of a proactive trial that sets the robot off (a start or a resume), with the simulated
+    person's exact future as its forecast (the oracle): wherever the plan the reactive method would take
+    passes the check under that future, the plan the proactive method takes is predicted to arrive no later
+    (the forecast's own plan, or that one). A backup of a plan under way keeps the forecast's own plan
+    without weighing the candidate (:meth:`BackupComputer.compute_raw`), so it is not among them."""
     from app.control.backup import BackupComputer, BackupRequest, PlanOutcome
 
     compute_raw = BackupComputer.compute_raw
@@ -143,7 +145,7 @@ def test_with_the_exact_future_the_proactive_plan_never_arrives_later_than_the_r
 
     def checked(self: BackupComputer, req: BackupRequest) -> PlanOutcome:
         out = compute_raw(self, req)
-        if not req.has_candidate:
+        if not (req.has_candidate and req.sets_off):
             return out
         assert req.candidate is not None
         alone = self._plan_one(req, req.candidate, None, self.timer())  # the reactive method's plan
