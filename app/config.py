@@ -419,10 +419,10 @@ class Settings(BaseSettings):
     )
     robot_toward: bool = Field(
         True,
-        description="the speed governor takes each robot part's speed toward the person (ISO/TS 15066 "
-        "5.5.4.2.3's directed v_r, measured along the path at every frame; a part moving away gains "
-        "separation) instead of its whole speed; false: every part judged as if it moved straight at "
-        "the person",
+        description="the speed governor takes the speed of a robot part that moves away from the person "
+        "(ISO/TS 15066 5.5.4.2.3's directed v_r, measured along the path at every frame: it gains "
+        "separation) instead of its whole speed; a part that closes on the person counts at its whole "
+        "speed either way; false: every part judged as if it moved straight at the person",
     )
     station_choice: Literal["sequence", "forecast"] = Field(
         "sequence",

@@ -133,3 +133,17 @@ def test_the_compiled_speed_scale_law_agrees_with_the_safety_module() -> None:
         got = _kernels.law_scale(d, v, vh, law.kernel_params, alone.levels, alone.extra, alone.v_h)
         assert got == pytest.approx(want, abs=1e-12)
     assert law(np.zeros(0), np.zeros(0), np.zeros(0)) == 1.0
+
+
+def test_a_part_that_closes_counts_at_its_whole_speed_and_one_moving_away_at_its_directed_speed() -> None:
+    """The path's closing rate is that of a part's separation from the nearest capsule of the tracked pose:
+    toward another capsule, or the true person a frame later, a closing part may close at up to its whole
+    speed, so the governor takes that; a part moving away (or sideways) keeps its directed speed."""
+    from app.safety.governor import PathClosing
+
+    closing = PathClosing(0.0, math.inf, np.array([0.3, -0.4, 0.0]), np.zeros(3))
+    vmax = np.array([0.5, 0.5, 0.5])
+    got = closing.motion(0.0, vmax, np.full(3, 1.0), dt=0.008, rate=5.0, hi=1.0)
+    assert got is not None
+    np.testing.assert_array_equal(got.v_toward, [0.5, -0.4, 0.0])
+    np.testing.assert_array_equal(got.v_part, vmax)
