@@ -136,6 +136,7 @@ def predicted_scales_reference(
                 if j > i
             ]
             toward = np.minimum(np.max(rates, axis=0), v_parts)
+            toward = np.where(toward > 0.0, v_parts, toward)  # a closing part: its whole speed
         s = model.scale(sep, v_h, v_parts, float(max(w[i], w[i + 1])), toward)
         scales[i] = max(s, model.min_scale)
         t[i + 1] = t[i] + (tau[i + 1] - tau[i]) / scales[i]

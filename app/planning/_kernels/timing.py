@@ -203,6 +203,8 @@ def predicted_scales_kernel(
                     toward[p] = max(toward[p], (sep_now[p] - sep_j) / max(tau[j] - tau[i], 1e-12))
             for p in range(n_parts):
                 toward[p] = min(toward[p], vp[p]) if toward[p] > -np.inf else 0.0
+                if toward[p] > 0.0:  # a closing part counts at its whole speed, as the governor counts it
+                    toward[p] = vp[p]
             w_top = max(path.w[i], path.w[i + 1])
             rate = np.inf
             if vtop > 1e-9:
