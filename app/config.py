@@ -78,7 +78,7 @@ class Box(_Strict):
         return pose_matrix(self.center, [0.0, 0.0, self.yaw])
 
 
-#: The UR5e's joint position limits (rad, +-): +-2 pi, the elbow +-pi (:data:`app.planning.kinematics.Q_MAX`).
+#: The UR5e's joint position limits (rad, +-): +-2 pi, the elbow +-pi (the kinematics' ``Q_MAX``).
 UR5E_Q_LIMIT = (2 * math.pi, 2 * math.pi, math.pi, 2 * math.pi, 2 * math.pi, 2 * math.pi)
 
 
@@ -105,11 +105,16 @@ class RobotMount(_Strict):
         None, description="the planner's upper joint position limits (rad, 6); default: the UR5e's"
     )
 
-    @model_validator(mode="after")
-    def _limits_within_the_arm(self) -> RobotMount:
+    def _declared_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(q_min, q_max)`` as the file declares them, the UR5e's where it declares none."""
         arm = np.asarray(UR5E_Q_LIMIT, dtype=np.float64)
         lo = -arm if self.q_min is None else np.asarray(self.q_min, dtype=np.float64)
         hi = arm if self.q_max is None else np.asarray(self.q_max, dtype=np.float64)
+        return lo, hi
+
+    @model_validator(mode="after")
+    def _limits_within_the_arm(self) -> RobotMount:
+        lo, hi = self._declared_limits()
         for j in range(6):
             if not (-UR5E_Q_LIMIT[j] - 1e-4 <= lo[j] < hi[j] <= UR5E_Q_LIMIT[j] + 1e-4):
                 raise ValueError(
@@ -122,10 +127,9 @@ class RobotMount(_Strict):
 
     def joint_limits(self) -> tuple[np.ndarray, np.ndarray]:
         """The planner's joint position limits ``(q_min, q_max)``, each (6,) rad: the cell's, else the
-        UR5e's."""
+        UR5e's (a declared limit up to 1e-4 rad past the UR5e's, rounding in a file, is clipped to it)."""
         arm = np.asarray(UR5E_Q_LIMIT, dtype=np.float64)
-        lo = -arm if self.q_min is None else np.asarray(self.q_min, dtype=np.float64)
-        hi = arm if self.q_max is None else np.asarray(self.q_max, dtype=np.float64)
+        lo, hi = self._declared_limits()
         return np.clip(lo, -arm, arm), np.clip(hi, -arm, arm)
 
     def T_world_base(self) -> np.ndarray:

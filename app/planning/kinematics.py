@@ -35,7 +35,7 @@ from typing import Literal
 
 import numpy as np
 
-from app.config import R_WORLD_TOOL_DOWN, WorkCell
+from app.config import R_WORLD_TOOL_DOWN, UR5E_Q_LIMIT, WorkCell
 from app.planning import _kernels
 
 __all__ = [
@@ -65,9 +65,10 @@ _TWIST = _SA.copy()  # the compiled chain's twist signs (+1: pi/2, -1: -pi/2, 0:
 _D1, _A2, _A3, _D4, _D5, _D6 = 0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996
 
 _TWO_PI = 2.0 * math.pi
-#: Joint position limits (rad): elbow +-pi, the others +-2 pi.
-Q_MIN = np.array([-_TWO_PI, -_TWO_PI, -math.pi, -_TWO_PI, -_TWO_PI, -_TWO_PI])
-Q_MAX = -Q_MIN
+#: Joint position limits (rad): elbow +-pi, the others +-2 pi (:data:`app.config.UR5E_Q_LIMIT`; a work cell
+#: may narrow them, :meth:`app.config.RobotMount.joint_limits`).
+Q_MAX = np.array(UR5E_Q_LIMIT, dtype=np.float64)
+Q_MIN = -Q_MAX
 #: Joint speed limits (rad/s).
 QD_MAX = np.full(6, math.pi)
 #: Joint acceleration limits (rad/s^2) used for planning: well below what the UR5e can do, so that motions

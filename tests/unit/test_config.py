@@ -76,7 +76,9 @@ def test_the_cell_sets_the_planners_joint_limits_within_the_arms(tmp_path: Path)
     from app.config import UR5E_Q_LIMIT
     from app.planning.kinematics import Q_MAX, Q_MIN, UR5e
 
-    assert np.allclose(UR5E_Q_LIMIT, Q_MAX) and np.allclose(Q_MIN, -Q_MAX)
+    # the UR5e's: +-2 pi, the elbow +-pi (UR5e user manual, joint ranges); the kinematics take these
+    assert np.allclose(UR5E_Q_LIMIT, [2 * np.pi] * 2 + [np.pi] + [2 * np.pi] * 3)
+    assert np.array_equal(Q_MAX, UR5E_Q_LIMIT) and np.array_equal(Q_MIN, -Q_MAX)
     cell = load_workcell()
     lo, hi = cell.robot.joint_limits()
     assert hi[4] == 0.0 and lo[4] == pytest.approx(-np.pi, abs=1e-4)  # the shipped cell: wrist 2 in [-pi, 0]
