@@ -435,12 +435,12 @@ class PathClosing:
         if tau < self.tau0 - 1e-9 or tau + ahead > self.tau_valid:
             return None
         closed = self.v_toward * (tau - self.tau0) + self.slack
-        toward = np.minimum(self.v_toward, vmax)  # the whole speed bounds the rate from here too
         # A part that closes at all counts at its whole speed: the bound is the closing rate of its separation
         # from the nearest capsule of the tracked pose, and toward another capsule, or the true person a
         # frame's age later, it may close faster (a CMU replay: 0.32 m/s seen, 0.38 m/s true, inside S_p of
-        # a leg whose permissible contact speed is 0.36 m/s). A part moving away keeps its directed speed.
-        toward = np.where(toward > 0.0, vmax, toward)
+        # a leg whose permissible contact speed is 0.36 m/s). A part moving away keeps its directed speed
+        # (at most its whole speed).
+        toward = np.where(self.v_toward > 0.0, vmax, np.minimum(self.v_toward, vmax))
         use = closed + toward * ahead < travel_m + vmax * ahead
         return RobotMotion(vmax, np.where(use, toward, vmax), np.where(use, closed, travel_m))
 
