@@ -224,18 +224,21 @@ def count_violations(
     hold_s: float,
     stopping: StoppingModel,
     contact_only: tuple[bool, ...] = (),
+    limits: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> int:
     """1 if the trajectory breaks the limits or the separation anywhere on a 100 Hz grid, else 0: the
     clearance of :func:`app.safety.ssm.forecast_clearance` with the robot's speeds there (central
     differences) and the planner's stopping model ``stopping``; from a person capsule flagged in
     ``contact_only`` (one flag per capsule of :data:`app.planning.collision.HUMAN_CAPSULES`, the planner's
-    ``PlannerConfig.contact_only``) only ``Z_d``, as the planner's trajectory checks ask of it."""
+    ``PlannerConfig.contact_only``) only ``Z_d``, as the planner's trajectory checks ask of it. ``limits``:
+    the joint position limits ``(q_min, q_max)`` the planner keeps (the cell's; default: the UR5e's)."""
     from app.planning.kinematics import Q_MAX, Q_MIN
     from app.safety.ssm import forecast_clearance
 
+    q_min, q_max = (Q_MIN, Q_MAX) if limits is None else limits
     t = np.arange(traj.t_start, traj.t_end + hold_s + 1e-9, 0.01)
     q = traj.q(t)
-    if np.any(q < Q_MIN - 1e-9) or np.any(q > Q_MAX + 1e-9):
+    if np.any(q < q_min - 1e-9) or np.any(q > q_max + 1e-9):
         return 1
     eps = 1e-5
     q0, q1 = traj.q(t - eps), traj.q(t + eps)
@@ -463,6 +466,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     hold_s=planner.config.goal_hold_s,
                     stopping=planner.config.stopping,
                     contact_only=planner.config.contact_only,
+                    limits=(planner.q_min, planner.q_max),
                 )
                 checked += 1
         if results["plan"].ok or results["parallel_plan"].ok:
@@ -488,6 +492,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     hold_s=planner.config.goal_hold_s,
                     stopping=planner.config.stopping,
                     contact_only=planner.config.contact_only,
+                    limits=(planner.q_min, planner.q_max),
                 )
                 checked += 1
         em = results["emergency"]
@@ -506,6 +511,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     hold_s=planner.config.emergency_hold_s,
                     stopping=planner.config.stopping,
                     contact_only=planner.config.contact_only,
+                    limits=(planner.q_min, planner.q_max),
                 )
                 checked += 1
         if progress and (i + 1) % 10 == 0:

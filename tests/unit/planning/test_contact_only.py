@@ -144,3 +144,18 @@ def test_the_planning_benchs_independent_check_asks_of_each_region_what_the_chec
     assert count_violations(hold, head, stack.collision, ssm, contact_only=flags, **kw) == 1
     touching = _person_with(stack, q, "r_hand", 0.5 * ssm.z_human_m)
     assert count_violations(hold, touching, stack.collision, ssm, contact_only=flags, **kw) == 1
+
+
+def test_the_planner_and_the_benchs_check_keep_the_cells_joint_limits(stack) -> None:  # type: ignore[no-untyped-def]
+    from app.bench.planning import count_violations
+
+    lo, hi = stack.cell.robot.joint_limits()
+    np.testing.assert_array_equal(stack.planner.q_min, lo)
+    np.testing.assert_array_equal(stack.planner.q_max, hi)
+    assert hi[4] == 0.0  # the shipped cell's wrist 2
+    q = np.asarray(stack.cell.robot.home_q, dtype=np.float64)
+    q[4] = np.pi / 2  # the wrist flipped: within the UR5e's limits, outside the cell's
+    far = HumanForecast.hold(HumanFrame(0.0, np.full((NUM_JOINTS, 3), 6.0)))
+    ssm, kw = stack.planner.config.ssm, {"hold_s": 0.0, "stopping": stack.planner.config.stopping}
+    assert count_violations(_at_rest(q), far, stack.collision, ssm, **kw) == 0
+    assert count_violations(_at_rest(q), far, stack.collision, ssm, limits=(lo, hi), **kw) == 1
