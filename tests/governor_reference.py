@@ -15,6 +15,7 @@ from app.control.supervisor import Supervisor
 from app.planning.ssm_timing import STEP_S, _ahead_max, part_speeds
 from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, GovernorModel, SeparationModel, directed_approach
 from app.safety.ssm import required_separation
+from app.safety.stopping import UR5E_STOP
 
 
 def _sp(model: SeparationModel, v_part: Any, t_s: Any, v_human: Any) -> Any:
@@ -116,7 +117,7 @@ def predicted_scales_reference(
     qd = traj.qd(tau)
     ahead = max(round(model.lookahead_s / max((t1 - t0) / n, 1e-9)), 0)
     v = _ahead_max(part_speeds(collision, q, qd), ahead)
-    w = _ahead_max(np.abs(qd).max(axis=1), ahead)
+    w = _ahead_max(np.atleast_1d(UR5E_STOP.braking_speed(qd)), ahead)
     window = model.speed_window_s
     t = np.empty(n + 1)
     t[0] = t0

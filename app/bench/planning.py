@@ -245,7 +245,7 @@ def count_violations(
     a0, b0, _ = model.robot_capsules(q0)
     a1, b1, _ = model.robot_capsules(q1)
     v = np.maximum(np.linalg.norm(a1 - a0, axis=-1), np.linalg.norm(b1 - b0, axis=-1)).max(axis=1) / (2 * eps)
-    w = np.abs(q1 - q0).max(axis=1) / (2 * eps)
+    w = stopping.braking_speed((q1 - q0) / (2 * eps))
     joints, margins = forecast.poses_at(t)
     d = model.distance_to_human_paired(q, joints)
     need = forecast_clearance(v, margins, ssm, w_top_radps=w, stopping=stopping)
@@ -552,7 +552,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
             "t_reaction_s": planner.config.ssm.t_reaction_s,
             "stopping": {
                 "decel_mps2": planner.config.stopping.decel_mps2,
-                "joint_decel_radps2": planner.config.stopping.joint_decel_radps2,
+                "joint_decel_radps2": list(planner.config.stopping.joint_decel_radps2),
                 "delay_s": planner.config.stopping.delay_s,
             },
         },

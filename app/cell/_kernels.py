@@ -35,6 +35,7 @@ class JointTrackerParams(NamedTuple):
         q_max: Upper position limits (6,) (rad).
         qdd_max: Acceleration limits (6,) (rad/s^2).
         inv_qd_max: Reciprocals (6,) of the speed limits (s/rad).
+        brake_decel: How fast each joint can slow down (6,) (rad/s^2).
     """
 
     hold_after_s: float
@@ -45,6 +46,7 @@ class JointTrackerParams(NamedTuple):
     q_max: np.ndarray
     qdd_max: np.ndarray
     inv_qd_max: np.ndarray
+    brake_decel: np.ndarray
 
 
 class TrackerCommand(NamedTuple):
@@ -82,7 +84,7 @@ def track_substeps(
     cmd_t, cmd_q, cmd_qd, has_cmd = command.t, command.q, command.qd, command.active
     hold_after_s, kp = params.hold_after_s, params.kp
     ref_lo, ref_hi, q_min, q_max = params.ref_lo, params.ref_hi, params.q_min, params.q_max
-    qdd_max, inv_qd_max = params.qdd_max, params.inv_qd_max
+    qdd_max, inv_qd_max, brake_decel = params.qdd_max, params.inv_qd_max, params.brake_decel
     q_ref = np.empty(6)
     qd_ff = np.empty(6)
     qd_new = np.empty(6)
@@ -90,7 +92,7 @@ def track_substeps(
         if stopping:
             t_stop = 0.0
             for j in range(6):
-                t_stop = max(t_stop, abs(qd[j]) / qdd_max[j])
+                t_stop = max(t_stop, abs(qd[j]) / brake_decel[j])
             if t_stop == 0.0:
                 continue  # at rest
             for j in range(6):
@@ -129,9 +131,7 @@ def track_substeps(
                     for j in range(6):
                         qd_new[j] = qd_new[j] / worst
             for j in range(6):
-                ah = qdd_max[j] * h
-                dv = min(max(qd_new[j] - qd[j], -ah), ah)
-                qd_new[j] = qd[j] + dv
+                qd_new[j] = _limited_change(qd[j], qd_new[j], qdd_max[j] * h, brake_decel[j] * h)
         for j in range(6):
             q_new = q[j] + qd_new[j] * h
             v = qd_new[j]
@@ -141,6 +141,19 @@ def track_substeps(
                 q_new, v = q_max[j], 0.0
             q[j] = q_new
             qd[j] = v
+
+
+@jit
+def _limited_change(v: float, v_des: float, up: float, down: float) -> float:
+    """The speed a joint moving at ``v`` reaches toward ``v_des`` in one substep: it may lose up to ``down``
+    of its speed and gain up to ``up`` (rad/s per substep); through zero it first stops, then speeds up."""
+    if v > 0.0:
+        out = min(max(v_des, v - down), v + up)
+        return out if out >= 0.0 else max(out, -up)
+    if v < 0.0:
+        out = max(min(v_des, v + down), v - up)
+        return out if out <= 0.0 else min(out, up)
+    return min(max(v_des, -up), up)
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -35,15 +35,20 @@ class JointLimits:
         q_max: Upper position limits (6,), rad.
         qd_max: Speed limits (6,), rad/s, > 0.
         qdd_max: Acceleration limits (6,), rad/s^2, > 0.
+        brake_decel: How fast each joint can slow down (6,), rad/s^2, >= ``qdd_max``: a braking joint may
+            lose speed this fast, a joint speeding up gains it at ``qdd_max`` at most. None: ``qdd_max``.
     """
 
     q_min: np.ndarray
     q_max: np.ndarray
     qd_max: np.ndarray
     qdd_max: np.ndarray
+    brake_decel: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        for name in ("q_min", "q_max", "qd_max", "qdd_max"):
+        if self.brake_decel is None:
+            object.__setattr__(self, "brake_decel", self.qdd_max)
+        for name in ("q_min", "q_max", "qd_max", "qdd_max", "brake_decel"):
             a = _vec6(getattr(self, name), name)
             a.setflags(write=False)
             object.__setattr__(self, name, a)
@@ -51,22 +56,30 @@ class JointLimits:
             raise ValueError(f"q_min must be < q_max, got {self.q_min} and {self.q_max}")
         if np.any(self.qd_max <= 0) or np.any(self.qdd_max <= 0):
             raise ValueError("qd_max and qdd_max must be > 0")
+        if np.any(self.brake_decel < self.qdd_max):
+            raise ValueError(f"brake_decel must be >= qdd_max, got {self.brake_decel} and {self.qdd_max}")
 
     @classmethod
     def ur5e(cls) -> JointLimits:
-        """The UR5e limits from :mod:`app.planning.kinematics` (Q_MIN, Q_MAX, QD_MAX, QDD_MAX)."""
+        """The UR5e limits from :mod:`app.planning.kinematics` (Q_MIN, Q_MAX, QD_MAX, QDD_MAX), braking as
+        the manual's stops do (:data:`app.safety.stopping.UR5_MANUAL_JOINT_DECEL_RADPS2`; the stopping
+        model counts on 60 % of that)."""
         from app.planning.kinematics import Q_MAX, Q_MIN, QD_MAX, QDD_MAX
+        from app.safety.stopping import UR5_MANUAL_JOINT_DECEL_RADPS2
 
+        qdd = np.asarray(QDD_MAX, dtype=float)
         return cls(
             q_min=np.asarray(Q_MIN, dtype=float),
             q_max=np.asarray(Q_MAX, dtype=float),
             qd_max=np.asarray(QD_MAX, dtype=float),
-            qdd_max=np.asarray(QDD_MAX, dtype=float),
+            qdd_max=qdd,
+            brake_decel=np.maximum(np.asarray(UR5_MANUAL_JOINT_DECEL_RADPS2, dtype=float), qdd),
         )
 
     def as_lists(self) -> dict[str, list[float]]:
         """Plain lists (picklable without numpy, e.g. for the RTDE worker process)."""
-        return {k: getattr(self, k).tolist() for k in ("q_min", "q_max", "qd_max", "qdd_max")}
+        names = ("q_min", "q_max", "qd_max", "qdd_max", "brake_decel")
+        return {k: getattr(self, k).tolist() for k in names}
 
 
 @dataclass(frozen=True)
@@ -102,7 +115,8 @@ class JointTracker:
     so a command stream that stops brings the arm to rest. The desired velocity is the feed-forward plus a
     feedback that can always stop in time, ``sign(e) * min(kp |e|, sqrt(2 a |e|))``; the whole velocity
     vector is scaled down uniformly to respect ``speed_scale * qd_max`` (the path direction is kept), then
-    each joint's change of velocity is limited by ``qdd_max``. Positions are clipped to the limits.
+    each joint's change of velocity is limited by ``qdd_max`` (by ``brake_decel`` where it slows down).
+    Positions are clipped to the limits.
 
     Args:
         q0: Initial joint positions (6,), rad.
@@ -144,6 +158,7 @@ class JointTracker:
             limits.q_max,
             self._qdd_max,
             self._inv_qd_max,
+            np.array(limits.brake_decel),
         )
         no_command = np.zeros(6)
         self._hold = TrackerCommand(0.0, no_command, no_command, False)
@@ -179,7 +194,7 @@ class JointTracker:
             t: Time (s) at the start of the step (for the command's extrapolation).
             dt_s: Step length (s), >= 0.
             speed_scale: Fraction (0..1) of ``qd_max`` allowed.
-            stopping: Decelerate to rest within ``qdd_max`` (all joints stop together, so the arm stays
+            stopping: Decelerate to rest within ``brake_decel`` (all joints stop together, so the arm stays
                 on its joint-space path), ignoring the command.
         """
         n, h, s = self._substeps(dt_s, speed_scale)

@@ -39,7 +39,7 @@ class ReferenceJointTracker(JointTracker):
         speed = np.abs(self.qd)
         if not np.any(speed > 0):
             return
-        t_stop = float(np.max(speed / lim.qdd_max))
+        t_stop = float(np.max(speed / lim.brake_decel))
         if t_stop <= h:
             qd_new = np.zeros(6)
         else:
@@ -61,8 +61,19 @@ class ReferenceJointTracker(JointTracker):
             worst = float(np.max(np.abs(v_des) * self._inv_qd_max)) / s
             if worst > 1.0:  # scale the whole vector: the direction of motion is kept
                 v_des = v_des / worst
-        dv = np.minimum(np.maximum(v_des - self.qd, -ah), ah)
-        self._integrate(self.qd + dv, h)
+        down = self.limits.brake_decel * h
+        out = np.empty(6)
+        for j in range(6):  # a braking joint may lose speed at brake_decel, one speeding up gains at qdd_max
+            v, vd = float(self.qd[j]), float(v_des[j])
+            if v > 0.0:
+                o = min(max(vd, v - down[j]), v + ah[j])
+                out[j] = o if o >= 0.0 else max(o, -ah[j])
+            elif v < 0.0:
+                o = max(min(vd, v + down[j]), v - ah[j])
+                out[j] = o if o <= 0.0 else min(o, ah[j])
+            else:
+                out[j] = min(max(vd, -ah[j]), ah[j])
+        self._integrate(out, h)
 
     def _integrate(self, qd_new: np.ndarray, h: float) -> None:
         lim = self.limits

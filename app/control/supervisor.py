@@ -621,7 +621,8 @@ class Supervisor:
             pr = active.profile
             rate = brake_rate(float(pr.window_at(tau).max()), pr.joint_window_at(tau), cfg.brake_decel_mps2,
                               cfg.brake_joint_decel)  # fmt: skip
-            tau_b = min(tau + _ramp_distance(s, _up_rate(cfg.scale_up_rate, rate), D), active.traj.t_end)
+            up = _up_rate(cfg.scale_up_rate, rate, cfg.ramp_joint_accel, pr.top_joint_window_at(tau))
+            tau_b = min(tau + _ramp_distance(s, up, D), active.traj.t_end)
             t_start = T + D
             q_s, qd_s = traj_state(active.traj, tau_b)
             if tau_b >= active.traj.t_end:
@@ -853,7 +854,9 @@ class Supervisor:
         jmax = active.profile.joint_window_at(self._tau)
         # braking: the path scale falls at `rate` (1/s), each part slows at rate * its speed
         rate = brake_rate(vtop, jmax, cfg.brake_decel_mps2, cfg.brake_joint_decel)
-        up = _up_rate(cfg.scale_up_rate, rate)
+        up = _up_rate(
+            cfg.scale_up_rate, rate, cfg.ramp_joint_accel, active.profile.top_joint_window_at(self._tau)
+        )
         s = self._s
         if self._stale:
             s_target = 0.0
@@ -1147,10 +1150,14 @@ class Supervisor:
         return float(governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
 
 
-def _up_rate(scale_up_rate: float, brake_rate_per_s: float) -> float:
-    """How fast (1/s) the path scale may rise: the ramp, no faster than a brake may lower it, so that the arm
+def _up_rate(scale_up_rate: float, brake_rate_per_s: float, joint_accel: float, w_top_radps: float) -> float:
+    """How fast (1/s) the path scale may rise: the ramp, no faster than a brake may lower it nor than the
+    joints may speed up (``joint_accel`` for the fastest joint at ``w_top_radps`` at scale 1), so that the arm
     follows its command (a joint at 1.9 rad/s ramped at 4/s would need 7.6 rad/s^2, lag, then overshoot)."""
-    return min(scale_up_rate, brake_rate_per_s) if math.isfinite(brake_rate_per_s) else scale_up_rate
+    up = min(scale_up_rate, brake_rate_per_s) if math.isfinite(brake_rate_per_s) else scale_up_rate
+    if w_top_radps > 1e-9:
+        up = min(up, joint_accel / w_top_radps)
+    return up
 
 
 def _ramp_distance(s: float, up_rate: float, horizon_s: float) -> float:

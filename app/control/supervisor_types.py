@@ -13,6 +13,7 @@ import numpy as np
 
 from app.control.metrics import Method
 from app.control.trajectory_views import TrajectoryLike
+from app.planning.kinematics import QDD_MAX
 from app.safety.modes import PartMode
 from app.safety.stopping import UR5E_STOP
 
@@ -205,7 +206,10 @@ class SupervisorConfig:
         planner_workers: Workers per plan (parallel A*).
         brake_decel_mps2: Deceleration of the robot's fastest point when braking (m/s^2).
         brake_joint_decel: Largest joint deceleration when braking (rad/s^2).
-        scale_up_rate: Largest increase of the speed scale per second (1/s), at most the brake's rate.
+        scale_up_rate: Largest increase of the speed scale per second (1/s), at most the brake's rate and
+            what ``ramp_joint_accel`` allows the fastest joint.
+        ramp_joint_accel: The joints' acceleration limit (rad/s^2) the scale's ramp keeps to, so that the arm
+            follows its command (it brakes faster than it may speed up: the stopping model's decelerations).
         tracking_margin_m: Tracking error of a frame: subtracted from measured separations and used as the
             margin of the held pose (reactive forecast, emergency plan).
         human_speed_window_s: Window (s) over which the person's speed is measured.
@@ -237,8 +241,9 @@ class SupervisorConfig:
     frame_period_s: float = 1.0 / 30.0
     planner_workers: int = 1
     brake_decel_mps2: float = UR5E_STOP.decel_mps2
-    brake_joint_decel: float = UR5E_STOP.joint_decel_radps2
+    brake_joint_decel: float = UR5E_STOP.slowest_joint_decel_radps2
     scale_up_rate: float = 4.0
+    ramp_joint_accel: float = float(np.min(QDD_MAX))
     tracking_margin_m: float = 0.02
     human_speed_window_s: float = 0.1
     near_band_m: float = 0.25

@@ -11,6 +11,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from app.prediction.forecast import HumanForecast
+from app.safety.stopping import UR5E_STOP
 
 #: A goal of a planning query: a task pose's name or a roadmap node.
 Goal = str | int
@@ -223,7 +224,9 @@ class SpeedProfile:
         step_s: Sample spacing (s).
         v_mps: (K, L) speed of each part at each sample (m/s).
         window_mps: (K, L) the largest speed of each part from each sample over the following ``window_s``.
-        qd_max: (K,) windowed largest joint speed (rad/s), bounds the joint deceleration of a brake.
+        qd_max: (K,) windowed braking joint speed (rad/s;
+            :meth:`app.safety.stopping.StoppingModel.braking_speed`), bounds a brake's joint deceleration.
+        qd_top: (K,) windowed largest joint speed (rad/s), bounds the joint acceleration of the scale's ramp.
     """
 
     tau0: float
@@ -231,12 +234,13 @@ class SpeedProfile:
     v_mps: np.ndarray
     window_mps: np.ndarray
     qd_max: np.ndarray
+    qd_top: np.ndarray
 
     @classmethod
     def still(cls, tau0: float, n_parts: int) -> SpeedProfile:
         """The profile of a robot that does not move."""
         z = np.zeros((1, n_parts))
-        return cls(tau0=tau0, step_s=1.0, v_mps=z, window_mps=z, qd_max=np.zeros(1))
+        return cls(tau0=tau0, step_s=1.0, v_mps=z, window_mps=z, qd_max=np.zeros(1), qd_top=np.zeros(1))
 
     @classmethod
     def of(
@@ -249,9 +253,17 @@ class SpeedProfile:
         q = np.asarray(traj.q(taus), dtype=np.float64).reshape(n, 6)
         qd = np.asarray(traj.qd(taus), dtype=np.float64).reshape(n, 6)
         v = np.asarray(geometry.part_speeds(q, qd), dtype=np.float64).reshape(n, -1)
-        jq = np.abs(qd).max(axis=1)
+        jq = np.atleast_1d(UR5E_STOP.braking_speed(qd))
+        top = np.abs(qd).max(axis=1)
         w = max(math.ceil(window_s / step_s), 1) + 1
-        return cls(tau0=t0, step_s=step_s, v_mps=v, window_mps=_forward_max(v, w), qd_max=_forward_max(jq, w))
+        return cls(
+            tau0=t0,
+            step_s=step_s,
+            v_mps=v,
+            window_mps=_forward_max(v, w),
+            qd_max=_forward_max(jq, w),
+            qd_top=_forward_max(top, w),
+        )
 
     @property
     def n_parts(self) -> int:
@@ -278,11 +290,20 @@ class SpeedProfile:
         return self.v_mps[i] * (1.0 - w) + self.v_mps[j] * w
 
     def joint_window_at(self, tau: float) -> float:
-        i = int((tau - self.tau0) / self.step_s)
-        if i >= self.qd_max.shape[0]:
-            return 0.0
-        i = max(i, 0)
-        return float(max(self.qd_max[i], self.qd_max[max(i - 1, 0)]))
+        """The braking joint speed (rad/s) over the window starting at path time ``tau`` (0 after the end)."""
+        return _window(self.qd_max, self.tau0, self.step_s, tau)
+
+    def top_joint_window_at(self, tau: float) -> float:
+        """The largest joint speed (rad/s) over the window starting at path time ``tau`` (0 after the end)."""
+        return _window(self.qd_top, self.tau0, self.step_s, tau)
+
+
+def _window(x: np.ndarray, tau0: float, step_s: float, tau: float) -> float:
+    i = int((tau - tau0) / step_s)
+    if i >= x.shape[0]:
+        return 0.0
+    i = max(i, 0)
+    return float(max(x[i], x[max(i - 1, 0)]))
 
 
 def _forward_max(x: np.ndarray, w: int) -> np.ndarray:

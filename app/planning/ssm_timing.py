@@ -22,6 +22,7 @@ import numpy as np
 from app.planning._kernels.timing import TimingGovernor, TimingPath, TimingPerson, predicted_scales_kernel
 from app.planning.trajectory import Trajectory, sample_times
 from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, GovernorModel
+from app.safety.stopping import UR5E_STOP
 
 __all__ = ["PredictedTiming", "part_speeds", "predicted_scales"]
 
@@ -83,7 +84,7 @@ def predicted_scales(
     qd = traj.qd(tau)
     ahead = max(round(model.lookahead_s / max((t1 - t0) / n, 1e-9)), 0)
     v = _ahead_max(part_speeds(collision, q, qd), ahead)  # (N + 1, L) what the governor brakes for
-    w = _ahead_max(np.abs(qd).max(axis=1), ahead)
+    w = _ahead_max(np.atleast_1d(UR5E_STOP.braking_speed(qd)), ahead)  # the braking joint speed
     ra, rb, rr = collision.robot_capsules(q)
     ha, hb, hr = collision.human_capsules(np.asarray(forecast.joints, dtype=np.float64))
     path = TimingPath(tau, _f64(ra), _f64(rb - ra), _f64(rr), _f64(v), _f64(w))

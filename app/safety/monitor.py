@@ -387,7 +387,7 @@ class GroundTruthMonitor:
         d_ahead = self.geometry.pair_distances(q + h * qd, joints[None])[0]
         v_r = np.maximum(d0 - d_ahead, 0.0) / h  # (L, M) each part's speed toward each capsule
         v_top = float(np.asarray(self.geometry.part_speeds(q[None], qd[None])).max())
-        t_s = float(self.stopping.stop_time_s(v_top, w_top))
+        t_s = float(self.stopping.stop_time_s(v_top, self.stopping.braking_speed(qd)))
         s_s = self.stopping.stop_distance_m(v_r, t_s)
         t_r, c = self.t_r, self._constant_m
 

@@ -108,6 +108,8 @@ class Requirement(NamedTuple):
     #: (+inf: none), the stopping model's ``decel_mps2, joint_decel_radps2, delay_s``, then optionally the
     #: SSM-aware table: its step in m/s and its values
     params: np.ndarray
+    #: (6,) the stopping model's joint weights (:attr:`app.safety.stopping.StoppingModel.joint_weights`)
+    joint_weights: np.ndarray
 
 
 class ForecastPoses(NamedTuple):
@@ -132,8 +134,9 @@ class Clearance(NamedTuple):
     z_human_m: float
     floor_m: float  #: +inf: none
     decel_mps2: float
-    joint_decel_radps2: float
+    joint_decel_radps2: float  #: the slowest joint's
     delay_s: float
+    joint_weights: np.ndarray  #: (6,) each joint's speed in units of the slowest-braking joint's
 
 
 # ------------------------------------------------------------------------------------ the planner's tables

@@ -328,7 +328,7 @@ def moves_separation_ok(
     pts_tab, cen_tab, rad_tab = tables.pts, tables.cen, tables.rad
     lever, moved_by = motion.lever, motion.moved_by
     speed_factor, A, sample_dt = motion.speed_factor, motion.accel, motion.sample_dt
-    offsets, prm = requirement.offsets, requirement.params
+    offsets, prm, jw = requirement.offsets, requirement.params, requirement.joint_weights
     times, joints, djoints, dtimes = forecast.times, forecast.joints, forecast.djoints, forecast.dtimes
     lo_pair, hi_pair = forecast.lo_pair, forecast.hi_pair
     margins, lo_tab, hi_tab = forecast.margins, forecast.lo_tab, forecast.hi_tab
@@ -394,7 +394,7 @@ def moves_separation_ok(
         # the fastest joint's speed per unit of path speed (a straight joint move: exact)
         dq_max = 0.0
         for j in range(6):
-            dq_max = max(dq_max, abs(dq[j]))
+            dq_max = max(dq_max, abs(dq[j]) * jw[j])
         kw = dq_max * clock / max(Lk, 1e-12) if Lk > 1e-12 else 0.0
         # stage 0: the whole move (and its hold) against the person's box over its time window
         t0 = t_dep[k] + lo_off

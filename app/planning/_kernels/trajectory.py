@@ -86,6 +86,7 @@ def trajectory_first_violation(
     t_r, intrusion_m = clearance.t_reaction_s, clearance.intrusion_m
     z_robot_m, z_human_m, floor_m = clearance.z_robot_m, clearance.z_human_m, clearance.floor_m
     decel, joint_decel, delay = clearance.decel_mps2, clearance.joint_decel_radps2, clearance.delay_s
+    jw = clearance.joint_weights
     ra = robot.ra
     ia, ib, rh, soft = person.ia, person.ib, person.rh, person.soft
     N = ts.shape[0]
@@ -156,9 +157,9 @@ def trajectory_first_violation(
         if not (finite and margin == margin):
             return k
         v = max(step / eps, 0.0)
-        w_top = 0.0  # the fastest joint (rad/s)
+        w_top = 0.0  # the braking joint speed (rad/s)
         for j in range(6):
-            w_top = max(w_top, abs(q1[0, j] - q0[0, j]))
+            w_top = max(w_top, abs(q1[0, j] - q0[0, j]) * jw[j])
         w_top /= eps
         req = _robot_distance(v, w_top, t_r, decel, joint_decel, delay)
         req += intrusion_m + z_robot_m + max(z_human_m, margin)

@@ -124,7 +124,7 @@ class _MoveChecks:
         # m/s per unit of path speed
         kv = np.where(moving, self.config.speed_factor * chord * clock / np.maximum(L, 1e-12), 0.0)
         # the joints move along dq in proportion to the path: the fastest one at max|dq| per unit of it
-        kw = np.where(moving, np.abs(dq).max(axis=1) * clock / np.maximum(L, 1e-12), 0.0)
+        kw = np.where(moving, self.config.stopping.braking_speed(dq) * clock / np.maximum(L, 1e-12), 0.0)
         return dq, travel, cen_b, rad_b, dur, peak, clock, kv, kw
 
     def _moves_ok_compiled(

@@ -564,4 +564,6 @@ class Planner(_StaticTables, _MoveChecks, _Search, _Shortcuts, _TrajectoryChecks
         q0, q1 = traj.q(t), traj.q(t + eps)
         p0 = self._points_and_spheres(q0)[0]
         p1 = self._points_and_spheres(q1)[0]
-        return np.max(np.linalg.norm(p1 - p0, axis=-1), axis=-1) / eps, np.abs(q1 - q0).max(axis=-1) / eps
+        return np.max(np.linalg.norm(p1 - p0, axis=-1), axis=-1) / eps, np.atleast_1d(
+            self.config.stopping.braking_speed((q1 - q0) / eps)
+        )

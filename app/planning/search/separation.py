@@ -131,14 +131,15 @@ class _Separation:
                     extra_m,
                     math.inf if floor_m is None else floor_m,
                     stopping.decel_mps2,
-                    stopping.joint_decel_radps2,
+                    stopping.slowest_joint_decel_radps2,
                     stopping.delay_s,
                     *(() if ssm_extra is None else (ssm_extra[0], *np.asarray(ssm_extra[1]).tolist())),
                 ],
                 dtype=np.float64,
             )
             self._k_offsets = np.array(offsets, dtype=np.float64)
-            self._k_requirement = _kernels.pack(_kernels.Requirement(self._k_offsets, params))
+            weights = np.array(stopping.joint_weights, dtype=np.float64)
+            self._k_requirement = _kernels.pack(_kernels.Requirement(self._k_offsets, params, weights))
         # per person capsule boxes (for the exact stage to skip capsules far from the robot), sparse table
         # the exact stage's shortcuts need the collision model's segments and capsule subsets
         self._subsets = subsets and cap_ends is not None and robot_r is not None

@@ -139,7 +139,8 @@ class _TrajectoryChecks:
                 z_human_m=ssm.z_human_m,
                 floor_m=math.inf if floor_m is None else float(floor_m),
                 decel_mps2=stopping.decel_mps2,
-                joint_decel_radps2=stopping.joint_decel_radps2,
+                joint_decel_radps2=stopping.slowest_joint_decel_radps2,
+                joint_weights=f64(stopping.joint_weights),
                 delay_s=stopping.delay_s,
             )
         )
@@ -214,7 +215,7 @@ class _TrajectoryChecks:
             np.sqrt(np.einsum("lik,lik->lk", (a1 + d1) - (a0 + d0), (a1 + d1) - (a0 + d0))),
         )
         v = step.max(axis=0) / eps
-        w = np.abs(q1 - q).max(axis=1) / eps
+        w = self.config.stopping.braking_speed((q1 - q) / eps)
         req = forecast_clearance(v, margins, self.config.ssm, w_top_radps=w, stopping=self.config.stopping)
         if floor_m is not None:
             req = np.minimum(req, floor_m)

@@ -137,7 +137,7 @@ def test_quick_run_prints_every_key() -> None:
     )
     assert out["clearance"]["stopping"] == {
         "decel_mps2": UR5E_STOP.decel_mps2,
-        "joint_decel_radps2": UR5E_STOP.joint_decel_radps2,
+        "joint_decel_radps2": list(UR5E_STOP.joint_decel_radps2),
         "delay_s": UR5E_STOP.delay_s,
     }
     assert out["threads"]["queries"] == 12 and out["threads"]["threads"] >= 2

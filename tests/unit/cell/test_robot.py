@@ -13,6 +13,7 @@ from app.cell.joint_tracking import JointLimits, JointTracker, ServoCommand
 from app.cell.reference import ReferenceJointTracker
 from app.cell.robot import RobotBackend, RobotConnectionError, RobotState, SimRobot
 from app.config import Settings
+from app.safety.stopping import MANUAL_DECEL_SHARE, UR5_MANUAL_JOINT_DECEL_RADPS2, UR5E_STOP
 
 HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 DT = 0.002
@@ -33,7 +34,9 @@ def _check_limits(states: list[RobotState], limits: JointLimits, *, scale: float
     assert np.all(q >= limits.q_min - 1e-9) and np.all(q <= limits.q_max + 1e-9)
     assert np.all(np.abs(qd) <= scale * limits.qd_max + 1e-6)
     qdd = np.diff(qd, axis=0) / np.diff(t)[:, None]
-    assert np.all(np.abs(qdd) <= limits.qdd_max + 1e-6)
+    # a joint slows down within brake_decel and speeds up within qdd_max
+    assert np.all(np.abs(qdd) <= limits.brake_decel + 1e-6)
+    assert np.all(np.abs(qd[1:]) - np.abs(qd[:-1]) <= limits.qdd_max * np.diff(t)[:, None] + 1e-6)
 
 
 def test_ur5e_limits_come_from_the_kinematics_module() -> None:
@@ -42,6 +45,27 @@ def test_ur5e_limits_come_from_the_kinematics_module() -> None:
     lim = JointLimits.ur5e()
     np.testing.assert_array_equal(lim.q_max, kinematics.Q_MAX)
     np.testing.assert_array_equal(lim.qdd_max, kinematics.QDD_MAX)
+    # it brakes as the manual's stops do (the stopping model counts on 60 % of that)
+    np.testing.assert_array_equal(lim.brake_decel, UR5_MANUAL_JOINT_DECEL_RADPS2)
+    assert np.all(lim.brake_decel * MANUAL_DECEL_SHARE >= np.asarray(UR5E_STOP.joint_decel_radps2) - 0.01)
+    with pytest.raises(ValueError, match="brake_decel"):
+        JointLimits(lim.q_min, lim.q_max, lim.qd_max, lim.qdd_max, brake_decel=lim.qdd_max / 2)
+
+
+def test_a_joint_brakes_faster_than_it_may_speed_up() -> None:
+    """Speeding up within qdd_max, slowing down within brake_decel: the supervisor's brake, commanded at
+    the stopping model's deceleration, is followed without lag."""
+    limits = JointLimits.ur5e()
+    tracker = JointTracker(HOME, limits, max_substep_s=0.002)
+    tracker.qd = np.array([2.0, 0, 0, 0, 0, 0])
+    tracker.set_command(ServoCommand(0.0, tracker.q + np.array([0.02, 0, 0, 0, 0, 0]), np.zeros(6)))
+    v0 = tracker.qd[0]
+    tracker.step(0.0, 0.002)
+    assert v0 - tracker.qd[0] == pytest.approx(limits.brake_decel[0] * 0.002)  # braking for the target
+    tracker = JointTracker(HOME, limits, max_substep_s=0.002)
+    tracker.set_command(ServoCommand(0.0, tracker.q + 1.0, np.zeros(6)))
+    tracker.step(0.0, 0.002)
+    np.testing.assert_allclose(tracker.qd, limits.qdd_max * 0.002)  # speeding up
 
 
 def test_tracks_a_far_step_within_velocity_and_acceleration_limits() -> None:
@@ -56,9 +80,12 @@ def test_tracks_a_far_step_within_velocity_and_acceleration_limits() -> None:
     # joint 5 moves 3 rad with 4 rad/s^2: a bang-bang profile would peak at sqrt(12) > pi, so it cruises at
     # the speed limit
     assert np.max(np.abs([s.qd[5] for s in states])) == pytest.approx(math.pi, abs=1e-6)
-    # time-optimal for joint 5: 3 rad at pi rad/s plus the ramps pi/4 s: about 1.74 s
+    # joint 5 cannot beat its limits: speeding up at 4 rad/s^2 (pi/4 s, pi^2/8 rad), braking at brake_decel,
+    # cruising at pi rad/s between; the feedback's tail (kp = 12/s) settles it to 1 mrad within 0.5 s more
+    a, b = 4.0, float(robot.limits.brake_decel[5])
+    optimal = math.pi / a + math.pi / b + (3.0 - math.pi**2 / (2 * a) - math.pi**2 / (2 * b)) / math.pi
     arrived = next(s.t for s in states if abs(s.q[5] - target[5]) < 1e-3)
-    assert arrived == pytest.approx(3.0 / math.pi + math.pi / 4.0, abs=0.05)
+    assert optimal <= arrived <= optimal + 0.5
 
 
 def test_follows_a_moving_set_point_closely() -> None:
@@ -114,8 +141,8 @@ def test_protective_stop_decelerates_within_limits_and_ignores_servo_until_reset
     _check_limits([moving[-1], *stopping], robot.limits)
     assert stopping[-1].protective_stop
     assert np.all(stopping[-1].qd == 0.0)
-    # all joints stop together: the stop takes max(|qd| / qdd_max) and the joint path is a straight line
-    t_stop = np.max(np.abs(qd0) / robot.limits.qdd_max)
+    # all joints stop together: the stop takes max(|qd| / brake_decel) and the joint path is a straight line
+    t_stop = np.max(np.abs(qd0) / robot.limits.brake_decel)
     n_moving = sum(1 for s in stopping if np.any(s.qd != 0))
     assert n_moving * DT == pytest.approx(t_stop, abs=2 * DT)
     dq = stopping[-1].q - moving[-1].q

@@ -540,15 +540,16 @@ def test_a_person_who_appears_is_an_intrusion_that_stops_the_robot_in_the_models
     """A jump of the person that no person can make is an intrusion: counted, a protective stop at once, and
     the simulated robot comes to rest within the stopping model's time of its speed at the stop."""
     from app.cell.operator_sim import SimulatedOperator
-    from app.safety.stopping import UR5E_STOP
+    from app.safety.stopping import MANUAL_DECEL_SHARE, UR5E_STOP
 
     t_jump = 1.5
-    speeds: list[tuple[float, float, float]] = []  # t, fastest joint (rad/s), fastest part (m/s)
+    # t, fastest joint (rad/s), fastest part (m/s), braking joint speed (rad/s)
+    speeds: list[tuple[float, float, float, float]] = []
 
     def observer(t: float, engine) -> None:
         st = engine.last_state
         v_top = float(engine.stack.geometry.part_speeds(st.q, st.qd).max())
-        speeds.append((t, float(np.abs(st.qd).max()), v_top))
+        speeds.append((t, float(np.abs(st.qd).max()), v_top, float(UR5E_STOP.braking_speed(st.qd))))
 
     inner = SimulatedOperator(stack.cell, seed=3, noise=False)
     human = _Appearing(inner, t_jump, np.array([-0.25, 0.0, 0.0]))
@@ -571,11 +572,12 @@ def test_a_person_who_appears_is_an_intrusion_that_stops_the_robot_in_the_models
     assert stop.t == intrusion.t
     at_stop = next(s for s in speeds if s[0] >= stop.t)
     assert at_stop[1] > 0.1, "the robot should be under way when the person appears (pick another t_jump)"
-    t_model = UR5E_STOP.stop_time_s(at_stop[2], at_stop[1])
+    t_model = UR5E_STOP.stop_time_s(at_stop[2], at_stop[3])
     rest = next(s for s in speeds if s[0] > stop.t and s[1] < 0.01)
-    # a stop takes time (the model's deceleration, not zero); the supervisor plans its brake with the
-    # path's fastest speeds over the brake, so it may take longer than the model from the current speed
-    assert t_model <= rest[0] - stop.t <= 1.5 * t_model + 0.05
+    # a stop takes time (at most the arm's own deceleration, of which the model counts on 60 %: not zero);
+    # the supervisor plans its brake with the path's fastest speeds over the brake, so it may take longer
+    # than the model from the current speed
+    assert MANUAL_DECEL_SHARE * t_model - 0.01 <= rest[0] - stop.t <= 1.5 * t_model + 0.05
 
 
 def test_the_time_budget_sums_to_the_trial_and_arrivals_are_compared_with_the_plans(

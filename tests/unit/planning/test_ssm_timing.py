@@ -25,6 +25,7 @@ from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw
 from app.safety.ssm import SSMParams
+from app.safety.stopping import UR5E_STOP
 from tests.governor_reference import predicted_scales_reference
 from tests.unit.planning.test_search import R_HUMAN, R_ROBOT, PointRobot, config, person, q_of, roadmap
 
@@ -37,7 +38,7 @@ def governor(**kw: object) -> GovernorModel:
     base = dict(
         separation=SEPARATION,
         brake_decel_mps2=3.0,
-        brake_joint_decel=3.0,
+        brake_joint_decel=UR5E_STOP.slowest_joint_decel_radps2,
         tracking_margin_m=0.02,
         speed_window_s=0.1,
         sensing_age_s=0.09,
@@ -101,7 +102,7 @@ def test_a_person_beside_the_path_slows_the_predicted_timing_along_the_same_path
     model = governor()
     fc = _standing(np.array([0.9, -0.3, 0.2]))  # in front of the arm, beside the turn
     tau, t, scales = predicted_scales(traj, fc, ur5e, model)
-    assert t[-1] - t[0] > 1.5 * traj.duration  # the governor would slow this turn a lot
+    assert t[-1] - t[0] > 1.25 * traj.duration  # the governor would slow this turn
     assert np.all(np.diff(t) >= np.diff(tau) - 1e-12)  # never faster than the path's own timing
     view = PredictedTiming.of(traj, fc, ur5e, model)
     assert view.t_end == pytest.approx(t[-1])
@@ -139,7 +140,7 @@ def test_the_compiled_walk_matches_its_numpy_reference(ur5e: CollisionModel, law
     tau, t, scales = predicted_scales(traj, fc, ur5e, model)
     tau_r, t_r, scales_r = predicted_scales_reference(traj, fc, ur5e, model)
     assert np.array_equal(tau, tau_r)
-    assert scales.min() < 0.5  # the person matters here
+    assert scales.min() < 0.7  # the person matters here
     assert np.allclose(scales, scales_r, rtol=0, atol=1e-9)
     assert np.allclose(t, t_r, rtol=1e-9, atol=1e-9)
 

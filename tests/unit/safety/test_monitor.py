@@ -5,6 +5,8 @@ keeps the measured-speed and ISO constant-speed figures as stress figures."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -15,7 +17,7 @@ from app.prediction.skeleton import JOINT_INDEX, NUM_JOINTS
 from app.safety.monitor import GroundTruthMonitor
 from app.safety.pfl import PFLModel
 from app.safety.ssm import SSMParams
-from app.safety.stopping import UR5E_STOP, StoppingModel, reaction_time_s
+from app.safety.stopping import UR5_MANUAL_JOINT_DECEL_RADPS2, UR5E_STOP, StoppingModel, reaction_time_s
 
 T_R = 0.111
 
@@ -87,7 +89,7 @@ def _expected_sp(geometry, q, qd, sample, v_h: float) -> float:
     """ISO/TS 15066's S_p of the judge for ``sample``, the person approaching at ``v_h`` (Z_d not added)."""
     ssm = SSMParams()
     v_top = float(geometry.part_speeds(q, qd).max())
-    t_s = UR5E_STOP.stop_time_s(v_top, float(np.abs(qd).max()))
+    t_s = UR5E_STOP.stop_time_s(v_top, UR5E_STOP.braking_speed(qd))
     v_r = sample.robot_speed_mps
     return v_h * (T_R + t_s) + v_r * (T_R + t_s / 2) + ssm.intrusion_m + ssm.z_robot_m
 
@@ -233,6 +235,33 @@ def test_a_hand_pinned_on_the_scene_gets_the_quasi_static_speed(geometry) -> Non
     )
 
 
+def test_the_ur5e_brakes_each_joint_at_sixty_percent_of_the_manuals_stops() -> None:
+    """The UR5 manual's category-0 stops from 183 deg/s (full extension, 5 kg): the base in 0.244 s, the
+    shoulder in 0.53 s, the elbow in 0.164 s; the model counts on 60 % of each mean deceleration, the wrists
+    on the base's."""
+    full = math.radians(183.0)
+    by_hand = [full / 0.244, full / 0.53, full / 0.164]  # 13.1, 6.0, 19.5 rad/s^2
+    assert UR5_MANUAL_JOINT_DECEL_RADPS2[:3] == pytest.approx(by_hand, abs=0.05)
+    assert UR5_MANUAL_JOINT_DECEL_RADPS2[3:] == (UR5_MANUAL_JOINT_DECEL_RADPS2[0],) * 3
+    assert UR5E_STOP.joint_decel_radps2 == pytest.approx(
+        [0.6 * a for a in by_hand] + [0.6 * by_hand[0]] * 3, abs=0.05
+    )
+    assert UR5E_STOP.slowest_joint_decel_radps2 == pytest.approx(3.6)
+    # a base turn at 1 rad/s stops in 1 / 7.86 s, a shoulder turn at 1 rad/s in 1 / 3.6 s; together, the
+    # slower of the two
+    base, shoulder = np.eye(6)[0], np.eye(6)[1]
+    assert UR5E_STOP.stop_time_s(0.0, UR5E_STOP.braking_speed(base)) == pytest.approx(1 / 7.86)
+    assert UR5E_STOP.stop_time_s(0.0, UR5E_STOP.braking_speed(shoulder)) == pytest.approx(1 / 3.6)
+    assert UR5E_STOP.stop_time_s(0.0, UR5E_STOP.braking_speed(base + 0.5 * shoulder)) == pytest.approx(
+        0.5 / 3.6
+    )
+    assert UR5E_STOP.stop_time_s(0.0, UR5E_STOP.braking_speed(-2.0 * base)) == pytest.approx(2 / 7.86)
+    # the fastest point's own limit still holds: 1.5 m/s at 3 m/s^2
+    assert UR5E_STOP.stop_time_s(1.5, UR5E_STOP.braking_speed(base)) == pytest.approx(0.5)
+    # braking speeds of many samples at once
+    np.testing.assert_allclose(UR5E_STOP.braking_speed(np.stack([base, shoulder])), [3.6 / 7.86, 1.0])
+
+
 def test_the_stopping_model() -> None:
     m = StoppingModel(decel_mps2=3.0, joint_decel_radps2=3.0, delay_s=0.0)
     assert m.stop_time_s(1.5) == pytest.approx(0.5)
@@ -241,7 +270,14 @@ def test_the_stopping_model() -> None:
     delayed = StoppingModel(delay_s=0.05)
     assert delayed.stop_time_s(1.5) == pytest.approx(0.55)
     assert delayed.stop_distance_m(1.5, 0.55) == pytest.approx(1.5 * 0.05 + 0.375)
-    for bad in ({"decel_mps2": 0.0}, {"joint_decel_radps2": float("nan")}, {"delay_s": -0.1}):
+    bad_cases = (
+        {"decel_mps2": 0.0},
+        {"joint_decel_radps2": float("nan")},
+        {"joint_decel_radps2": (3.0,) * 5},
+        {"joint_decel_radps2": (3.0, 3.0, 3.0, 3.0, 3.0, 0.0)},
+        {"delay_s": -0.1},
+    )
+    for bad in bad_cases:
         with pytest.raises(ValueError, match="StoppingModel"):
             StoppingModel(**bad)
     assert reaction_time_s(
@@ -345,7 +381,7 @@ def test_a_violation_is_the_faster_persons_until_the_robot_could_have_stopped(ge
     """A person faster than assumed opens a window of ``T_r + T_s`` (the robot's stopping time at that
     check): a violation that opens inside it is the faster person's, one after it the robot's."""
     q, qd, person, direction = _scene(geometry, 0.3)
-    t_s = UR5E_STOP.stop_time_s(float(geometry.part_speeds(q, qd).max()), float(np.abs(qd).max()))
+    t_s = UR5E_STOP.stop_time_s(float(geometry.part_speeds(q, qd).max()), UR5E_STOP.braking_speed(qd))
     for late, counted in ((0.5 * (T_R + t_s), "violations_person_faster"), (1.5 * (T_R + t_s), "violations")):
         mon = _monitor(geometry)
         mon.check(0.0, q, -qd, person, person + 0.024 * direction, 0.008)  # 3 m/s within S_p: faster

@@ -12,7 +12,7 @@ from app.safety.ssm import (
     protective_separation,
     speed_scale,
 )
-from app.safety.stopping import UR5E_STOP, StoppingModel
+from app.safety.stopping import StoppingModel
 
 
 def test_protective_separation_matches_iso_ts_15066_terms() -> None:
@@ -75,14 +75,19 @@ def test_the_planners_clearance_stops_the_robot_as_the_stopping_model_does() -> 
     base = p.intrusion_m + p.z_robot_m + 0.05
     v = np.array([0.0, 0.3, 1.0, 1.0, 0.3])
     w = np.array([0.0, 0.3, 0.6, 3.0, 1.5])
-    t_s = np.maximum(v / UR5E_STOP.decel_mps2, w / UR5E_STOP.joint_decel_radps2)  # 0, 0.1, 1/3, 1, 0.5
+    three = StoppingModel(decel_mps2=3.0, joint_decel_radps2=3.0)
+    t_s = np.maximum(v / three.decel_mps2, w / three.slowest_joint_decel_radps2)  # 0, 0.1, 1/3, 1, 0.5
     np.testing.assert_allclose(
-        forecast_clearance(v, 0.0, p, w_top_radps=w), base + v * 0.111 + v * t_s / 2, rtol=1e-12
+        forecast_clearance(v, 0.0, p, w_top_radps=w, stopping=three),
+        base + v * 0.111 + v * t_s / 2,
+        rtol=1e-12,
     )
     np.testing.assert_allclose(t_s, [0.0, 0.1, 1 / 3, 1.0, 0.5])
     # a robot creeping stops in a moment; one turning a joint at 3 rad/s needs a second
-    assert forecast_clearance(0.05, 0.0, p, w_top_radps=0.05) < 0.05 * p.robot_time_s + base
-    assert forecast_clearance(1.0, 0.0, p, w_top_radps=3.0) == pytest.approx(base + 0.111 + 0.5)
+    assert forecast_clearance(0.05, 0.0, p, w_top_radps=0.05, stopping=three) < 0.05 * p.robot_time_s + base
+    assert forecast_clearance(1.0, 0.0, p, w_top_radps=3.0, stopping=three) == pytest.approx(
+        base + 0.111 + 0.5
+    )
     # and the model's own delay counts whole
     slow = StoppingModel(decel_mps2=1.0, joint_decel_radps2=1.0, delay_s=0.1)
     assert forecast_clearance(1.0, 0.0, p, w_top_radps=0.0, stopping=slow) == pytest.approx(
