@@ -509,6 +509,14 @@ class Settings(BaseSettings):
         "0 contacts either way); 'all': the search's too; 'none': every region keeps the whole clearance "
         "(as SSM alone)",
     )
+    plan_contact_speed: bool = Field(
+        True,
+        description="with pfl and plan_contact_regions other than 'none': the trajectory checks ask no "
+        "clearance at all of a forecast body region that admits contact where the robot moves no faster "
+        "than that region's permissible quasi-static speed (a contact would be permissible even pinned), so "
+        "that the robot may rise from a station while the person reaches for the block under it; false: "
+        "the contact clearance (Z_d) at any speed",
+    )
     pfl_payload_kg: float = Field(
         1.0,
         ge=0.0,

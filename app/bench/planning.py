@@ -225,12 +225,15 @@ def count_violations(
     stopping: StoppingModel,
     contact_only: tuple[bool, ...] = (),
     limits: tuple[np.ndarray, np.ndarray] | None = None,
+    contact_speed_mps: tuple[float, ...] = (),
 ) -> int:
     """1 if the trajectory breaks the limits or the separation anywhere on a 100 Hz grid, else 0: the
     clearance of :func:`app.safety.ssm.forecast_clearance` with the robot's speeds there (central
     differences) and the planner's stopping model ``stopping``; from a person capsule flagged in
     ``contact_only`` (one flag per capsule of :data:`app.planning.collision.HUMAN_CAPSULES`, the planner's
-    ``PlannerConfig.contact_only``) only ``Z_d``, as the planner's trajectory checks ask of it. ``limits``:
+    ``PlannerConfig.contact_only``) only ``Z_d``, and nothing where the robot moves no faster than that
+    capsule's ``contact_speed_mps`` (``PlannerConfig.contact_speed_mps``), as the planner's trajectory
+    checks ask of it. ``limits``:
     the joint position limits ``(q_min, q_max)`` the planner keeps (the cell's; default: the UR5e's)."""
     from app.planning.kinematics import Q_MAX, Q_MIN
     from app.safety.ssm import forecast_clearance
@@ -253,9 +256,11 @@ def count_violations(
     if short.size == 0 or not any(contact_only):
         return int(short.size > 0)
     soft = np.asarray(contact_only, dtype=bool)
+    free = np.asarray(contact_speed_mps, dtype=np.float64) if contact_speed_mps else np.full(soft.shape, -1.0)
     for k in short.tolist():  # the few samples too close to some capsule: each capsule's own requirement
         pair = model.pair_distances(q[k], joints[k][None])[0].min(axis=0)  # (M,) over the robot's parts
         req = np.where(soft, min(ssm.z_human_m, float(need[k])), float(need[k]))
+        req = np.where(soft & (v[k] <= free), -np.inf, req)  # a permissible contact asks nothing
         if np.any(pair < req - 1e-9):
             return 1
     return 0
@@ -466,6 +471,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     hold_s=planner.config.goal_hold_s,
                     stopping=planner.config.stopping,
                     contact_only=planner.config.contact_only,
+                    contact_speed_mps=planner.config.contact_speed_mps,
                     limits=(planner.q_min, planner.q_max),
                 )
                 checked += 1
@@ -492,6 +498,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     hold_s=planner.config.goal_hold_s,
                     stopping=planner.config.stopping,
                     contact_only=planner.config.contact_only,
+                    contact_speed_mps=planner.config.contact_speed_mps,
                     limits=(planner.q_min, planner.q_max),
                 )
                 checked += 1
@@ -511,6 +518,7 @@ def run(*, quick: bool, progress: bool) -> dict[str, Any]:
                     hold_s=planner.config.emergency_hold_s,
                     stopping=planner.config.stopping,
                     contact_only=planner.config.contact_only,
+                    contact_speed_mps=planner.config.contact_speed_mps,
                     limits=(planner.q_min, planner.q_max),
                 )
                 checked += 1

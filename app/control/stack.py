@@ -111,21 +111,28 @@ class PlanningStack:
         cache_dir: str | Path | None = None,
         contact_only: tuple[bool, ...] = (),
         contact_only_search: bool = False,
+        contact_speed_mps: tuple[float, ...] = (),
     ) -> PlanningStack:
         """The stack of ``cell`` (roadmap from the on-disk cache, built when missing), its planner's clearance
         with the reaction time ``t_reaction_s`` of the installation
         (:meth:`app.config.Settings.reaction_time_s`: the ``T_r`` of the governor and the monitor; default
         :class:`app.safety.ssm.SSMParams`') and ``contact_only``, ``contact_only_search``
-        (:class:`app.planning.search.PlannerConfig`'s, see :func:`contact_only_capsules`). Cached per
-        process, cell, ``T_r`` and those two."""
-        soft = (tuple(contact_only), bool(contact_only_search) and bool(contact_only))
+        and ``contact_speed_mps`` (:class:`app.planning.search.PlannerConfig`'s, see
+        :func:`contact_clearance`). Cached per process, cell, ``T_r`` and those three."""
+        soft = (
+            tuple(contact_only),
+            bool(contact_only_search) and bool(contact_only),
+            tuple(contact_speed_mps) if contact_only else (),
+        )
         key = (cell.fingerprint(), None if cache_dir is None else str(cache_dir), t_reaction_s, soft)
         with _STACK_LOCK:
             stack = _STACKS.get(key)
             if stack is None:
                 from app.planning.search import PlannerConfig
 
-                config = PlannerConfig(contact_only=soft[0], contact_only_search=soft[1])
+                config = PlannerConfig(
+                    contact_only=soft[0], contact_only_search=soft[1], contact_speed_mps=soft[2]
+                )
                 stack = _build_stack(cell, key[1], planner_config=config, t_reaction_s=t_reaction_s)
                 _STACKS[key] = stack
                 while len(_STACKS) > 4:
@@ -191,10 +198,18 @@ def contact_only_capsules(settings: Settings) -> tuple[bool, ...]:
 def contact_clearance(settings: Settings) -> dict[str, Any]:
     """The planner's contact clearance under ``settings``, as the keyword arguments of
     :class:`app.planning.search.PlannerConfig` and :meth:`PlanningStack.for_cell` take it:
-    ``contact_only`` (:func:`contact_only_capsules`) and ``contact_only_search`` (``all``)."""
+    ``contact_only`` (:func:`contact_only_capsules`), ``contact_only_search`` (``all``) and, with
+    ``Settings.plan_contact_speed``, ``contact_speed_mps``: each contact-only capsule's permissible
+    quasi-static speed (the lower of its two: a contact at that speed is permissible even pinned)."""
+    soft = contact_only_capsules(settings)
+    speeds: tuple[float, ...] = ()
+    if soft and settings.plan_contact_speed:
+        q = pfl_model(settings).quasi_static_mps
+        speeds = tuple(float(v) if f else -1.0 for f, v in zip(soft, q, strict=True))
     return {
-        "contact_only": contact_only_capsules(settings),
+        "contact_only": soft,
         "contact_only_search": settings.plan_contact_regions == "all",
+        "contact_speed_mps": speeds,
     }
 
 

@@ -137,6 +137,10 @@ class Clearance(NamedTuple):
     joint_decel_radps2: float  #: the slowest joint's
     delay_s: float
     joint_weights: np.ndarray  #: (6,) each joint's speed in units of the slowest-braking joint's
+    #: (M,) per person capsule checked for contact only: the robot's fastest-point speed (m/s) at or below
+    #: which it asks no clearance at all (a contact would stay within the region's quasi-static permissible
+    #: speed); -1: always the contact clearance
+    free_mps: np.ndarray
 
 
 # ------------------------------------------------------------------------------------ the planner's tables

@@ -39,7 +39,8 @@ def _too_close(
 ) -> bool:
     """Whether some robot capsule flagged ``near`` (segments ``SA``/``SD`` (L, 3)) comes closer than ``req``
     to some person capsule ``C`` (M, 6), or than ``req_soft`` to one flagged ``soft`` (M,) (checked for
-    contact only: :attr:`PersonCapsules.soft`) (a NaN distance counts as too close). ``SB`` (L, 4): scratch.
+    contact only: :attr:`PersonCapsules.soft`; 2.0: not checked at all, the trajectory check's capsules whose
+    contact the robot's speed keeps permissible) (a NaN distance counts as too close). ``SB`` (L, 4): scratch.
 
     A pair whose bounding spheres (centre of the axis, half its length plus the radius) are at least
     ``req`` apart cannot be too close (the surface distance is never below the spheres' gap) and is not
@@ -53,6 +54,8 @@ def _too_close(
                 h2 += SD[i, j] * SD[i, j]
             SB[i, 3] = 0.5 * math.sqrt(h2) + ra[i]
     for m in range(C.shape[0]):
+        if soft[m] > 1.5:
+            continue  # a contact here is within the region's permissible speed: no clearance asked
         cx = C[m, 0] + 0.5 * C[m, 3]
         cy = C[m, 1] + 0.5 * C[m, 4]
         cz = C[m, 2] + 0.5 * C[m, 5]

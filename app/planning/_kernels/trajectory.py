@@ -70,8 +70,10 @@ def trajectory_first_violation(
     over ``eps``. Person: the ``forecast`` interpolated as :meth:`HumanForecast.poses_at` does (the last pose
     held, the margin growing at ``growth`` m/s up to ``cap``); requirement
     :func:`app.safety.ssm.forecast_clearance` (the ``clearance`` terms), capped at ``floor_m``; from a capsule
-    flagged :attr:`PersonCapsules.soft`, only ``Z_d`` (no contact where the person is forecast). Samples are
-    checked in order and the check stops at the first failure; a NaN counts as a failure.
+    flagged :attr:`PersonCapsules.soft`, only ``Z_d`` (no contact where the person is forecast), and nothing
+    at a sample where the robot's speed is at most the capsule's ``clearance.free_mps`` (a contact would stay
+    within the region's permissible speed). Samples are checked in order and the check stops at the first
+    failure; a NaN counts as a failure.
     """
     knots = Knots(*knots)
     limits = KernelJointLimits(*limits)
@@ -87,6 +89,7 @@ def trajectory_first_violation(
     z_robot_m, z_human_m, floor_m = clearance.z_robot_m, clearance.z_human_m, clearance.floor_m
     decel, joint_decel, delay = clearance.decel_mps2, clearance.joint_decel_radps2, clearance.delay_s
     jw = clearance.joint_weights
+    free = clearance.free_mps
     ra = robot.ra
     ia, ib, rh, soft = person.ia, person.ib, person.rh, person.soft
     N = ts.shape[0]
@@ -99,6 +102,7 @@ def trajectory_first_violation(
     X = np.empty((7, 3))
     Y = np.empty((7, 3))
     Z = np.empty((7, 3))
+    soft_k = np.empty(M)
     P = np.empty((7, 3))
     SA = np.empty((L, 3))
     SD = np.empty((L, 3))
@@ -179,6 +183,8 @@ def trajectory_first_violation(
         if not any_near:
             continue
         _person_capsules(pose, 0, ia, ib, C)
-        if _too_close(SA, SD, near, ra, C, rh, req, SB, soft, min(z_human_m, req)):
+        for m in range(M):  # a contact-only capsule the robot may touch at this speed asks nothing
+            soft_k[m] = 2.0 if soft[m] > 0.0 and v <= free[m] else soft[m]
+        if _too_close(SA, SD, near, ra, C, rh, req, SB, soft_k, min(z_human_m, req)):
             return k
     return -1

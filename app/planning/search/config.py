@@ -133,6 +133,12 @@ class PlannerConfig:
             model without compiled ones ignore it.
         contact_only_search: The search's own checks (moves, samples, waits) take :attr:`contact_only` too;
             else they keep the whole clearance, and the plans they find pass the verification a fortiori.
+        contact_speed_mps: Per person capsule (as :attr:`contact_only`), the robot speed (m/s, its fastest
+            point) at or below which the compiled trajectory checks ask of a contact-only capsule no
+            clearance at all: a contact at that speed stays within the region's permissible quasi-static
+            speed (ISO/TS 15066 Annex A), so the robot may set off or go on beside a forecast hand that may
+            touch it; faster, the contact clearance. Empty (or a capsule's value below 0): always the contact
+            clearance.
     """
 
     ssm: SSMParams = field(default_factory=SSMParams)
@@ -171,6 +177,7 @@ class PlannerConfig:
     shortcut_rounds: int = 3
     contact_only: tuple[bool, ...] = ()
     contact_only_search: bool = False
+    contact_speed_mps: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if not 0.0 < self.speed_fraction <= 1.0:
@@ -192,6 +199,13 @@ class PlannerConfig:
             raise ValueError(f"PlannerConfig.heuristic_weight must be >= 1, got {self.heuristic_weight}")
         if self.speed_factor < 1.0:
             raise ValueError(f"PlannerConfig.speed_factor must be >= 1, got {self.speed_factor}")
+        if self.contact_speed_mps and len(self.contact_speed_mps) != len(self.contact_only):
+            raise ValueError(
+                "PlannerConfig.contact_speed_mps needs one speed per capsule of contact_only "
+                f"({len(self.contact_only)}), got {len(self.contact_speed_mps)}"
+            )
+        if any(not math.isfinite(v) for v in self.contact_speed_mps):
+            raise ValueError(f"PlannerConfig.contact_speed_mps must be finite, got {self.contact_speed_mps}")
 
     def with_reaction_time(self, t_reaction_s: float) -> PlannerConfig:
         """These settings with the clearance's ``T_r`` set to the installation's (``S_r = v_r T_r``;

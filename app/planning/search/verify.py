@@ -85,6 +85,12 @@ class _TrajectoryChecks:
             return None
         return float(ts[np.argmax(bad)])
 
+    def _contact_speeds(self, bodies: int) -> np.ndarray:
+        """(M,) :attr:`PlannerConfig.contact_speed_mps` for ``bodies`` stacked bodies (-1: none)."""
+        speeds = self.config.contact_speed_mps
+        one = np.asarray(speeds, dtype=np.float64) if speeds else np.full(len(self._cap_ends[0]), -1.0)
+        return np.ascontiguousarray(np.tile(one, max(int(bodies), 1)))
+
     def _verify_compiled(
         self,
         traj: Any,
@@ -141,6 +147,7 @@ class _TrajectoryChecks:
                 decel_mps2=stopping.decel_mps2,
                 joint_decel_radps2=stopping.slowest_joint_decel_radps2,
                 joint_weights=f64(stopping.joint_weights),
+                free_mps=self._contact_speeds(forecast.bodies),
                 delay_s=stopping.delay_s,
             )
         )

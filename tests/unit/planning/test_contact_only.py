@@ -159,3 +159,60 @@ def test_the_planner_and_the_benchs_check_keep_the_cells_joint_limits(stack) -> 
     ssm, kw = stack.planner.config.ssm, {"hold_s": 0.0, "stopping": stack.planner.config.stopping}
     assert count_violations(_at_rest(q), far, stack.collision, ssm, **kw) == 0
     assert count_violations(_at_rest(q), far, stack.collision, ssm, limits=(lo, hi), **kw) == 1
+
+
+def _speeds(flags: tuple[bool, ...]) -> tuple[float, ...]:
+    """Each contact-only capsule's permissible quasi-static speed, as the product sets them."""
+    from app.control.stack import contact_clearance
+
+    speeds = contact_clearance(Settings())["contact_speed_mps"]
+    assert len(speeds) == len(flags)
+    return speeds
+
+
+def test_the_product_lets_the_checks_accept_a_contact_only_below_each_regions_quasi_static_speed(
+    flags,
+) -> None:  # type: ignore[no-untyped-def]
+    from app.control.stack import contact_clearance, pfl_model
+
+    speeds = _speeds(flags)
+    quasi = pfl_model(Settings()).quasi_static_mps
+    for name, soft, v, q in zip(HUMAN_CAPSULES, flags, speeds, quasi, strict=True):
+        assert v == (q if soft else -1.0), name
+    hand = HUMAN_CAPSULES.index("r_wrist-r_hand")
+    assert speeds[hand] == pytest.approx(0.68, abs=0.01)  # half the hand's transient 1.36 m/s
+    assert contact_clearance(Settings(plan_contact_speed=False))["contact_speed_mps"] == ()
+    assert contact_clearance(Settings(pfl=False))["contact_speed_mps"] == ()
+    with pytest.raises(ValueError, match="one speed per capsule"):
+        PlannerConfig(contact_only=flags, contact_speed_mps=(0.5,))
+
+
+def test_a_robot_slower_than_the_regions_contact_speed_may_touch_a_forecast_hand_a_faster_one_not(
+    stack, flags
+) -> None:  # type: ignore[no-untyped-def]
+    """At rest (or creeping) beside a hand that may touch it, the robot is no danger to it: a contact stays
+    within the hand's permissible quasi-static speed. Turning the base fast past the same hand, it is
+    refused; a head keeps the whole clearance whatever the speed."""
+    speeds = _speeds(flags)
+    q = np.asarray(stack.cell.robot.home_q, dtype=np.float64)
+    ssm = stack.planner.config.ssm
+    touching = _person_with(stack, q, "r_hand", 0.5 * ssm.z_human_m)
+    config = PlannerConfig(contact_only=flags, contact_speed_mps=speeds)
+    free = Planner(stack.roadmap, stack.collision, config=config)
+    assert _planner(stack, flags).first_violation(_at_rest(q), touching, t_from=0.0, t_to=1.0) is not None
+    assert free.first_violation(_at_rest(q), touching, t_from=0.0, t_to=1.0) is None
+    dq = np.array([2.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # the base at 2 rad/s: the tool well above 0.68 m/s
+    turn = Trajectory(np.array([0.0, 0.2]), np.stack([q, q + 0.2 * dq]), np.stack([dq, dq]))
+    assert float(stack.geometry.part_speeds(q, dq).max()) > 0.68
+    assert free.first_violation(turn, touching, t_from=0.0, t_to=0.2) is not None
+    full = float(forecast_clearance(0.0, 0.0, ssm, w_top_radps=0.0))
+    head = _person_with(stack, q, "head", 0.5 * (ssm.z_human_m + full))
+    assert free.first_violation(_at_rest(q), head, t_from=0.0, t_to=1.0) is not None
+    # the bench's independent check asks the same
+    from app.bench.planning import count_violations
+
+    kw = {"hold_s": 0.0, "stopping": stack.planner.config.stopping, "contact_only": flags}
+    assert count_violations(_at_rest(q), touching, stack.collision, ssm, **kw) == 1
+    assert count_violations(_at_rest(q), touching, stack.collision, ssm, contact_speed_mps=speeds, **kw) == 0
+    assert count_violations(turn, touching, stack.collision, ssm, contact_speed_mps=speeds, **kw) == 1
+    assert count_violations(_at_rest(q), head, stack.collision, ssm, contact_speed_mps=speeds, **kw) == 1
