@@ -53,6 +53,10 @@ from app.safety.stopping import UR5E_STOP
 
 log = logging.getLogger(__name__)
 
+#: A robot halted part of the way along its plan is told to stay where it is when it is within this much of
+#: the command (rad): the few milliradians its servo lags by, not a position it was never commanded near.
+_HALT_TOLERANCE_RAD = 0.02
+
 #: The directed speed (m/s) that the supervisor measures on a still person, per metre of tracker noise per
 #: joint and axis over its speed window: for the SSM-aware timing's prediction of the governor
 #: (:class:`app.safety.governor.GovernorModel.speed_noise_mps`). Tuned on seeds 1000-1003: the median of the
@@ -608,9 +612,14 @@ class TrialEngine:
             self._stale = stale
             self.supervisor.set_stale(stale, t)
         cmd = self.supervisor.servo(t)
+        q_cmd = cmd.q
+        if cmd.halted and float(np.abs(state.q - cmd.q).max()) <= _HALT_TOLERANCE_RAD:
+            # halted part of the way: stay where the arm is, not creep on to the command it lags by a few
+            # milliradians (the arm would be moving, slowly, while the governor holds it)
+            q_cmd = np.asarray(state.q, dtype=np.float64)
         if not self.supervisor.estopped:  # after an E-stop nothing is commanded until reset
             try:
-                self.robot.servo(cmd.q, cmd.qd, t)
+                self.robot.servo(q_cmd, cmd.qd, t)
             except RobotConnectionError as exc:
                 self._robot_lost(t, str(exc))
                 return

@@ -787,7 +787,8 @@ class Supervisor:
             self._travel += self._v_cmd * dt
             self._q_cmd = q
             self._account(dt)
-            return TickCommand(t, q.copy(), qd, self._s, bool(not np.any(qd)))
+            halted = self._s <= 0.0 and active.kind != "hold" and self._tau < active.traj.t_end
+            return TickCommand(t, q.copy(), qd, self._s, bool(not np.any(qd)), halted=bool(halted))
 
     def _servo_brake(self, t: float) -> None:
         b = self._brake

@@ -129,6 +129,9 @@ class TickCommand:
         qd: (6,) joint velocities (rad/s).
         scale: Speed scale in [0, 1] applied along the path.
         hold: True when the robot is meant to stand still.
+        halted: True when it stands still part of the way along a plan (the speed governor or a brake has
+            brought the scale to 0): the robot may be told to stay where it is rather than to close the few
+            milliradians its servo lags the command by (:meth:`app.control.engine.TrialEngine.servo_tick`).
     """
 
     t: float
@@ -136,6 +139,7 @@ class TickCommand:
     qd: np.ndarray
     scale: float
     hold: bool
+    halted: bool = False
 
 
 @dataclass(frozen=True, slots=True)
