@@ -227,6 +227,7 @@ class Supervisor:
         self._lock = threading.RLock()
         self._plan_ids = 0
         self._generation = 0
+        self._hold_halted = False  # the hold in force was left by a stop, not reached at a goal
         self._t = float(t0)
         self._tau = float(t0)
         self._s = 0.0
@@ -787,7 +788,8 @@ class Supervisor:
             self._travel += self._v_cmd * dt
             self._q_cmd = q
             self._account(dt)
-            halted = self._s <= 0.0 and active.kind != "hold" and self._tau < active.traj.t_end
+            # at rest anywhere but at a goal reached: the arm is to stay where it is
+            halted = not np.any(qd) and (self._hold_halted or active.kind != "hold")
             return TickCommand(t, q.copy(), qd, self._s, bool(not np.any(qd)), halted=bool(halted))
 
     def _servo_brake(self, t: float) -> None:
@@ -970,7 +972,7 @@ class Supervisor:
         self._reached = active.goal
         self._goal = None
         self._pending = None
-        self._activate_hold(q_goal, t)
+        self._activate_hold(q_goal, t, arrived=True)
         self._set_state("nominal", t)
 
     # ------------------------------------------------------------------------------------------------
@@ -986,7 +988,10 @@ class Supervisor:
         prof = SpeedProfile.still(t, self.n_parts)
         return _Active(traj, prof, self._new_plan_id(), "hold", False, None, -1)
 
-    def _activate_hold(self, q: np.ndarray, t: float) -> None:
+    def _activate_hold(self, q: np.ndarray, t: float, *, arrived: bool = False) -> None:
+        """Hold at ``q`` from ``t``: at a goal reached (``arrived``: the arm settles on it), or where a stop
+        left the robot part of the way (the arm is told to stay where it is, :attr:`TickCommand.halted`)."""
+        self._hold_halted = not arrived
         self._active = self._hold(q, t)
         self._tau = t
         self._s = 0.0
