@@ -42,6 +42,7 @@ from app.control.people import People, PeopleOptions, PeopleUpdate
 from app.control.results import Snapshot, TrialFrames, TrialResult, TrialStatus
 from app.control.stack import CellGeometry, PlanningStack, pfl_model
 from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
+from app.control.supervisor_types import TickCommand
 from app.control.task import TaskExecutive
 from app.planning.collision import reach_fingertips
 from app.prediction.forecast import HumanForecast, Predictor
@@ -331,6 +332,8 @@ class TrialEngine:
         self.last_forecast: HumanForecast | None = None
         self.last_decision: FrameDecision | None = None
         self.last_state: RobotState = robot_state
+        #: The supervisor's command of the last servo tick (None before the first).
+        self.last_command: TickCommand | None = None
         self._recent: deque[HumanFrame] = deque(maxlen=16)  # for the monitor's speed window
         self._releases: list[tuple[float, str]] = []
         self._stale = False
@@ -612,6 +615,7 @@ class TrialEngine:
             self._stale = stale
             self.supervisor.set_stale(stale, t)
         cmd = self.supervisor.servo(t)
+        self.last_command = cmd
         q_cmd = cmd.q
         if cmd.halted and float(np.abs(state.q - cmd.q).max()) <= _HALT_TOLERANCE_RAD:
             # halted part of the way: stay where the arm is, not creep on to the command it lags by a few

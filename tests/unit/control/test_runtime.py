@@ -665,3 +665,26 @@ def test_the_live_snapshot_shows_every_tracked_body_with_its_id(stack: PlanningS
         assert snap.body_ids == () and snap.skeleton is not None and snap.skeleton.shape == (0, 3)
         assert not snap.stale
         sub.close()
+
+
+def test_a_robot_halted_on_its_way_stays_where_the_arm_is(stack: PlanningStack) -> None:
+    """Where the governor or a stop halts the robot part of the way, the arm is told to stay where it is: it
+    is at rest within two servo ticks, not creeping on to the command its servo lags, while a robot that
+    reaches a goal settles on the goal itself. Report seed 1 (reactive) halts beside the person's head."""
+    ticks: list[tuple[float, bool, bool, float, float]] = []  # t, halted, at a goal, arm speed, error
+
+    def observer(t: float, engine) -> None:
+        cmd, st = engine.last_command, engine.last_state
+        if cmd is not None:
+            err = float(np.abs(st.q - cmd.q).max())
+            ticks.append((t, cmd.halted, cmd.hold and not cmd.halted, float(np.abs(st.qd).max()), err))
+
+    res = run_headless_trial(
+        settings=Settings(), method="reactive", duration_s=21.0, seed=1, stack=stack, observer=observer
+    )
+    runs = [i for i in range(2, len(ticks)) if ticks[i][1] and ticks[i - 1][1] and ticks[i - 2][1]]
+    assert len(runs) > 10, "the trial should halt the robot on its way (pick another seed)"
+    assert all(ticks[i][3] == 0.0 for i in runs), "a halted arm crept"
+    settled = [err for _, halted, at_goal, _, err in ticks if at_goal]
+    assert settled and min(settled) < 1e-6  # at a goal reached the arm settles on the goal itself
+    assert res.safety is not None and res.safety.violations == 0
