@@ -24,6 +24,7 @@ from app.planning.trajectory import Trajectory
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS
 from app.safety.ssm import SSMParams, forecast_clearance
+from app.safety.stopping import UR5E_STOP
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +56,7 @@ def violations(
         v = np.maximum(np.linalg.norm(a1 - a0, axis=-1), np.linalg.norm(b1 - b0, axis=-1)).max(axis=1) / (
             2 * eps
         )
-        w = np.abs(q1 - q0).max(axis=1) / (2 * eps)  # the fastest joint: the stopping model's T_s
+        w = UR5E_STOP.braking_speed((q1 - q0) / (2 * eps))  # the joints' share of the stopping model's T_s
         joints, margins = forecast.poses_at(t)
         d = model.distance_to_human_paired(q, joints)
         need = forecast_clearance(v, margins, ssm, w_top_radps=w)
