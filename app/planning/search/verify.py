@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Callable
@@ -87,9 +88,7 @@ class _TrajectoryChecks:
 
     def _contact_speeds(self, bodies: int) -> np.ndarray:
         """(M,) :attr:`PlannerConfig.contact_speed_mps` for ``bodies`` stacked bodies (-1: none)."""
-        speeds = self.config.contact_speed_mps
-        one = np.asarray(speeds, dtype=np.float64) if speeds else np.full(len(self._cap_ends[0]), -1.0)
-        return np.ascontiguousarray(np.tile(one, max(int(bodies), 1)))
+        return _contact_speeds(self.config.contact_speed_mps, len(self._cap_ends[0]), max(int(bodies), 1))
 
     def _verify_compiled(
         self,
@@ -350,6 +349,16 @@ class _TrajectoryChecks:
         h = np.maximum(np.maximum(np.diff(times), need), 1e-3)
         t = np.concatenate([[times[0]], times[0] + np.cumsum(h)])
         return Trajectory(t, q.copy(), np.zeros_like(q))
+
+
+@functools.lru_cache(maxsize=32)
+def _contact_speeds(speeds: tuple[float, ...], n_caps: int, bodies: int) -> np.ndarray:
+    """(M,) ``speeds`` (one per capsule, -1 for all where empty) for ``bodies`` stacked bodies, read-only:
+    built once, not at every check (the supervisor checks the plan in execution at every frame)."""
+    one = np.asarray(speeds, dtype=np.float64) if speeds else np.full(n_caps, -1.0)
+    out = np.ascontiguousarray(np.tile(one, bodies))
+    out.setflags(write=False)
+    return out
 
 
 def _wall_times(t: np.ndarray) -> np.ndarray:
