@@ -9,7 +9,7 @@ from __future__ import annotations
 import difflib
 import math
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -155,6 +155,9 @@ class Tool(_Strict):
         0.149, gt=0, le=0.6, description="outer width of the open gripper (m)"
     )
     gripper_length_m: float = Field(0.161, gt=0, le=1.0, description="flange -> open fingertips (m)")
+    gripper_stroke_m: float = Field(
+        0.085, gt=0, le=0.5, description="opening between the open fingers' pads (m): the gripper's stroke"
+    )
     part_size_m: PositiveVec3 = Field(
         [0.04, 0.04, 0.04], description="the carried part's box (m), its z along the gripper's axis"
     )
@@ -167,6 +170,16 @@ class Tool(_Strict):
                 f"tool.radius_m = {self.radius_m} m does not enclose the {self.gripper} (open width "
                 f"{self.gripper_open_width_m} m) and the part {self.part_size_m}: it must be >= {need:.3f} m"
             )
+        if self.gripper_stroke_m >= self.gripper_open_width_m:
+            raise ValueError(
+                f"tool.gripper_stroke_m = {self.gripper_stroke_m} m is not less than the open gripper's "
+                f"outer width {self.gripper_open_width_m} m"
+            )
+        if self.gripper_stroke_m < min(self.part_size_m[0], self.part_size_m[1]) - 1e-9:
+            raise ValueError(
+                f"the part {self.part_size_m} does not fit between the open fingers of the {self.gripper} "
+                f"(stroke {self.gripper_stroke_m} m)"
+            )
         reach = max(self.gripper_length_m, float(np.linalg.norm(self.tcp_xyz)) + self.part_size_m[2] / 2)
         if self.capsule_length_m < reach - 1e-9:
             raise ValueError(
@@ -175,6 +188,12 @@ class Tool(_Strict):
                 f"{self.part_size_m}: it must be >= {reach:.3f} m"
             )
         return self
+
+    @property
+    def finger_gap_m(self) -> float:
+        """The least room (m) between an open finger's pad and the released part, with the part across the
+        fingers whichever way it lies: half the stroke less half the part's larger horizontal side."""
+        return max(0.5 * (self.gripper_stroke_m - max(self.part_size_m[0], self.part_size_m[1])), 0.0)
 
     @property
     def fingertip_depth_m(self) -> float:
@@ -222,8 +241,17 @@ class WorkCell(_Strict):
         0.06,
         ge=0.0,
         le=0.5,
-        description="how far above the pickup and each drop station the robot's vertical approach and rise "
-        "begin (m): it must lift the open fingertips clear of the part's top",
+        description="how far above the pickup and each drop station the robot's approach and rise begin "
+        "(m): it must lift the open fingertips clear of the part's top",
+    )
+    approach_retreat_m: float = Field(
+        0.0,
+        ge=0.0,
+        le=0.3,
+        description="how far each drop station's approach pose lies back from the station in the table's "
+        "plane, away from the operator's work spot (m): the robot comes down onto a station and rises from "
+        "a released part on a slope away from the person instead of straight up toward their head. The "
+        "open fingers must clear the part on that slope whichever way the gripper closes (checked at load)",
     )
     operator: OperatorArea
     obstacles: list[Box] = []
@@ -254,6 +282,47 @@ class WorkCell(_Strict):
                 f"of the part {self.tool.part_size_m} (its centre at the TCP): it must be >= {need:.3f} m"
             )
         return self
+
+    @model_validator(mode="after")
+    def _retreat_clears_the_part(self) -> WorkCell:
+        if self.approach_retreat_m <= 0.0:
+            return self
+        # the fingertips rise `need` over the part's top while moving `need * slope` toward it
+        need = self.tool.fingertip_depth_m + self.tool.part_size_m[2] / 2
+        gap = self.tool.finger_gap_m
+        slope = self.approach_retreat_m / max(self.approach_height_m, 1e-12)
+        if need * slope > gap + 1e-9:
+            most = gap / need * self.approach_height_m if need > 0 else math.inf
+            raise ValueError(
+                f"approach_retreat_m = {self.approach_retreat_m} m: rising {self.approach_height_m} m on "
+                f"that slope, an open finger of the {self.tool.gripper} would move {need * slope:.4f} m "
+                f"toward the released part before clearing its top ({gap:.4f} m of room between pad and "
+                f"part): it must be <= {most:.4f} m, or raise approach_height_m"
+            )
+        return self
+
+    def approach_offset(self, station: str) -> np.ndarray:
+        """(3,) from a station's TCP pose to its approach pose (m): ``approach_height_m`` up; for a drop
+        station also ``approach_retreat_m`` back (:meth:`drop_approach_offset`)."""
+        drops = {s.name: s for s in self.drop_stations}
+        if station in drops:
+            return self.drop_approach_offset(drops[station].xyz)
+        if station != self.conveyor.pickup.name:
+            raise KeyError(f"no station {station!r} with an approach pose in work cell {self.name!r}")
+        return np.array([0.0, 0.0, float(self.approach_height_m)])
+
+    def drop_approach_offset(self, xyz: Sequence[float]) -> np.ndarray:
+        """(3,) from a drop station at ``xyz`` to its approach pose (m): ``approach_height_m`` up and
+        ``approach_retreat_m`` back in the table's plane, away from the operator's work spot (straight up
+        where the station lies over the work spot)."""
+        up = np.array([0.0, 0.0, float(self.approach_height_m)])
+        away = np.asarray(xyz[:2], dtype=np.float64) - np.asarray(
+            self.operator.work_spot[:2], dtype=np.float64
+        )
+        norm = float(np.linalg.norm(away))
+        if self.approach_retreat_m <= 0.0 or norm < 1e-9:
+            return up
+        return up + np.append(self.approach_retreat_m * away / norm, 0.0)
 
     @cached_property
     def static_boxes(self) -> tuple[Box, ...]:

@@ -298,7 +298,9 @@ class TrialEngine:
         )
         # where the robot releases each block (world, m), and its approach pose above it
         self._stations = {st.name: np.asarray(st.xyz, dtype=np.float64) for st in stack.cell.drop_stations}
-        self._approach_up = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, stack.cell.approach_height_m]])
+        self._approach = {
+            name: np.stack([np.zeros(3), stack.cell.approach_offset(name)]) for name in self._stations
+        }
         self.anticipation: FetchAnticipation | None = None
         if method == "proactive" and settings.anticipate_fetch:
             self.anticipation = FetchAnticipation(
@@ -365,7 +367,7 @@ class TrialEngine:
         margins = np.asarray(forecast.margins, dtype=np.float64)  # (K,)
 
         def clearance(name: str) -> float:
-            poses = self._stations[name] + self._approach_up  # (2, 3): the station and its approach pose
+            poses = self._stations[name] + self._approach[name]  # (2, 3): the station and its approach pose
             d = np.linalg.norm(joints[:, :, None, :] - poses[None, None], axis=-1)  # (K, J, 2)
             return float((d.min(axis=(1, 2)) - margins).min())
 

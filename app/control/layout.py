@@ -238,7 +238,6 @@ def suggest_stations(
     table = _speed_table(governor)
     checker = StaticChecker(stack.collision, margin_m=RoadmapConfig().static_margin_m)
     yaw = float(getattr(stack.roadmap, "yaw", 0.0))
-    rise = np.array([0.0, 0.0, float(cell.approach_height_m)])
     half_part = 0.5 * float(np.max(np.asarray(cell.tool.part_size_m, dtype=np.float64)))
     spot = np.asarray(cell.operator.work_spot, dtype=np.float64)
     pickup = np.asarray(cell.conveyor.pickup.xyz, dtype=np.float64)
@@ -255,7 +254,7 @@ def suggest_stations(
 
     def free_at(p: np.ndarray) -> float | None:
         """The smaller share of free frames of the pose at ``p`` and its approach; None: not workable."""
-        q, valid = stack.kin.ik_down(np.stack([p, p + rise]), yaw=yaw)
+        q, valid = stack.kin.ik_down(np.stack([p, p + cell.drop_approach_offset(p)]), yaw=yaw)
         q = np.nan_to_num(np.asarray(q, dtype=np.float64))
         valid = np.asarray(valid, dtype=bool)
         shares = []

@@ -6,9 +6,11 @@ A task is a sequence of *legs*, each a motion to a named task pose of the roadma
     pickup_approach -> pickup (grip) -> pickup_approach -> X_approach -> X (release) -> X_approach
 
 where ``X`` is the drop station of this block and ``<name>_approach`` is the pose ``approach_height_m`` above
-a station (the robot descends and rises vertically). A task counts as completed when the block is released
-at ``X`` (the end of the release dwell). The drop stations are served in rounds that visit every station
-once (the participant's assembly gets its blocks evenly), never the same station twice in a row. Which
+a station (:meth:`app.config.WorkCell.approach_offset`: at a drop station also ``approach_retreat_m`` back
+from the person, so that the robot rises from a released block on a slope away from them). A task counts as
+completed when the block is released at ``X`` (the end of the release dwell). The drop stations are served
+in rounds that visit every station once (the participant's assembly gets its blocks evenly), never the same
+station twice in a row. Which
 station of the round comes next is either the round's seeded, shuffled order (the default), or chosen when
 the robot leaves the conveyor with the block, by a ``chooser`` that sees the stations the round still allows
 (:meth:`AssemblySequence.choose`): the engine lets the method's forecast choose the one farthest from where

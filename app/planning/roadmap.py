@@ -7,9 +7,9 @@ Here:
 - **Nodes** are a Halton sequence of TCP positions in the reachable part of the work cell (a box above the
   table, clipped to the arm's reach) plus the task poses of the cell: ``home``, the conveyor ``pickup``, the
   drop stations (``A`` ... ``D`` in the default cell) and an approach pose ``<name>_approach`` above each of
-  the latter (``cell.approach_height_m`` higher). A node is kept when at least one of its 8 IK branches is
-  within the joint limits, free of the static scene (with ``static_margin_m``) and free of self-collision;
-  every such branch is stored.
+  the latter (``cell.approach_height_m`` higher; a drop station's ``cell.approach_retreat_m`` back from the
+  person). A node is kept when at least one of its 8 IK branches is within the joint limits, free of the
+  static scene (with ``static_margin_m``) and free of self-collision; every such branch is stored.
 - **Edges** join each node to its ``k`` nearest neighbours within ``radius_m``. An edge is kept when, for at
   least one branch ``b`` valid at both ends, the straight joint-space move between the two branch-``b``
   configurations (the shorter way round for every joint, as :func:`app.planning.kinematics.align_branches`
@@ -351,12 +351,13 @@ def halton(n: int, *, skip: int = 0, bases: tuple[int, ...] = (2, 3, 5)) -> np.n
 
 def station_poses(cell: WorkCell) -> dict[str, np.ndarray]:
     """Task poses of a cell: ``home``, ``pickup``, every drop station and ``<name>_approach`` above the
-    pickup and the drop stations (``cell.approach_height_m`` higher), TCP positions (3,) in m."""
+    pickup and the drop stations (:meth:`app.config.WorkCell.approach_offset` from them), TCP positions (3,)
+    in m."""
     out: dict[str, np.ndarray] = {cell.home.name: np.asarray(cell.home.xyz, dtype=float)}
     for st in (cell.conveyor.pickup, *cell.drop_stations):
         p = np.asarray(st.xyz, dtype=float)
         out[st.name] = p
-        out[f"{st.name}_approach"] = p + np.array([0.0, 0.0, cell.approach_height_m])
+        out[f"{st.name}_approach"] = p + cell.approach_offset(st.name)
     return out
 
 

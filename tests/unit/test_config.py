@@ -67,9 +67,45 @@ def test_the_approach_must_lift_the_open_fingertips_over_the_part(tmp_path: Path
     shipped = "approach_height_m = 0.06"
     with pytest.raises(WorkCellError, match=r"approach_height_m.*must be >= 0\.031 m"):
         _shipped_with(tmp_path, shipped, "approach_height_m = 0.03")
-    assert _shipped_with(tmp_path, shipped, "approach_height_m = 0.031").approach_height_m == pytest.approx(
-        0.031
+    lowest = _shipped_with(tmp_path, "approach_retreat_m = 0.04", "approach_retreat_m = 0.0")
+    assert lowest.approach_retreat_m == 0.0
+    text = (tmp_path / "cell.toml").read_text().replace(shipped, "approach_height_m = 0.031")
+    (tmp_path / "cell.toml").write_text(text)
+    assert load_workcell(tmp_path / "cell.toml").approach_height_m == pytest.approx(0.031)
+
+
+def test_the_retreat_from_a_station_keeps_the_open_fingers_off_the_released_part(tmp_path: Path) -> None:
+    cell = load_workcell()
+    # the shipped gripper opens its pads 85 mm apart (the 2F-85's stroke) around a 40 mm block: 22.5 mm of
+    # room on either side. Its fingertips must rise 31 mm to clear the block; on a slope of retreat / height
+    # they move 31 mm * slope toward it meanwhile, so at 0.06 m of height the retreat may be 0.0435 m at most
+    assert cell.tool.finger_gap_m == pytest.approx(0.0225)
+    assert cell.approach_retreat_m == pytest.approx(0.04)
+    shipped = "approach_retreat_m = 0.04"
+    ok = _shipped_with(tmp_path, shipped, "approach_retreat_m = 0.0435")
+    with pytest.raises(WorkCellError, match=r"approach_retreat_m = 0.045 m.*must be <= 0\.0435 m"):
+        _shipped_with(tmp_path, shipped, "approach_retreat_m = 0.045")
+    # higher, the same retreat is a gentler slope
+    higher = (
+        (tmp_path / "cell.toml").read_text().replace("approach_height_m = 0.06", "approach_height_m = 0.07")
     )
+    (tmp_path / "cell.toml").write_text(higher)
+    assert load_workcell(tmp_path / "cell.toml").approach_retreat_m == pytest.approx(0.045)
+    # the approach pose lies back from the station, away from the work spot in the table's plane, and as high
+    spot = np.asarray(ok.operator.work_spot[:2])
+    for st in ok.drop_stations:
+        off = ok.approach_offset(st.name)
+        assert off[2] == pytest.approx(0.06)
+        assert np.linalg.norm(off[:2]) == pytest.approx(0.0435)
+        away = np.asarray(st.xyz[:2]) - spot
+        assert np.dot(off[:2], away) == pytest.approx(0.0435 * np.linalg.norm(away))
+    # the pickup's approach stays straight up; an unknown station is refused, never given a default
+    assert np.allclose(ok.approach_offset(ok.conveyor.pickup.name), [0.0, 0.0, 0.06])
+    with pytest.raises(KeyError, match="no station 'Z'"):
+        ok.approach_offset("Z")
+    # a part wider than the stroke does not fit the gripper
+    with pytest.raises(WorkCellError, match="does not fit between the open fingers"):
+        _shipped_with(tmp_path, "part_size_m = [0.04, 0.04, 0.04]", "part_size_m = [0.09, 0.09, 0.04]")
 
 
 def test_the_cell_sets_the_planners_joint_limits_within_the_arms(tmp_path: Path) -> None:

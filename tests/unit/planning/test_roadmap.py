@@ -88,8 +88,20 @@ def test_small_roadmap_nodes_are_reachable_and_free(small, cell, model) -> None:
     names = set(station_poses(cell))
     assert names == set(rm.station_nodes)  # every task pose of the default cell is usable
     assert rm.num_nodes == SMALL.num_nodes + len(names)
-    for name, p in station_poses(cell).items():
+    poses = station_poses(cell)
+    for name, p in poses.items():
         np.testing.assert_allclose(rm.nodes[rm.station_nodes[name]], p)
+    # the pickup's approach pose lies straight above it, a drop station's also back from the person
+    up = np.array([0.0, 0.0, cell.approach_height_m])
+    np.testing.assert_allclose(poses["pickup_approach"] - poses["pickup"], up)
+    spot = np.asarray(cell.operator.work_spot[:2])
+    for st in cell.drop_stations:
+        off = poses[f"{st.name}_approach"] - poses[st.name]
+        assert off[2] == pytest.approx(cell.approach_height_m)
+        assert np.linalg.norm(off[:2]) == pytest.approx(cell.approach_retreat_m)
+        assert np.linalg.norm(poses[f"{st.name}_approach"][:2] - spot) > np.linalg.norm(
+            poses[st.name][:2] - spot
+        )
     assert np.all(rm.valid.any(axis=1))
     q = rm.ik[rm.valid]
     assert np.all(within_limits(q))
