@@ -461,6 +461,13 @@ class Settings(BaseSettings):
 
     # planning and supervision (paper section II)
     deadline_s: float = Field(0.1, gt=0, le=2.0, description="D: backup-plan deadline")
+    start_deadline_s: float | None = Field(
+        None,
+        gt=0,
+        le=2.0,
+        description="deadline of a plan that sets a robot at rest moving (s): it stands still until the "
+        "plan's start, so the deadline is waiting time at every start from rest; default 3 D",
+    )
     frame_period_s: float = Field(1 / 30, gt=0, le=1.0, description="F: camera frame period")
     planner_workers: int = Field(
         32, ge=1, le=64, description="states the batched planner search checks per step (1: sequential A*)"

@@ -6,6 +6,7 @@ snapshots), not how fast.
 
 from __future__ import annotations
 
+import itertools
 import json
 import threading
 from pathlib import Path
@@ -685,6 +686,16 @@ def test_a_robot_halted_on_its_way_stays_where_the_arm_is(stack: PlanningStack) 
     runs = [i for i in range(2, len(ticks)) if ticks[i][1] and ticks[i - 1][1] and ticks[i - 2][1]]
     assert len(runs) > 10, "the trial should halt the robot on its way (pick another seed)"
     assert all(ticks[i][3] == 0.0 for i in runs), "a halted arm crept"
-    settled = [err for _, halted, at_goal, _, err in ticks if at_goal]
-    assert settled and min(settled) < 1e-6  # at a goal reached the arm settles on the goal itself
+    # at a goal reached the arm settles on the goal itself: over each run of ticks at a goal its error to
+    # the command only shrinks (the servo's lag decays; how far it gets depends on how long the robot stays)
+    at_goal = [(i, err) for i, (_, _, goal, _, err) in enumerate(ticks) if goal]
+    assert at_goal, "the trial should reach a goal"
+    runs_at_goal: list[list[float]] = [[at_goal[0][1]]]
+    for (i0, _), (i1, err) in itertools.pairwise(at_goal):
+        if i1 == i0 + 1:
+            runs_at_goal[-1].append(err)
+        else:
+            runs_at_goal.append([err])
+    assert all(b <= a + 1e-12 for run in runs_at_goal for a, b in itertools.pairwise(run)), "the arm drifted"
+    assert min(err for _, err in at_goal) < 1e-4
     assert res.safety is not None and res.safety.violations == 0

@@ -572,6 +572,27 @@ def test_a_robot_at_rest_waits_for_the_person_apart_from_waiting_for_a_plan(bloc
     assert budget["moving_full"] + budget["moving_scaled"] > 0
 
 
+@pytest.mark.parametrize("start_deadline_s", [None, 0.15])
+def test_a_robot_at_rest_waits_its_start_deadline_for_the_first_plan(start_deadline_s: float | None) -> None:
+    """The plan that sets a robot at rest moving is due at the start deadline (3 D unless the settings say
+    otherwise, ``HRC_START_DEADLINE_S``): the robot waits that long for it, and the engine passes the setting
+    through."""
+    from app.config import Settings
+    from app.control.engine import EngineOptions, supervisor_config
+
+    settings = Settings(deadline_s=0.1, start_deadline_s=start_deadline_s)
+    engine_cfg = supervisor_config(settings, "proactive", EngineOptions())
+    expected = 0.3 if start_deadline_s is None else start_deadline_s
+    assert engine_cfg.start_deadline == pytest.approx(expected)
+    cfg = SupervisorConfig(deadline_s=0.1, frame_period_s=1 / 30, start_deadline_s=start_deadline_s)
+    h = Harness(lambda t: person_at(FAR), config=cfg)
+    h.sup.set_goal("B")
+    h.run(3.0)
+    budget = h.sup.counters.budget_s
+    assert budget["waiting_for_plan"] == pytest.approx(expected, abs=0.02)
+    assert budget["moving_full"] + budget["moving_scaled"] > 0
+
+
 def test_a_missed_deadline_leaves_the_plan_until_its_violation_is_due() -> None:
     """Every backup misses D, so none is produced (the paper's rule): the robot goes on along its plan, whose
     predicted violation is still beyond T_i + D, and stops (with the emergency plan) once that violation
