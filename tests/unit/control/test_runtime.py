@@ -690,12 +690,7 @@ def test_a_robot_halted_on_its_way_stays_where_the_arm_is(stack: PlanningStack) 
     # the command only shrinks (the servo's lag decays; how far it gets depends on how long the robot stays)
     at_goal = [(i, err) for i, (_, _, goal, _, err) in enumerate(ticks) if goal]
     assert at_goal, "the trial should reach a goal"
-    runs_at_goal: list[list[float]] = [[at_goal[0][1]]]
-    for (i0, _), (i1, err) in itertools.pairwise(at_goal):
-        if i1 == i0 + 1:
-            runs_at_goal[-1].append(err)
-        else:
-            runs_at_goal.append([err])
-    assert all(b <= a + 1e-12 for run in runs_at_goal for a, b in itertools.pairwise(run)), "the arm drifted"
+    steps = itertools.pairwise(at_goal)
+    assert all(b <= a + 1e-12 for (i, a), (j, b) in steps if j == i + 1), "the arm drifted"
     assert min(err for _, err in at_goal) < 1e-4
     assert res.safety is not None and res.safety.violations == 0
