@@ -345,6 +345,50 @@ def test_the_scale_rises_no_faster_than_a_brake_may_lower_it() -> None:
     assert np.max(np.diff([s for _, _, s, _ in h.log])) == pytest.approx(4.0 * h.dt)
 
 
+class EasedTrajectory(LinearTrajectory):
+    """Through (times, q) at rest at every waypoint (a cubic ease per segment): a plan setting off from
+    rest, as the planner's fitted trajectories do."""
+
+    def _segment(self, t: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        tt = np.clip(np.atleast_1d(np.asarray(t, dtype=float)), self.times[0], self.times[-1])
+        i = np.clip(np.searchsorted(self.times, tt, side="right") - 1, 0, self.times.shape[0] - 2)
+        h = self.times[i + 1] - self.times[i]
+        return i, np.clip((tt - self.times[i]) / h, 0.0, 1.0), h, self.qs[i + 1] - self.qs[i]
+
+    def q(self, t: Any) -> np.ndarray:
+        i, u, _, dq = self._segment(t)
+        out = self.qs[i] + dq * (3 * u**2 - 2 * u**3)[:, None]
+        return out.reshape(*np.shape(t), 6)
+
+    def qd(self, t: Any) -> np.ndarray:
+        _, u, h, dq = self._segment(t)
+        return (dq * ((6 * u - 6 * u**2) / h)[:, None]).reshape(*np.shape(t), 6)
+
+
+def test_a_plan_from_rest_sets_off_at_the_governed_scale_without_a_second_ramp(monkeypatch) -> None:
+    """A plan that starts at rest accelerates along its own profile: the scale need not ramp up from 0 on
+    top of it (that would arrive late by half the ramp's time on every leg), while a plan that starts at
+    speed still gets the ramp (:func:`test_the_scale_rises_no_faster_than_a_brake_may_lower_it`)."""
+    monkeypatch.setattr(
+        sys.modules[__name__], "make_traj", lambda plan, qd0: EasedTrajectory(plan.times, plan.q)
+    )
+    h = Harness(lambda t: person_at(FAR))
+    h.sup.set_goal("B")
+    h.run(6.0)
+    assert h.sup.take_arrival() == "B"
+    t = np.array([r[0] for r in h.log])
+    q = np.stack([r[1] for r in h.log])[:, 0]
+    scales = np.array([r[2] for r in h.log])
+    under_way = np.flatnonzero(q > 1e-12)
+    first = under_way[0]
+    assert scales[first] == pytest.approx(1.0)  # the first tick under way is at full scale, no ramp from 0
+    t_dep = t[first - 1]
+    t_arr = t[np.flatnonzero(q >= 2.0 - 1e-9)[0]]
+    assert t_arr - t_dep == pytest.approx(2.0 / SPEED, abs=2 * h.dt)  # the plan's own duration, on time
+    v = np.diff(q) / h.dt
+    assert np.max(np.abs(np.diff(v))) <= 6 * 2.0 / (2.0 / SPEED) ** 2 * h.dt + 1e-6  # its own acceleration
+
+
 def test_hold_and_scaled_view() -> None:
     hold = HoldTrajectory(np.arange(6.0), 2.0)
     assert hold.q(np.array([0.0, 5.0])).shape == (2, 6)
