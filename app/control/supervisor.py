@@ -58,6 +58,7 @@ from typing import Any, Literal
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
+from app.control.scale_ramp import jump_scale, ramp_distance, up_rate
 from app.control.supervisor_types import (
     FrameDecision,
     SupervisorConfig,
@@ -623,10 +624,10 @@ class Supervisor:
             pr = active.profile
             rate = brake_rate(float(pr.window_at(tau).max()), pr.joint_window_at(tau), cfg.brake_decel_mps2,
                               cfg.brake_joint_decel)  # fmt: skip
-            up = _up_rate(cfg.scale_up_rate, rate, cfg.ramp_joint_accel, pr.top_joint_window_at(tau))
-            # (the first tick may jump the scale: :func:`_jump_scale`)
-            s_from = max(_jump_scale(s, up, self._servo_dt, active, tau), s)
-            tau_b = min(tau + _ramp_distance(s_from, up, D), active.traj.t_end)
+            up = up_rate(cfg.scale_up_rate, rate, cfg.ramp_joint_accel, pr.top_joint_window_at(tau))
+            # (the first tick may jump the scale: :func:`app.control.scale_ramp.jump_scale`)
+            s_from = max(jump_scale(s, up, self._servo_dt, active.traj, active.profile, tau), s)
+            tau_b = min(tau + ramp_distance(s_from, up, D), active.traj.t_end)
             t_start = T + D
             q_s, qd_s = traj_state(active.traj, tau_b)
             if tau_b >= active.traj.t_end:
@@ -860,12 +861,12 @@ class Supervisor:
         jmax = active.profile.joint_window_at(self._tau)
         # braking: the path scale falls at `rate` (1/s), each part slows at rate * its speed
         rate = brake_rate(vtop, jmax, cfg.brake_decel_mps2, cfg.brake_joint_decel)
-        up = _up_rate(
+        up = up_rate(
             cfg.scale_up_rate, rate, cfg.ramp_joint_accel, active.profile.top_joint_window_at(self._tau)
         )
         s = self._s
         self._servo_dt = dt if dt > 0.0 else self._servo_dt
-        hi = _jump_scale(s, up, dt, active, self._tau)
+        hi = jump_scale(s, up, dt, active.traj, active.profile, self._tau)
         if self._stale:
             s_target = 0.0
         elif vtop <= 1e-9:
@@ -1159,45 +1160,3 @@ class Supervisor:
         dt_h = t + dt - self._v_h_t if math.isfinite(self._v_h_t) else math.nan
         robot = self._robot_motion(vmax, dt, rate, hi)
         return float(governed_scale(self._parts, robot, dt_h, s, dt, rate, lo, hi, self._governor))
-
-
-def _up_rate(scale_up_rate: float, brake_rate_per_s: float, joint_accel: float, w_top_radps: float) -> float:
-    """How fast (1/s) the path scale may rise: the ramp, no faster than a brake may lower it nor than the
-    joints may speed up (``joint_accel`` for the fastest joint at ``w_top_radps`` at scale 1), so that the arm
-    follows its command (a joint at 1.9 rad/s ramped at 4/s would need 7.6 rad/s^2, lag, then overshoot)."""
-    up = min(scale_up_rate, brake_rate_per_s) if math.isfinite(brake_rate_per_s) else scale_up_rate
-    if w_top_radps > 1e-9:
-        up = min(up, joint_accel / w_top_radps)
-    return up
-
-
-def _jump_scale(s: float, up_rate: float, dt: float, active: _Active, tau: float) -> float:
-    """The largest path scale one servo tick of ``dt`` can reach from ``s`` on the plan ``active`` at path
-    time ``tau``: the ramp's ``s + up_rate dt``, or higher where the path itself is slower than over the
-    window ahead (a plan setting off from rest): any scale at which no joint's velocity and no part's speed
-    changes by more than the ramp may change them at the window's speeds. Without it a plan from rest would
-    accelerate twice over, along its own profile and with the scale's ramp from 0 (0.12 s lost on every
-    short leg at full speed, measured on seeds 1000-1009)."""
-    hi = s + up_rate * dt
-    if hi >= 1.0 or dt <= 0.0:
-        return min(hi, 1.0)
-    prof = active.profile
-    w_now = float(np.max(np.abs(traj_state(active.traj, tau)[1])))
-    v_now = float(prof.speed_at(tau).max())
-    step = up_rate * dt
-    room = min(
-        prof.top_joint_window_at(tau) / w_now if w_now > 1e-12 else math.inf,
-        float(prof.window_at(tau).max()) / v_now if v_now > 1e-12 else math.inf,
-    )
-    return min(max(hi, step * room), 1.0)
-
-
-def _ramp_distance(s: float, up_rate: float, horizon_s: float) -> float:
-    """Path-time distance covered in ``horizon_s`` starting at scale ``s`` and ramping up at ``up_rate``
-    to 1 (the fastest the robot can progress)."""
-    if s >= 1.0:
-        return horizon_s
-    t_full = (1.0 - s) / up_rate if up_rate > 0 else math.inf
-    if t_full >= horizon_s:
-        return s * horizon_s + 0.5 * up_rate * horizon_s**2
-    return s * t_full + 0.5 * up_rate * t_full**2 + (horizon_s - t_full)

@@ -19,7 +19,8 @@ import pytest
 from governor_reference import governed_scale_reference
 
 from app.control.backup import BackupComputer, InlinePlanJobs
-from app.control.supervisor import Supervisor, SupervisorConfig, _ramp_distance
+from app.control.scale_ramp import ramp_distance
+from app.control.supervisor import Supervisor, SupervisorConfig
 from app.control.trajectory_views import HoldTrajectory, ScaledView, SpeedProfile
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
@@ -400,10 +401,10 @@ def test_hold_and_scaled_view() -> None:
     assert view.qd(11.0)[0] == pytest.approx(0.5)
 
 
-def test_ramp_distance() -> None:
-    assert _ramp_distance(1.0, 4.0, 0.1) == pytest.approx(0.1)
-    assert _ramp_distance(0.0, 4.0, 0.1) == pytest.approx(0.02)  # 0.5 * 4 * 0.01
-    assert _ramp_distance(0.9, 4.0, 0.1) == pytest.approx(0.9 * 0.025 + 0.5 * 4 * 0.025**2 + 0.075)
+def testramp_distance() -> None:
+    assert ramp_distance(1.0, 4.0, 0.1) == pytest.approx(0.1)
+    assert ramp_distance(0.0, 4.0, 0.1) == pytest.approx(0.02)  # 0.5 * 4 * 0.01
+    assert ramp_distance(0.9, 4.0, 0.1) == pytest.approx(0.9 * 0.025 + 0.5 * 4 * 0.025**2 + 0.075)
 
 
 def test_speed_profile_windows() -> None:

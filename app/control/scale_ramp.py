@@ -1,0 +1,60 @@
+"""The path speed scale's ramp: how fast the supervisor may raise the scale of the plan in execution.
+
+The scale multiplies the plan's joint velocities; raising it accelerates the arm on top of the plan's own
+acceleration. :func:`up_rate` bounds the ramp (no faster than a brake may lower the scale, nor than the
+joints may speed up at the window's speeds), :func:`jump_scale` lets a plan that sets off from rest start at
+any scale the ramp's velocity steps allow, and :func:`ramp_distance` is the fastest progress along the path
+that the ramp allows (the supervisor's branch points).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from app.control.trajectory_views import SpeedProfile, TrajectoryLike, traj_state
+
+__all__ = ["jump_scale", "ramp_distance", "up_rate"]
+
+
+def up_rate(scale_up_rate: float, brake_rate_per_s: float, joint_accel: float, w_top_radps: float) -> float:
+    """How fast (1/s) the path scale may rise: the ramp, no faster than a brake may lower it nor than the
+    joints may speed up (``joint_accel`` for the fastest joint at ``w_top_radps`` at scale 1), so that the arm
+    follows its command (a joint at 1.9 rad/s ramped at 4/s would need 7.6 rad/s^2, lag, then overshoot)."""
+    up = min(scale_up_rate, brake_rate_per_s) if math.isfinite(brake_rate_per_s) else scale_up_rate
+    if w_top_radps > 1e-9:
+        up = min(up, joint_accel / w_top_radps)
+    return up
+
+
+def jump_scale(
+    s: float, up_rate_per_s: float, dt: float, traj: TrajectoryLike, profile: SpeedProfile, tau: float
+) -> float:
+    """The largest path scale one servo tick of ``dt`` can reach from ``s`` on the plan ``traj`` (its speed
+    profile ``profile``) at path time ``tau``: the ramp's ``s + up_rate_per_s dt``, or higher where the path
+    itself is slower than over the window ahead (a plan setting off from rest): any scale at which no joint's
+    velocity and no part's speed changes by more than the ramp may change them at the window's speeds.
+    Without it a plan from rest would accelerate twice over, along its own profile and with the scale's ramp
+    from 0 (0.12 s lost on every short leg at full speed, measured on seeds 1000-1009)."""
+    hi = s + up_rate_per_s * dt
+    if hi >= 1.0 or dt <= 0.0:
+        return min(hi, 1.0)
+    w_now = float(np.max(np.abs(traj_state(traj, tau)[1])))
+    v_now = float(profile.speed_at(tau).max())
+    room = min(
+        profile.top_joint_window_at(tau) / w_now if w_now > 1e-12 else math.inf,
+        float(profile.window_at(tau).max()) / v_now if v_now > 1e-12 else math.inf,
+    )
+    return min(max(hi, up_rate_per_s * dt * room), 1.0)
+
+
+def ramp_distance(s: float, up_rate_per_s: float, horizon_s: float) -> float:
+    """Path-time distance covered in ``horizon_s`` starting at scale ``s`` and ramping up at
+    ``up_rate_per_s`` to 1 (the fastest the robot can progress)."""
+    if s >= 1.0:
+        return horizon_s
+    t_full = (1.0 - s) / up_rate_per_s if up_rate_per_s > 0 else math.inf
+    if t_full >= horizon_s:
+        return s * horizon_s + 0.5 * up_rate_per_s * horizon_s**2
+    return s * t_full + 0.5 * up_rate_per_s * t_full**2 + (horizon_s - t_full)
