@@ -117,6 +117,7 @@ def supervisor_config(settings: Settings, method: Method, options: EngineOptions
         planner_workers=settings.planner_workers,
         tracking_margin_m=options.tracking_margin_m,
         robot_toward=settings.robot_toward,
+        creep_scale=settings.creep_switch_scale,
     )
 
 

@@ -4,7 +4,8 @@ The scale multiplies the plan's joint velocities; raising it accelerates the arm
 acceleration. :func:`up_rate` bounds the ramp (no faster than a brake may lower the scale, nor than the
 joints may speed up at the window's speeds), :func:`jump_scale` lets a plan that sets off from rest start at
 any scale the ramp's velocity steps allow, and :func:`ramp_distance` is the fastest progress along the path
-that the ramp allows (the supervisor's branch points).
+that the ramp allows (the supervisor's branch points). :class:`CreepWatch` says when a plan has crept
+long enough at a low scale for the supervisor to weigh a backup that may arrive earlier.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 
 from app.control.trajectory_views import SpeedProfile, TrajectoryLike, traj_state
 
-__all__ = ["jump_scale", "ramp_distance", "up_rate"]
+__all__ = ["CreepWatch", "jump_scale", "ramp_distance", "up_rate"]
 
 
 def up_rate(scale_up_rate: float, brake_rate_per_s: float, joint_accel: float, w_top_radps: float) -> float:
@@ -58,3 +59,25 @@ def ramp_distance(s: float, up_rate_per_s: float, horizon_s: float) -> float:
     if t_full >= horizon_s:
         return s * horizon_s + 0.5 * up_rate_per_s * horizon_s**2
     return s * t_full + 0.5 * up_rate_per_s * t_full**2 + (horizon_s - t_full)
+
+
+class CreepWatch:
+    """When the plan in execution has crept below ``scale`` for ``after_s`` (s): :meth:`due` is True then,
+    and again every ``after_s`` while it keeps creeping (``scale`` None: never)."""
+
+    def __init__(self, scale: float | None, after_s: float) -> None:
+        self.scale, self.after_s = scale, float(after_s)
+        self._plan = -1  # the plan whose creeping is being timed, and since when (s)
+        self._since = 0.0
+
+    def due(self, t: float, s: float, plan_id: int) -> bool:
+        """The plan ``plan_id`` runs at scale ``s`` at time ``t``: has it crept long enough?"""
+        if self.scale is None:
+            return False
+        if s >= self.scale or plan_id != self._plan:
+            self._plan, self._since = plan_id, t
+            return False
+        if t - self._since < self.after_s:
+            return False
+        self._since = t
+        return True

@@ -58,7 +58,7 @@ from typing import Any, Literal
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
-from app.control.scale_ramp import jump_scale, ramp_distance, up_rate
+from app.control.scale_ramp import CreepWatch, jump_scale, ramp_distance, up_rate
 from app.control.supervisor_types import (
     FrameDecision,
     SupervisorConfig,
@@ -78,6 +78,7 @@ from app.control.trajectory_views import (
     TrajectoryLike,
     traj_state,
 )
+from app.planning.ssm_timing import predicted_arrival_from
 from app.prediction.forecast import HumanForecast
 from app.prediction.skeleton import NUM_JOINTS, HumanFrame
 from app.safety.governor import (
@@ -102,7 +103,7 @@ from app.safety.pfl import PFLModel, pfl_levels
 
 log = logging.getLogger(__name__)
 
-SwitchReason = Literal["online_replan", "start", "resume"]
+SwitchReason = Literal["online_replan", "start", "resume", "improve"]
 
 _EPS_SCALE = 1e-6
 
@@ -232,6 +233,7 @@ class Supervisor:
         self._t = float(t0)
         self._tau = float(t0)
         self._s = 0.0
+        self._creep = CreepWatch(self.config.creep_scale, self.config.creep_after_s)
         self._servo_dt = 0.0  # the last servo tick's length (s): how far the scale may jump from rest
         self._q_cmd = q0.copy()
         self._active = self._hold(q0, t0)
@@ -539,6 +541,7 @@ class Supervisor:
                     not stop_distance
                     and pend is not None
                     and pend.plan_id == active.plan_id
+                    and pend.reason != "improve"
                     and t_v is not None
                     and pend.t_switch < t_v
                     and pend.tau_branch <= active.traj.t_end
@@ -554,7 +557,12 @@ class Supervisor:
                 decision = "stop_replan"
             elif moving_plan and t_v is not None:
                 pend = self._pending
-                if pend is not None and pend.plan_id == active.plan_id and pend.t_switch < t_v:
+                if (
+                    pend is not None
+                    and pend.plan_id == active.plan_id
+                    and pend.reason != "improve"
+                    and pend.t_switch < t_v
+                ):
                     return self._done("online_replan", t_v, sep, c0)
                 if req is None:
                     self._stop_and_replan(T, reason="no_backup", violation_t=t_v)
@@ -577,6 +585,15 @@ class Supervisor:
                 if self._state in ("collision_avoidance", "stopped") and self._pending is None:
                     self._set_state("nominal", T)
                 decision = "nominal"
+                # a plan creeping at a low scale: weigh a backup that may arrive earlier (at the switch)
+                if (
+                    req is not None
+                    and self.timing is not None
+                    and self._pending is None
+                    and (self._creep.due(T, s, active.plan_id))
+                ):
+                    self._schedule(req[0], req[1], active, "improve", None)
+                    decision = "improve"
         brake = self._brake
         if decision == "stop_replan" and brake is not None:
             self._plan_emergency(brake, frame, gen_after=self._generation)
@@ -939,6 +956,20 @@ class Supervisor:
                     self._emergency_path(t, reason="backup_invalid", violation_t=t_v)
                 return
         assert out.traj is not None and out.profile is not None
+        if pend.reason == "improve":
+            if out.arrival_s is None or self._forecast is None:
+                return
+            try:  # the rest of the plan in execution from the branch point, at the predicted timing
+                mine = predicted_arrival_from(
+                    active.traj, pend.tau_branch, pend.t_switch, self._forecast,
+                    getattr(self.planner, "collision", None), self.timing,
+                )  # fmt: skip
+            except Exception:
+                log.exception("predicting the plan in execution raised; keeping it")
+                return
+            if not out.arrival_s < mine - self.config.creep_gain_s:
+                return  # the plan in execution arrives no later: keep it
+            self.counters.improvements += 1
         tau_new = out.traj.t_start + max(self._tau - pend.tau_branch, 0.0)
         self.counters.count_choice(out.chosen, out.gain_s)
         pid = self._new_plan_id()

@@ -66,6 +66,8 @@ class SupervisorCounters:
     #: robot the speed governor already held still
     stop_replans_moving: int = 0
     online_replans: int = 0
+    #: switches to a backup predicted to arrive earlier than the creeping plan in execution
+    improvements: int = 0
     deadline_misses: int = 0
     emergency_plans: int = 0
     plan_failures: int = 0
@@ -148,8 +150,9 @@ class FrameDecision:
 
     Attributes:
         action: ``nominal``, ``online_replan`` (switch scheduled), ``stop_replan``, ``start`` (switch
-            scheduled from rest), ``resume`` (switch scheduled after an emergency plan), ``hold`` (nothing to
-            do), ``skipped`` (the state changed while deciding).
+            scheduled from rest), ``resume`` (switch scheduled after an emergency plan), ``improve`` (a
+            backup scheduled for a creeping plan, taken where it arrives earlier), ``hold`` (nothing to do),
+            ``skipped`` (the state changed while deciding).
         violation_t: Predicted violation time of the plan in execution, if any (s).
         separation_m: Measured separation minus the tracking margin (m).
         decide_s: Compute time of the decision itself (s), without the backup plan's search.
@@ -237,6 +240,11 @@ class SupervisorConfig:
             frame; the governor falls back to the whole speed where a brake could end beyond it (or on a
             plan switched to since the frame).
         emergency_horizon_s: Horizon of the emergency plan; default F + D.
+        creep_scale: A plan in execution held below this path scale for ``creep_after_s`` is weighed against
+            a backup from its branch point (both at the governor's predicted timing against the latest
+            forecast; it needs ``timing``), taken where it arrives ``creep_gain_s`` earlier; None: never.
+        creep_after_s: How long the plan must creep before that, and how often it is weighed (s).
+        creep_gain_s: How much earlier the backup must arrive (s).
     """
 
     method: Method = "proactive"
@@ -260,6 +268,9 @@ class SupervisorConfig:
     robot_toward: bool = True
     toward_horizon_s: float = 0.9
     emergency_horizon_s: float | None = None
+    creep_scale: float | None = None
+    creep_after_s: float = 0.5
+    creep_gain_s: float = 0.2
 
     def __post_init__(self) -> None:
         if self.method not in ("proactive", "reactive"):

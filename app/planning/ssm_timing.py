@@ -24,7 +24,7 @@ from app.planning.trajectory import Trajectory, sample_times
 from app.safety.governor import BRAKE_INSTANTS, SCALE_GRID, GovernorModel
 from app.safety.stopping import UR5E_STOP
 
-__all__ = ["PredictedTiming", "part_speeds", "predicted_scales"]
+__all__ = ["PredictedTiming", "part_speeds", "predicted_arrival_from", "predicted_scales"]
 
 #: Spacing (s of path time at full speed) of the points at which the governor's scale is predicted.
 STEP_S = 0.04
@@ -179,3 +179,31 @@ class PredictedTiming:
         a = self.t_start if t_from is None else float(t_from)
         b = self.t_end if t_to is None else float(t_to)
         return sample_times(a, b, dt_s)
+
+
+class _Remainder:
+    """The rest of ``traj`` from its path time ``tau_b`` on, as a path that starts at wall time ``t_b``."""
+
+    def __init__(self, traj: Any, tau_b: float, t_b: float) -> None:
+        self._traj, self._shift = traj, float(tau_b) - float(t_b)
+        self.t_start = float(t_b)
+        self.t_end = float(t_b) + max(float(traj.t_end) - float(tau_b), 0.0)
+
+    def q(self, t: Any) -> np.ndarray:
+        return self._traj.q(np.asarray(t, dtype=np.float64) + self._shift)
+
+    def qd(self, t: Any) -> np.ndarray:
+        return self._traj.qd(np.asarray(t, dtype=np.float64) + self._shift)
+
+
+def predicted_arrival_from(
+    traj: Any, tau_b: float, t_b: float, forecast: Any, collision: Any, model: GovernorModel
+) -> float:
+    """The predicted arrival (wall time) of the rest of ``traj`` from its path time ``tau_b``, reached at
+    wall time ``t_b``, under the governor (:func:`predicted_scales` against ``forecast``): what the supervisor
+    weighs a backup from a branch point against."""
+    rest = _Remainder(traj, tau_b, t_b)
+    if rest.t_end <= rest.t_start:
+        return rest.t_end
+    _, t, _ = predicted_scales(rest, forecast, collision, model)  # type: ignore[arg-type]
+    return float(t[-1])

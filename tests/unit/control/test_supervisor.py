@@ -390,6 +390,45 @@ def test_a_plan_from_rest_sets_off_at_the_governed_scale_without_a_second_ramp(m
     assert np.max(np.abs(np.diff(v))) <= 6 * 2.0 / (2.0 / SPEED) ** 2 * h.dt + 1e-6  # its own acceleration
 
 
+@pytest.mark.parametrize("faster", [True, False])
+def test_a_creeping_plan_is_replaced_by_a_backup_only_where_it_arrives_earlier(
+    monkeypatch, faster: bool
+) -> None:
+    """A plan that the governor holds below ``creep_scale`` is weighed against a backup from its branch
+    point at the predicted timing (here: the fake planner's, and a stub for the rest of the creeping plan):
+    the backup is executed where it arrives ``creep_gain_s`` earlier, else the plan in execution goes on."""
+    import app.control.supervisor as sup_mod
+
+    config = SupervisorConfig(deadline_s=0.1, frame_period_s=1 / 30, creep_scale=0.2, creep_after_s=0.3)
+    h = Harness(lambda t: person_at(FAR), config=config, timing=object())
+    # the governor holds the robot at a creep; the backup from the branch point is predicted to arrive at its
+    # own full-speed end, the rest of the creeping plan 5 s after (faster) or before (not) that
+    monkeypatch.setattr(Supervisor, "_governed_scale", lambda self, *a: 0.05)
+    offset = 5.0 if faster else -5.0
+    monkeypatch.setattr(sup_mod, "predicted_arrival_from", lambda traj, tau_b, t_b, *a: t_b + 4.0 + offset)
+    plan = h.planner.plan
+
+    def with_arrival(**kw):
+        res = plan(**kw)
+        if res.ok:
+            res.arrival_s = float(res.plan.times[-1])
+        return res
+
+    monkeypatch.setattr(h.planner, "plan", with_arrival)
+    h.sup.set_goal("B")
+    h.run(3.0)
+    assert h.sup.counters.improvements > 0 if faster else h.sup.counters.improvements == 0
+    kinds = [d.action for d in h.decisions]
+    assert "improve" in kinds  # weighed in both cases, at most once per creep_after_s
+    assert kinds.count("improve") <= 3.0 / config.creep_after_s + 1
+    # no creeping, no weighing: the same scene at full speed
+    h2 = Harness(lambda t: person_at(FAR), config=config, timing=object())
+    monkeypatch.undo()
+    h2.sup.set_goal("B")
+    h2.run(3.0)
+    assert "improve" not in [d.action for d in h2.decisions]
+
+
 def test_hold_and_scaled_view() -> None:
     hold = HoldTrajectory(np.arange(6.0), 2.0)
     assert hold.q(np.array([0.0, 5.0])).shape == (2, 6)
@@ -905,7 +944,7 @@ def test_the_ssm_timing_predicts_how_long_the_governor_takes_past_a_person(
     time the supervisor's governor really takes along a straight move past them, within 20 % (the governor
     ramps up from rest at its ramp rate, picks scales from a grid and sees frames of varying age; the model
     takes the oldest)."""
-    from app.planning.ssm_timing import predicted_scales
+    from app.planning.ssm_timing import predicted_arrival_from, predicted_scales
     from app.safety.governor import GovernorModel
 
     separation = SSM
@@ -941,6 +980,13 @@ def test_the_ssm_timing_predicts_how_long_the_governor_takes_past_a_person(
     if strict and side_m < 0.8:
         assert measured > 1.5 * full  # the governor slowed this move a lot ...
     assert t[-1] == pytest.approx(measured, rel=0.2)  # ... and the prediction knew by how much
+    # the rest of the move from its middle, reached at another time: the same timing (the person holds still)
+    tau, _, _ = predicted_scales(traj, fc, _PointCapsules(), model)
+    tau_m = 0.5 * (traj.t_start + traj.t_end)
+    t_m = float(np.interp(tau_m, tau, t))
+    assert predicted_arrival_from(traj, traj.t_start, traj.t_start, fc, _PointCapsules(), model) == t[-1]
+    rest = predicted_arrival_from(traj, tau_m, 10.0, fc, _PointCapsules(), model) - 10.0
+    assert rest == pytest.approx(t[-1] - t_m, rel=0.05, abs=0.05)
 
 
 def test_the_status_says_what_limits_the_robot_and_the_separation_it_is_held_to() -> None:
