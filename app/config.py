@@ -465,8 +465,13 @@ class Settings(BaseSettings):
         None,
         gt=0,
         le=2.0,
-        description="deadline of a plan that sets a robot at rest moving (s): it stands still until the "
-        "plan's start, so the deadline is waiting time at every start from rest; default 3 D",
+        description="deadline of a plan that sets a robot at rest moving (s): the longest it stands still "
+        "for the plan (all of it without start_when_ready); default 3 D",
+    )
+    start_when_ready: bool = Field(
+        True,
+        description="a robot at rest sets off as soon as its plan is ready and passes the latest forecast "
+        "from then, not at the start deadline",
     )
     frame_period_s: float = Field(1 / 30, gt=0, le=1.0, description="F: camera frame period")
     planner_workers: int = Field(

@@ -130,6 +130,11 @@ class PlanJobs(Protocol):
         """The outcome if it is already known without computing anything, else None."""
         ...
 
+    def ready(self, key: int, request: BackupRequest | None = None) -> PlanOutcome | None:
+        """The outcome of a request that sets a robot at rest moving, as soon as it is known (its compute time
+        counted from the request), else None: the robot may set off before the start deadline."""
+        ...
+
     def foreground(self) -> AbstractContextManager[None]:
         """While the caller is inside it, its work goes before the jobs' (a frame's decision)."""
         ...
@@ -321,6 +326,9 @@ class InlinePlanJobs:
     def peek(self, key: int) -> PlanOutcome | None:
         return None
 
+    def ready(self, key: int, request: BackupRequest | None = None) -> PlanOutcome | None:
+        return self.take(key, request)  # computed now, charged from the request: as at the switch
+
     def foreground(self) -> AbstractContextManager[None]:
         return contextlib.nullcontext()  # a plan is computed only when a decision takes it
 
@@ -441,6 +449,9 @@ class PoolPlanJobs:
             elapsed = self.clock.now() - t_sub
             return PlanOutcome("deadline_miss", compute_s=elapsed, reason="not ready at T_i + D")
         return fut.result()
+
+    def ready(self, key: int, request: BackupRequest | None = None) -> PlanOutcome | None:
+        return self.peek(key)
 
     def peek(self, key: int) -> PlanOutcome | None:
         with self._lock:

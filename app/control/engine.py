@@ -113,6 +113,7 @@ def supervisor_config(settings: Settings, method: Method, options: EngineOptions
         method=method,
         deadline_s=settings.deadline_s,
         start_deadline_s=settings.start_deadline_s,
+        start_when_ready=settings.start_when_ready,
         frame_period_s=settings.frame_period_s,
         planner_workers=settings.planner_workers,
         tracking_margin_m=options.tracking_margin_m,

@@ -5,7 +5,8 @@ new frame at ``T_i`` the :class:`Supervisor`
 1. prepares the *backup plan* request from ``s = pi_curr(T_i + D)`` toward the current goal against the
    latest forecast, under the deadline ``D``; its result is usable from ``T_i + D``. Where the robot must
    start moving (at rest, or after an emergency plan) the plan starts from its current position (a plan from
-   rest may take ``start_deadline_s``, 3 D by default: the robot stands still meanwhile), and it is executed
+   rest may take ``start_deadline_s``, 3 D by default; the robot stands still until it is ready and sets off
+   then, the plan brought forward in time: ``start_when_ready``), and it is executed
    only if the latest forecast predicts no violation anywhere along it (``clear_start``): a robot at rest
    need not set off toward where the person is about to be, it waits and plans again;
 2. checks the plan in execution against the *latest* forecast (:meth:`PlannerLike.first_violation`) and the
@@ -51,13 +52,14 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from functools import partial
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
+from app.control.plan_state import ActivePlan, Braking, PendingSwitch, SwitchReason, started_now
 from app.control.scale_ramp import CreepWatch, jump_scale, ramp_distance, up_rate
 from app.control.supervisor_types import (
     FrameDecision,
@@ -75,7 +77,6 @@ from app.control.trajectory_views import (
     RobotGeometry,
     ScaledView,
     SpeedProfile,
-    TrajectoryLike,
     traj_state,
 )
 from app.planning.ssm_timing import predicted_arrival_from
@@ -103,60 +104,7 @@ from app.safety.pfl import PFLModel, pfl_levels
 
 log = logging.getLogger(__name__)
 
-SwitchReason = Literal["online_replan", "start", "resume", "improve"]
-
 _EPS_SCALE = 1e-6
-
-# ----------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class _Active:
-    traj: TrajectoryLike
-    profile: SpeedProfile
-    plan_id: int
-    kind: Literal["hold", "plan", "emergency"]
-    complete: bool
-    goal: Goal | None
-    checked_seq: int
-    arrival_s: float | None = None  # the planner's predicted arrival (runtime clock); None: traj.t_end
-
-    def under_way(self, tau: float) -> bool:
-        """A plan (not a hold) with path left after path time ``tau``."""
-        return self.kind != "hold" and tau < self.traj.t_end
-
-
-@dataclass
-class _Pending:
-    key: int
-    t_switch: float
-    tau_branch: float
-    plan_id: int
-    reason: SwitchReason
-    violation_t: float | None
-    request: BackupRequest | None = None
-    outcome: PlanOutcome | None = None
-    checked_seq: int = -1
-
-    @property
-    def from_rest(self) -> bool:
-        """The switch sets a robot at rest moving (a start, or a resume after a stop)."""
-        return self.reason in ("start", "resume")
-
-
-@dataclass
-class _Brake:
-    t0: float
-    tau0: float
-    s0: float
-    rate: float
-    t_stop: float
-    tau_stop: float
-    reason: str
-    emergency: _Active | None = None
-    emergency_ready_t: float = math.inf
-    emergency_tried: bool = False
-
 
 EventSink = Callable[[float, str, dict[str, Any]], None]
 
@@ -237,8 +185,8 @@ class Supervisor:
         self._servo_dt = 0.0  # the last servo tick's length (s): how far the scale may jump from rest
         self._q_cmd = q0.copy()
         self._active = self._hold(q0, t0)
-        self._pending: _Pending | None = None
-        self._brake: _Brake | None = None
+        self._pending: PendingSwitch | None = None
+        self._brake: Braking | None = None
         self._goal: Goal | None = None
         self._not_before = -math.inf
         self._arrived: Goal | None = None
@@ -253,7 +201,7 @@ class Supervisor:
         self._parts = PartSeparation(np.full(L, math.inf), np.zeros(L), np.zeros(L), ssm_alone(L))
         self._travel = np.zeros(L)  # each part's travel since the robot's pose of the measurement (a bound)
         self._pairs: tuple[np.ndarray, np.ndarray] | None = None  # (L, M) distances and (M,) capsule speeds
-        self._toward: tuple[_Active, PathClosing] | None = None  # the parts' closing along the plan in
+        self._toward: tuple[ActivePlan, PathClosing] | None = None  # the parts' closing along the plan in
         # execution, measured at the last frame
         self._sep_person_t = -math.inf  # time of the frame the separation was measured on
         self._v_h_t = -math.inf  # the middle of the window the person's approach speed was measured over
@@ -620,7 +568,7 @@ class Supervisor:
         T: float,
         goal: Goal,
         forecast: HumanForecast,
-        active: _Active,
+        active: ActivePlan,
         tau: float,
         s: float,
         candidate: HumanForecast | None,
@@ -664,10 +612,10 @@ class Supervisor:
         return req, float(tau_b)
 
     def _schedule(
-        self, req: BackupRequest, tau_b: float, active: _Active, reason: SwitchReason, t_v: float | None
+        self, req: BackupRequest, tau_b: float, active: ActivePlan, reason: SwitchReason, t_v: float | None
     ) -> None:
         self.jobs.submit(req)
-        self._pending = _Pending(
+        self._pending = PendingSwitch(
             key=req.key,
             t_switch=req.t_start,
             tau_branch=tau_b,
@@ -678,7 +626,13 @@ class Supervisor:
         )
 
     def _backup_passes(
-        self, pend: _Pending, out: PlanOutcome, t_now: float, tau: float, s: float, forecast: HumanForecast
+        self,
+        pend: PendingSwitch,
+        out: PlanOutcome,
+        t_now: float,
+        tau: float,
+        s: float,
+        forecast: HumanForecast,
     ) -> float | None:
         """Re-check a backup against ``forecast`` as it would run from the switch; returns the violation time
         that forbids the switch, or None when it may be executed: a violation after ``t_now + D`` is left to
@@ -719,7 +673,7 @@ class Supervisor:
         if not math.isfinite(rate) or s0 <= 0:
             rate = max(s0, 1e-3) / 1e-3
         t_b = s0 / rate
-        self._brake = _Brake(
+        self._brake = Braking(
             t0=t,
             tau0=self._tau,
             s0=s0,
@@ -739,7 +693,7 @@ class Supervisor:
         self._emit(t, "stop_replan", {"violation_t": violation_t, "reason": reason, "scale": round(s0, 4)})
         self._set_state("collision_avoidance", t)
 
-    def _plan_emergency(self, brake: _Brake, frame: HumanFrame, *, gen_after: int) -> None:
+    def _plan_emergency(self, brake: Braking, frame: HumanFrame, *, gen_after: int) -> None:
         """Compute the emergency plan from the stop point (the person held at ``frame``), and check it
         against the latest forecast. Runs outside the lock; attaches the result if the brake still stands."""
         cfg = self.config
@@ -751,7 +705,7 @@ class Supervisor:
             brake.emergency_tried = True
         held = HumanForecast.hold(frame, margin_m=cfg.tracking_margin_m)
         c0 = self.timer()
-        em: _Active | None = None
+        em: ActivePlan | None = None
         try:
             res = self.planner.emergency(
                 q_start=q_stop.reshape(6),
@@ -762,7 +716,7 @@ class Supervisor:
             if res.ok and res.plan is not None:
                 traj = self.make_trajectory(res.plan, np.zeros(6))
                 prof = SpeedProfile.of(traj, self.geometry, window_s=cfg.profile_window_s)
-                em = _Active(traj, prof, self._new_plan_id(), "emergency", False, self._goal, -1)
+                em = ActivePlan(traj, prof, self._new_plan_id(), "emergency", False, self._goal, -1)
             else:
                 reason = str(res.reason)
         except Exception as exc:
@@ -855,6 +809,9 @@ class Supervisor:
         pend = self._pending
         if active.kind == "hold":
             self._tau = t
+            if pend is not None and pend.plan_id == active.plan_id and self.config.start_when_ready:
+                self._start_when_ready(pend, t)
+                active, pend = self._active, self._pending
         if (
             pend is not None
             and pend.plan_id == active.plan_id
@@ -918,7 +875,22 @@ class Supervisor:
             if active.complete and (pend is None or pend.plan_id != active.plan_id):
                 self._arrive(t)
 
-    def _switch(self, pend: _Pending, t: float) -> None:
+    def _start_when_ready(self, pend: PendingSwitch, t: float) -> None:
+        """Set a robot at rest moving at ``t`` rather than at the start deadline, once its plan is ready and
+        passes the latest forecast as it would run from ``t`` (:func:`started_now`). Caller holds the lock."""
+        if not pend.from_rest or pend.early_seq == self._seq or self._forecast is None:
+            return
+        if pend.outcome is None:
+            pend.outcome = self.jobs.ready(pend.key, pend.request)
+        early = started_now(pend, t)
+        if early is None or early.outcome is None:
+            return
+        pend.early_seq = self._seq  # tried against this frame's forecast: again at the next frame
+        if self._backup_passes(early, early.outcome, t, self._tau, self._s, self._forecast) is None:
+            early.checked_seq = self._seq
+            self._switch(early, t)
+
+    def _switch(self, pend: PendingSwitch, t: float) -> None:
         """The pending switch is due: take the backup, re-check it against the latest forecast, execute it
         or take the emergency path. Caller holds the lock."""
         self._pending = None
@@ -973,7 +945,9 @@ class Supervisor:
         tau_new = out.traj.t_start + max(self._tau - pend.tau_branch, 0.0)
         self.counters.count_choice(out.chosen, out.gain_s)
         pid = self._new_plan_id()
-        self._active = _Active(out.traj, out.profile, pid, "plan", True, self._goal, self._seq, out.arrival_s)
+        self._active = ActivePlan(
+            out.traj, out.profile, pid, "plan", True, self._goal, self._seq, out.arrival_s
+        )
         self._person_in_way = False
         self._tau = tau_new
         self._generation += 1
@@ -1020,10 +994,10 @@ class Supervisor:
         self._plan_ids += 1
         return self._plan_ids
 
-    def _hold(self, q: np.ndarray, t: float) -> _Active:
+    def _hold(self, q: np.ndarray, t: float) -> ActivePlan:
         traj = HoldTrajectory(q, t)
         prof = SpeedProfile.still(t, self.n_parts)
-        return _Active(traj, prof, self._new_plan_id(), "hold", False, None, -1)
+        return ActivePlan(traj, prof, self._new_plan_id(), "hold", False, None, -1)
 
     def _activate_hold(self, q: np.ndarray, t: float, *, arrived: bool = False) -> None:
         """Hold at ``q`` from ``t``: at a goal reached (``arrived``: the arm settles on it), or where a stop

@@ -245,6 +245,9 @@ class SupervisorConfig:
             forecast; it needs ``timing``), taken where it arrives ``creep_gain_s`` earlier; None: never.
         creep_after_s: How long the plan must creep before that, and how often it is weighed (s).
         creep_gain_s: How much earlier the backup must arrive (s).
+        start_when_ready: A robot at rest sets off as soon as its plan is ready and passes the latest
+            forecast as it would run from then (its path the same, its timing earlier), not at the start
+            deadline; False: at the start deadline.
     """
 
     method: Method = "proactive"
@@ -271,6 +274,7 @@ class SupervisorConfig:
     creep_scale: float | None = None
     creep_after_s: float = 0.5
     creep_gain_s: float = 0.2
+    start_when_ready: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in ("proactive", "reactive"):

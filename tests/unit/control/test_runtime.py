@@ -692,5 +692,14 @@ def test_a_robot_halted_on_its_way_stays_where_the_arm_is(stack: PlanningStack) 
     assert at_goal, "the trial should reach a goal"
     steps = itertools.pairwise(at_goal)
     assert all(b <= a + 1e-12 for (i, a), (j, b) in steps if j == i + 1), "the arm drifted"
-    assert min(err for _, err in at_goal) < 1e-4
+    # ... toward the goal itself, not to rest short of it: over every stay of four ticks or more (the robot
+    # sets off again as soon as its next plan is ready) the error falls geometrically, by a fifth at least
+    stays: list[list[float]] = []
+    for (i, _), (j, err) in zip([(-2, 0.0), *at_goal], at_goal, strict=False):
+        if j != i + 1:
+            stays.append([])
+        stays[-1].append(err)
+    long_stays = [s for s in stays if len(s) >= 4]
+    assert long_stays, "the trial should stay at a goal for a few ticks"
+    assert all(s[-1] <= 0.8 * s[0] for s in long_stays), "the arm did not settle toward the goal"
     assert res.safety is not None and res.safety.violations == 0
