@@ -878,8 +878,13 @@ class Supervisor:
     def _start_when_ready(self, pend: PendingSwitch, t: float) -> None:
         """Set a robot at rest moving at ``t`` rather than at the start deadline, once its plan is ready and
         passes the latest forecast as it would run from ``t`` (:func:`started_now`). Caller holds the lock."""
-        if not pend.from_rest or pend.early_seq == self._seq or self._forecast is None:
-            return
+        if (
+            not pend.from_rest
+            or pend.early_seq == self._seq
+            or self._forecast is None
+            or t < self._not_before
+        ):
+            return  # (never before the gripper's dwell has ended)
         if pend.outcome is None:
             pend.outcome = self.jobs.ready(pend.key, pend.request)
         early = started_now(pend, t)

@@ -698,6 +698,19 @@ def test_a_robot_at_rest_sets_off_as_soon_as_its_plan_is_ready() -> None:
     assert moved <= 0.01 + 3 * h.dt + 1e-9
 
 
+def test_a_robot_at_rest_never_sets_off_before_the_gripper_has_done() -> None:
+    """A plan ready early waits for the gripper's dwell (``not_before``): the robot sets off when the dwell
+    ends, not when the plan is ready, and the time until then is the gripper's."""
+    h = Harness(lambda t: person_at(FAR))
+    h.sup.set_goal("B", not_before=0.2)
+    h.run(3.0)
+    moved = next(t for t, q, _, _ in h.log if np.linalg.norm(q[:3]) > 1e-6)
+    assert 0.2 - 1e-9 <= moved <= 0.2 + 2 * h.dt + 1e-9
+    budget = h.sup.counters.budget_s
+    assert budget["gripper"] == pytest.approx(0.2, abs=h.dt + 1e-9)
+    assert budget["waiting_for_plan"] <= h.dt + 1e-9
+
+
 def test_a_robot_at_rest_keeps_the_start_deadline_where_its_plan_fails_the_forecast_sooner() -> None:
     """A plan brought forward is a plan at another time: checked against the latest forecast as it would run
     from then. Where that check fails the robot does not set off early; it keeps the switch at the start
