@@ -483,6 +483,13 @@ class Supervisor:
                 return self._done("skipped", t_v, sep, c0)
             if self._brake is not None:
                 return self._done("hold", t_v, sep, c0)
+            pend = self._pending
+            overdue = pend is not None and pend.plan_id == active.plan_id and pend.t_switch + D < T
+            if overdue and self._tau < pend.tau_branch - 1e-9 and self._s <= _UNDER_WAY_SCALE:
+                # the governor holds the robot still short of the branch point (a creeping one gets there
+                # late, as a switch may): it may never get there, and the backup would block every later
+                # one, so plan again from here
+                self._pending = None
             if moving_plan and (stop_distance or (t_v is not None and t_v <= T + D)):
                 pend = self._pending
                 if (

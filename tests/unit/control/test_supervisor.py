@@ -504,6 +504,26 @@ def test_late_predicted_violation_switches_to_the_backup_online() -> None:
     assert _monitor_violations(h) == 0
 
 
+def test_a_switch_the_robot_is_held_short_of_gives_way_to_a_new_backup(monkeypatch) -> None:
+    """An online replan branches from where the fastest ramp would bring the robot at ``T + D``; where the
+    governor holds the robot short of that branch point (someone near), the switch can never happen, and while
+    it is pending no frame plans another backup. Once it is overdue (``D`` past its time) with the robot held
+    still it gives way: the next frame decides afresh from where the robot is (a study trial stood 20 s on
+    such a switch). A creeping robot keeps its switch (it gets there late, as a switch may)."""
+    h = Harness(WALK_IN, forecast_fn=perfect_forecast(WALK_IN, 0.5))
+    h.sup.set_goal("B")
+    while h.t < 10.0 and not (h.sup._pending is not None and h.sup._pending.reason == "online_replan"):
+        h.run(h.t + h.dt)
+    stuck = h.sup._pending
+    assert stuck is not None, "the scenario should schedule an online replan"
+    monkeypatch.setattr(h.sup, "_governed_scale", lambda *args: 0.0)  # held: never reaches the branch point
+    h.run(stuck.t_switch + h.config.deadline_s + 3 * h.config.frame_period_s)
+    assert h.sup._pending is not stuck
+    assert h.sup.counters.online_replans == 0  # the held robot never took the switch
+    after = [d.action for d in h.decisions[-2:]]
+    assert set(after) & {"online_replan", "stop_replan", "hold"}, after
+
+
 def test_imminent_violation_stops_and_takes_the_emergency_plan() -> None:
     """The forecast suddenly says the person will be on the path a few cm ahead of the robot within D (the
     true person stays far away, so only the decision reacts, not the speed governor)."""
