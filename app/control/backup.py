@@ -118,6 +118,20 @@ class PlanOutcome:
     chosen: PlanChoice | None = None
     gain_s: float = 0.0
 
+    def shifted(self, dt_s: float) -> PlanOutcome | None:
+        """The same plan ``dt_s`` seconds later (trajectory, profile, plan and predicted arrival); None where
+        it is no plan or its trajectory cannot be shifted."""
+        shift = getattr(self.traj, "shifted", None)
+        if self.status != "ok" or shift is None or self.profile is None:
+            return None
+        return dataclasses.replace(
+            self,
+            traj=shift(dt_s),
+            profile=dataclasses.replace(self.profile, tau0=self.profile.tau0 + dt_s),
+            plan=self.plan.shifted(dt_s) if hasattr(self.plan, "shifted") else self.plan,
+            arrival_s=None if self.arrival_s is None else self.arrival_s + dt_s,
+        )
+
 
 class PlanJobs(Protocol):
     """Runs backup plans. ``submit`` at ``T_i``; ``take`` at or after ``T_i + D`` (never blocks long)."""

@@ -98,19 +98,10 @@ def started_now(pend: PendingSwitch, t: float) -> PendingSwitch | None:
     ready = pend.ready_at()
     if not pend.from_rest or ready is None or t < ready - 1e-9 or t >= pend.t_switch - 1e-9:
         return None
-    out = pend.outcome
-    assert out is not None and out.traj is not None
-    shift = getattr(out.traj, "shifted", None)
-    if shift is None or out.profile is None:
+    assert pend.outcome is not None and pend.outcome.traj is not None
+    moved = pend.outcome.shifted(float(t - pend.outcome.traj.t_start))
+    if moved is None:
         return None
-    dt = float(t - out.traj.t_start)
-    moved = dataclasses.replace(
-        out,
-        traj=shift(dt),
-        profile=dataclasses.replace(out.profile, tau0=out.profile.tau0 + dt),
-        plan=out.plan.shifted(dt) if hasattr(out.plan, "shifted") else out.plan,
-        arrival_s=None if out.arrival_s is None else out.arrival_s + dt,
-    )
     return dataclasses.replace(pend, t_switch=float(t), tau_branch=float(t), outcome=moved, checked_seq=-1)
 
 

@@ -695,8 +695,8 @@ def test_a_robot_halted_on_its_way_stays_where_the_arm_is(stack: PlanningStack) 
     # ... toward the goal itself, not to rest short of it: over every stay of four ticks or more (the robot
     # sets off again as soon as its next plan is ready) the error falls geometrically, by a fifth at least
     stays: list[list[float]] = []
-    for (i, _), (j, err) in zip([(-2, 0.0), *at_goal], at_goal, strict=False):
-        if j != i + 1:
+    for k, (i, err) in enumerate(at_goal):
+        if k == 0 or i != at_goal[k - 1][0] + 1:
             stays.append([])
         stays[-1].append(err)
     long_stays = [s for s in stays if len(s) >= 4]
