@@ -528,6 +528,18 @@ class Settings(BaseSettings):
         "the person in the method's forecast (app.control.task; tuning seeds 1000-1009 x 300 s, example "
         "cell: 47 and 49 tasks for proactive and reactive either way)",
     )
+    reroute_after_s: float | None = Field(
+        None,
+        gt=0.0,
+        le=60.0,
+        description="a robot that has stood still this long (s) with a block for its drop station, held "
+        "there by the person, takes the block to another station of the round instead, the one the "
+        "method's forecast leaves freest, by way of the conveyor's approach pose (the station it leaves "
+        "goes back into the round; app.control.engine, both methods alike); empty (the default): it waits "
+        "for its own station however long it takes (tuning seeds 1000-1009 x 300 s, shipped cell, "
+        "proactive / reactive tasks per trial: 3 s 20.4 / 20.4, 8 s 21.2 / 21.4, empty 20.9 / 21.2: no gain "
+        "beyond the noise of measured compute times, so off)",
+    )
     fetch_reaction_s: float = Field(
         0.6,
         ge=0.0,

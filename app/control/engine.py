@@ -641,6 +641,8 @@ class TrialEngine:
                 if self.anticipation is not None:
                     self.anticipation.expect(done.placed, done.leave_at)
             self.supervisor.set_goal(done.next_leg.goal, not_before=done.leave_at)
+        elif self.settings.reroute_after_s is not None:
+            self._maybe_reroute(t, self.settings.reroute_after_s)
         while self._releases and self._releases[0][0] <= t:
             _, station = self._releases.pop(0)
             self.completed_tasks += 1
@@ -648,6 +650,18 @@ class TrialEngine:
             self.source.notify_block_placed(station, t)
         if self.elapsed(t) >= self.duration_s - 1e-9:
             self.finish(t, "completed", "duration")
+
+    def _maybe_reroute(self, t: float, after_s: float) -> None:
+        """A robot held still ``after_s`` on its way to a drop station that the person blocks takes its
+        block to the freest other station of the round (``Settings.reroute_after_s``)."""
+        if self.supervisor.still_for(t) < after_s:
+            return
+        others = self.task.drop_alternatives()
+        if not others:
+            return
+        station = self._choose_station(others)
+        if self.supervisor.reroute(self.task.reroute_goal(station), t):
+            self.task.reroute(station)
 
     def _robot_lost(self, t: float, message: str) -> None:
         log.error("robot connection lost: %s; the trial is aborted", message)

@@ -23,6 +23,7 @@ EVENT_KINDS: tuple[str, ...] = (
     "stop_replan",  # [violation_t, reason, scale (the path scale at the decision; 0: held still)]
     "deadline_miss",  # [elapsed_s, deadline_s]
     "plan_failed",  # [reason]
+    "rerouted",  # [goal]: the block in the gripper goes to another drop station (the person blocks its own)
     "stale_stream",  # [age_s]
     "stream_resumed",  # []
     "estop",  # [source]

@@ -132,3 +132,39 @@ class Braking:
     emergency: ActivePlan | None = None
     emergency_ready_t: float = math.inf
     emergency_tried: bool = False
+
+
+def budget_part(
+    active: ActivePlan,
+    tau: float,
+    s: float,
+    *,
+    held: bool,
+    braking: bool,
+    goal: Goal | None,
+    gripper: bool,
+    stopped: bool,
+    person_in_way: bool,
+    under_way_scale: float = 1e-3,
+) -> str:
+    """The time budget's part (:data:`app.control.supervisor_types.TIME_BUDGET`) of a servo tick: the plan
+    in execution ``active`` at path time ``tau`` and scale ``s``; ``held``: an E-stop, a fault or a stale
+    stream holds the robot; ``braking``: a stop's brake is on; ``gripper``: the gripper's dwell; ``stopped``:
+    the supervisor's state after a stop; ``person_in_way``: the last plan from rest failed for the person."""
+    if held:
+        return "stopped"
+    if braking:
+        return "braking" if s > under_way_scale else "stopped"
+    if active.kind != "hold" and active.under_way(tau):
+        if s <= under_way_scale:
+            return "stopped"  # held at zero speed by the governor
+        if float(active.profile.speed_at(tau).max()) <= 1e-6:
+            return "planned_wait"
+        return "moving_full" if s >= 1.0 - 1e-6 else "moving_scaled"
+    if goal is None:
+        return "idle"
+    if gripper:
+        return "gripper"
+    if stopped:
+        return "stopped"
+    return "waiting_for_person" if person_in_way else "waiting_for_plan"

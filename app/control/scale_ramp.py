@@ -81,3 +81,28 @@ class CreepWatch:
             return False
         self._since = t
         return True
+
+
+class StillWatch:
+    """Since when a robot with somewhere to go has (nearly) stood still: crept along its plans at a mean path
+    scale of at most ``scale``, less ``slack_s`` of path time in all (a robot the governor holds at the edge
+    of ``S_p`` creeps on by a few per cent now and then)."""
+
+    def __init__(self, t0: float, *, scale: float = 0.05, slack_s: float = 0.05) -> None:
+        self.scale, self.slack_s = float(scale), float(slack_s)
+        self.since = float(t0)
+        self._crept = 0.0  # path time covered since then (s)
+
+    def tick(self, t: float, s: float, dt: float, *, waiting: bool) -> None:
+        """A servo tick to ``t`` at path scale ``s`` over ``dt``; ``waiting``: the robot has nowhere to go
+        yet (no goal, or the gripper's dwell), which is not standing still."""
+        self._crept += s * dt
+        if waiting or self._crept > self.scale * (t - self.since) + self.slack_s:
+            self.reset(t)
+
+    def reset(self, t: float) -> None:
+        self.since, self._crept = float(t), 0.0
+
+    def still_for(self, t: float) -> float:
+        """How long (s) the robot has stood still at ``t``."""
+        return max(float(t) - self.since, 0.0)

@@ -59,8 +59,8 @@ from typing import Any
 import numpy as np
 
 from app.control.backup import BackupRequest, PlanJobs, PlanOutcome
-from app.control.plan_state import ActivePlan, Braking, PendingSwitch, SwitchReason, started_now
-from app.control.scale_ramp import CreepWatch, jump_scale, ramp_distance, up_rate
+from app.control.plan_state import ActivePlan, Braking, PendingSwitch, SwitchReason, budget_part, started_now
+from app.control.scale_ramp import CreepWatch, StillWatch, jump_scale, ramp_distance, up_rate
 from app.control.supervisor_types import (
     FrameDecision,
     SupervisorConfig,
@@ -189,6 +189,7 @@ class Supervisor:
         self._brake: Braking | None = None
         self._goal: Goal | None = None
         self._not_before = -math.inf
+        self._still = StillWatch(t0)  # since when the robot has (nearly) stood still with somewhere to go
         self._arrived: Goal | None = None
         self._reached: Goal | None = None  # the goal last reached (kept when the next is set)
         self._forecast: HumanForecast | None = None
@@ -233,6 +234,30 @@ class Supervisor:
     @property
     def goal(self) -> Goal | None:
         return self._goal
+
+    def still_for(self, t: float) -> float:
+        """How long (s) the robot has stood still at ``t`` with a goal it may leave for (:class:`StillWatch`:
+        crept along its plans at a twentieth of their speed or less)."""
+        return self._still.still_for(t)
+
+    def reroute(self, goal: Goal, t: float) -> bool:
+        """Go to ``goal`` instead of the goal in hand, from where the robot stands still (held there by the
+        governor, or at rest; one that creeps stops first, a stop & replan): False, and nothing changed, where
+        the robot is under way, brakes or is stopped."""
+        with self._lock:
+            if self._estop or self._fault or self._brake is not None or self._goal is None:
+                return False
+            if self._s > self._still.scale or self._still.still_for(t) <= 0.0:
+                return False
+            self._goal, self._arrived, self._person_in_way = goal, None, False
+            self._pending, self._retry_after = None, -math.inf
+            self._still.reset(t)
+            self._emit(t, "rerouted", {"goal": goal})
+            if self._s > _UNDER_WAY_SCALE or float(self._v_inst.max()) > 1e-6:
+                self._emergency_path(t, reason="rerouted", violation_t=None)  # a creeping robot stops first
+            else:  # (a new generation: the jobs in flight are void)
+                self._activate_hold(self._q_cmd.copy(), float(t))
+            return True
 
     def take_arrival(self) -> Goal | None:
         """The goal reached since the last call (once), else None."""
@@ -769,6 +794,7 @@ class Supervisor:
                 qd = np.zeros(6)
             self._travel += self._v_cmd * dt
             self._q_cmd = q
+            self._still.tick(t, self._s, dt, waiting=self._goal is None or t < self._not_before)
             self._account(dt)
             # at rest anywhere but at a goal reached: the arm is to stay where it is
             halted = not np.any(qd) and (self._hold_halted or active.kind != "hold")
@@ -1050,25 +1076,12 @@ class Supervisor:
         c.add_budget(part, "none" if goal is None else str(goal), dt, self._s)
 
     def _budget_part(self) -> str:
-        """The :data:`TIME_BUDGET` part of the present tick. Caller holds the lock."""
-        active = self._active
-        if self._estop or self._fault or self._stale:
-            return "stopped"
-        if self._brake is not None:
-            return "braking" if self._s > _UNDER_WAY_SCALE else "stopped"
-        if active.kind != "hold" and active.under_way(self._tau):
-            if self._s <= _UNDER_WAY_SCALE:
-                return "stopped"  # held at zero speed by the governor
-            if float(active.profile.speed_at(self._tau).max()) <= 1e-6:
-                return "planned_wait"
-            return "moving_full" if self._s >= 1.0 - 1e-6 else "moving_scaled"
-        if self._goal is None:
-            return "idle"
-        if self._t < self._not_before:
-            return "gripper"
-        if self._state == "stopped":
-            return "stopped"
-        return "waiting_for_person" if self._person_in_way else "waiting_for_plan"
+        """The :data:`TIME_BUDGET` part of the present tick (:func:`budget_part`). Caller holds the lock."""
+        return budget_part(
+            self._active, self._tau, self._s, held=self._estop or self._fault or self._stale,
+            braking=self._brake is not None, goal=self._goal, gripper=self._t < self._not_before,
+            stopped=self._state == "stopped", person_in_way=self._person_in_way,
+        )  # fmt: skip
 
     def _emit(self, t: float, kind: str, payload: dict[str, Any]) -> None:
         if self.on_event is not None:

@@ -78,6 +78,7 @@ class AssemblySequence:
         self._rng = np.random.default_rng(seed)
         self._queue: list[str] = []
         self._last: str | None = None
+        self._before: str | None = None  # the station served before the last one
 
     def next(self) -> str:
         """The next drop station in the round's seeded order."""
@@ -103,14 +104,27 @@ class AssemblySequence:
         if pick not in allowed:
             raise ValueError(f"the station chooser picked {pick!r}, not one of {allowed}")
         self._queue.remove(pick)
-        self._last = pick
+        self._before, self._last = self._last, pick
         return pick
+
+    def others(self, current: str) -> list[str]:
+        """The stations the round still allows instead of ``current``, the one just chosen (not the station
+        served before it, nor ``current``; none where ``current`` was the last of its round)."""
+        return [s for s in self._queue if s not in (current, self._before)]
+
+    def swap(self, current: str, other: str) -> None:
+        """Serve ``other`` (one of :meth:`others`) instead of ``current``, which goes back into the round."""
+        if other not in self.others(current):
+            raise ValueError(f"{other!r} is not a station the round allows instead of {current!r}")
+        self._queue.remove(other)
+        self._queue.insert(0, current)
+        self._last = other
 
     def peek(self, n: int) -> list[str]:
         """The next ``n`` stations without consuming them (draws rounds as needed)."""
-        state = (self._rng.bit_generator.state, list(self._queue), self._last)
+        state = (self._rng.bit_generator.state, list(self._queue), self._last, self._before)
         out = [self.next() for _ in range(n)]
-        self._rng.bit_generator.state, self._queue, self._last = state[0], state[1], state[2]
+        self._rng.bit_generator.state, self._queue, self._last, self._before = state
         return out
 
 
@@ -203,6 +217,36 @@ class TaskExecutive:
             else:
                 self._legs = self._drop_legs(self.sequence.choose(self.chooser))
         return self._legs.pop(0)
+
+    def drop_alternatives(self) -> list[str]:
+        """The drop stations the block in the gripper could go to instead of its own, before it is placed
+        (none on any other leg)."""
+        leg = self.current
+        if not self._carrying or leg.station == self.pickup:
+            return []
+        return self.sequence.others(leg.station)
+
+    def reroute_goal(self, station: str) -> str:
+        """The goal :meth:`reroute` to ``station`` sets off for: the pickup's approach pose (away from the
+        person, where the robot waits for its new station), or the station's own where it is there already."""
+        back = self._approach(self.pickup)
+        if back is not None and self.current.goal != back:
+            return back
+        first = self._drop_legs(station)[0]
+        return first.goal
+
+    def reroute(self, station: str) -> TaskLeg:
+        """Take the block in the gripper to ``station`` (one of :meth:`drop_alternatives`) instead; its
+        own station goes back into the round. Returns the new current leg."""
+        if station not in self.drop_alternatives():
+            raise ValueError(f"the block cannot go to {station!r} instead of {self.current.station!r}")
+        self.sequence.swap(self.current.station, station)
+        goal = self.reroute_goal(station)
+        self._legs = self._drop_legs(station)
+        if goal != self._legs[0].goal:  # away from the person first
+            self._legs.insert(0, TaskLeg(goal, "move", station, 0.0))
+        self._current = self._legs.pop(0)
+        return self._current
 
     def upcoming_drops(self, n: int) -> list[str]:
         """The current task's drop station (if one is chosen) followed by the next ones (with a chooser,

@@ -1241,3 +1241,36 @@ def test_a_plan_setting_off_is_rechecked_at_the_timing_it_was_verified_at(govern
         assert not rejected and moving and abs(moving[0][1]) < 1e-9  # straight at once
     else:
         assert rejected  # timed at half speed, the straight plan meets the crossing person
+
+
+def test_a_robot_held_still_by_a_person_may_take_another_goal_and_one_under_way_may_not() -> None:
+    """:meth:`Supervisor.still_for` counts how long the person has held the robot still with a goal; a
+    held robot takes another goal from where it stands (the plans for the old one are void) and gets there;
+    a robot under way keeps its goal (:meth:`Supervisor.reroute` refuses and changes nothing)."""
+    goals = {"B": np.array([2.0, 0.0, 0.0]), "C": np.array([0.0, -2.0, 0.0])}
+    free = Harness(lambda t: person_at(FAR), goals=goals)
+    free.sup.set_goal("B")
+    free.run(0.5)
+    assert free.log[-1][2] > 0.5 and free.sup.still_for(free.t) < 0.05  # under way (since the last tick)
+    assert not free.sup.reroute("C", free.t)
+    assert free.sup.goal == "B"
+    assert "rerouted" not in free.kinds()
+
+    # a person standing on the way to B, whom the forecast misses: the governor holds the robot short of them
+    h = Harness(lambda t: person_at([1.0, 0.0, 0.0]), goals=goals,
+                forecast_fn=lambda t: HumanForecast.hold(HumanFrame(t, person_at(FAR))))  # fmt: skip
+    h.sup.set_goal("B")
+    h.run(3.0)
+    assert h.sup.take_arrival() is None
+    assert h.sup.still_for(h.t) > 1.0
+    x_held = h.log[-1][1][0]
+    assert h.sup.reroute("C", h.t)
+    assert h.sup.goal == "C" and h.sup.still_for(h.t) == 0.0
+    assert [p for _, k, p in h.events if k == "rerouted"] == [{"goal": "C"}]
+    # (it crept on: it stops first, a stop & replan, and sets off for C from rest)
+    assert [p["reason"] for _, k, p in h.events if k == "stop_replan"] == ["rerouted"]
+    h.run(h.t + 8.0)
+    assert h.sup.take_arrival() == "C"
+    np.testing.assert_allclose(h.log[-1][1][:3], goals["C"], atol=1e-9)
+    assert h.log[-1][1][0] == pytest.approx(0.0) and x_held > 0.0
+    assert _monitor_violations(h) == 0

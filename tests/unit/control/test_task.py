@@ -109,3 +109,46 @@ def test_without_a_chooser_the_drops_follow_the_seeded_sequence() -> None:
         if done.placed:
             placed.append(done.placed)
     assert placed == [expected.next() for _ in range(8)]
+
+
+def test_a_block_held_up_on_its_way_goes_to_another_station_of_the_round_by_the_conveyor() -> None:
+    """A block whose drop station the person blocks goes to another station the round still allows (not the
+    one just served): the robot backs off to the conveyor's approach pose first, its own station goes back
+    into the round, and every round still serves every station once."""
+    cell = load_workcell()
+    ex = TaskExecutive(cell, seed=3)
+    assert ex.drop_alternatives() == []  # on the way to the conveyor: nothing to reroute
+    placed = []
+    while ex.current.goal != "pickup_approach" or not placed:  # the first task, as it comes
+        done = ex.arrived(0.0)
+        if done.placed:
+            placed.append(done.placed)
+    ex.arrived(0.0)  # at the conveyor's approach pose
+    ex.arrived(0.0)  # picked
+    ex.arrived(0.0)  # back at the approach pose, the block for its station
+    own = ex.current.station
+    assert ex.current.goal == f"{own}_approach"
+    others = ex.drop_alternatives()
+    assert own not in others and placed[0] not in others and len(others) == 2
+    with pytest.raises(ValueError, match="cannot go"):
+        ex.reroute(own)
+    assert ex.reroute_goal(others[0]) == "pickup_approach"
+    leg = ex.reroute(others[0])
+    assert (leg.goal, leg.action, leg.station) == ("pickup_approach", "move", others[0])
+    assert ex.drop_alternatives() == [s for s in (own, others[1]) if s != placed[0]]  # own is back
+    goals = []
+    while len(placed) < 8:
+        goals.append(ex.current.goal)
+        done = ex.arrived(0.0)
+        if done.placed:
+            placed.append(done.placed)
+    assert goals[:4] == ["pickup_approach", f"{others[0]}_approach", others[0], f"{others[0]}_approach"]
+    assert placed[1] == others[0]
+    for k in (0, 4):
+        assert sorted(placed[k : k + 4]) == sorted(s.name for s in cell.drop_stations)
+    assert all(x != y for x, y in itertools.pairwise(placed))
+
+    seq = AssemblySequence(["A", "B", "C"], seed=1)
+    first = seq.next()
+    with pytest.raises(ValueError, match="not a station the round allows"):
+        seq.swap(first, first)
