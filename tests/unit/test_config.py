@@ -118,9 +118,11 @@ def test_the_cell_sets_the_planners_joint_limits_within_the_arms(tmp_path: Path)
     cell = load_workcell()
     lo, hi = cell.robot.joint_limits()
     assert hi[4] == 0.0 and lo[4] == pytest.approx(-np.pi, abs=1e-4)  # the shipped cell: wrist 2 in [-pi, 0]
+    assert lo[2] == 0.0 and hi[2] == pytest.approx(np.pi, abs=1e-4)  # ... and the elbow in [0, pi]
     kin = UR5e.from_workcell(cell)
     q, valid = kin.ik_down(np.array([[0.6, 0.11, 0.15]]), yaw=0.0)
     assert valid.any() and np.all(q[valid][:, 4] <= 0.0)  # every usable branch keeps wrist 2 on its side
+    assert np.all(q[valid][:, 2] >= 0.0)  # and the elbow on home_q's
     with pytest.raises(WorkCellError, match=r"home_q\[4\] = -1.5708 lies outside"):
         _shipped_with(tmp_path, "6.2832, 0.0, 6.2832]", "6.2832, -2.0, 6.2832]")
     with pytest.raises(WorkCellError, match="robot joint 1: limits"):
