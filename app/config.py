@@ -536,7 +536,8 @@ class Settings(BaseSettings):
         "there by the person, takes the block to another station of the round instead, the one the "
         "method's forecast leaves freest, by way of the conveyor's approach pose (the station it leaves "
         "goes back into the round; app.control.engine, both methods alike); empty (the default): it waits "
-        "for its own station however long it takes (tuning seeds 1000-1009 x 300 s, shipped cell, "
+        "for its own station however long it takes (tuning seeds 1000-1009 x 300 s, shipped cell with the "
+        "elbow then free, "
         "proactive / reactive tasks per trial: 3 s 20.4 / 20.4, 8 s 21.2 / 21.4, empty 20.9 / 21.2: no gain "
         "beyond the noise of measured compute times, so off)",
     )

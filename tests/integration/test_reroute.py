@@ -1,25 +1,43 @@
 """A robot that the person holds still on its way to a drop station takes the block elsewhere
 (``Settings.reroute_after_s``), and without the setting it waits.
 
-End to end in the shipped cell: a study participant (seed 7's second) who stands idle beside station C
-while the robot brings its first block there holds the robot still within a head's ``S_p``. With
-``reroute_after_s`` the robot gives up C for another station of the round after that long, by way of the
-conveyor's approach pose; without it the robot keeps waiting for C. The judge stays clean either way.
+End to end in the shipped cell with the elbow left free (both of its branches: the shipped cell keeps it
+on home's side, and there this trial does not stall): a study participant (seed 7's second) who stands idle
+beside station C while the robot brings its first block there holds the robot still within the ``S_p`` of
+their neck. With ``reroute_after_s`` the robot gives up C for another station of the round after that long,
+by way of the conveyor's approach pose; without it the robot keeps waiting for C. The judge stays clean
+either way.
 """
 
 from __future__ import annotations
 
-from app.config import Settings
+from pathlib import Path
+
+import pytest
+
+from app.config import Settings, WorkCell, load_workcell
 from app.control.headless import run_headless_trial
 from app.study.runner import participant_seeds
 
 DURATION_S = 30.0
+SHIPPED = Path(__file__).resolve().parents[2] / "app/assets/workcell.toml"
 
 
-def _trial(**settings: object) -> object:
+@pytest.fixture(scope="module")
+def elbow_free(tmp_path_factory: pytest.TempPathFactory) -> WorkCell:
+    text = SHIPPED.read_text()
+    limits = "q_min = [-6.2832, -6.2832, 0.0, -6.2832, -3.1416, -6.2832]"
+    assert limits in text
+    path = tmp_path_factory.mktemp("cell") / "workcell.toml"
+    path.write_text(text.replace(limits, limits.replace(" 0.0,", " -3.1416,")))
+    return load_workcell(path)
+
+
+def _trial(cell: WorkCell, **settings: object) -> object:
     p_seed, t_seed = participant_seeds(7, 10)[1]
     return run_headless_trial(
         settings=Settings(**settings),  # type: ignore[arg-type]
+        cell=cell,
         method="proactive",
         duration_s=DURATION_S,
         seed=t_seed,
@@ -28,12 +46,12 @@ def _trial(**settings: object) -> object:
     )
 
 
-def test_a_robot_held_still_on_its_way_to_a_station_takes_the_block_to_another() -> None:
-    waits = _trial()
+def test_a_robot_held_still_on_its_way_to_a_station_takes_the_block_to_another(elbow_free: WorkCell) -> None:
+    waits = _trial(elbow_free)
     assert not [e for e in waits.events if e.kind == "rerouted"]
     assert waits.metrics.completed_tasks == 0  # held beside the person, on its way to C, all along
 
-    res = _trial(reroute_after_s=3.0)
+    res = _trial(elbow_free, reroute_after_s=3.0)
     rerouted = [e for e in res.events if e.kind == "rerouted"]
     assert rerouted and rerouted[0].payload == {"goal": "pickup_approach"}
     assert rerouted[0].t > 3.0
