@@ -145,12 +145,13 @@ def budget_part(
     gripper: bool,
     stopped: bool,
     person_in_way: bool,
-    under_way_scale: float = 1e-3,
+    under_way_scale: float,
 ) -> str:
     """The time budget's part (:data:`app.control.supervisor_types.TIME_BUDGET`) of a servo tick: the plan
     in execution ``active`` at path time ``tau`` and scale ``s``; ``held``: an E-stop, a fault or a stale
     stream holds the robot; ``braking``: a stop's brake is on; ``gripper``: the gripper's dwell; ``stopped``:
-    the supervisor's state after a stop; ``person_in_way``: the last plan from rest failed for the person."""
+    the supervisor's state after a stop; ``person_in_way``: the last plan from rest failed for the person;
+    ``under_way_scale``: the path scale above which the robot counts as under way."""
     if held:
         return "stopped"
     if braking:

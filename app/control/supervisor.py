@@ -1081,6 +1081,7 @@ class Supervisor:
             self._active, self._tau, self._s, held=self._estop or self._fault or self._stale,
             braking=self._brake is not None, goal=self._goal, gripper=self._t < self._not_before,
             stopped=self._state == "stopped", person_in_way=self._person_in_way,
+            under_way_scale=_UNDER_WAY_SCALE,
         )  # fmt: skip
 
     def _emit(self, t: float, kind: str, payload: dict[str, Any]) -> None:
