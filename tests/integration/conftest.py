@@ -5,6 +5,8 @@ temporary data directory (as the ``postgres`` user when the tests run as root), 
 free port, and stops it at the end. It skips with the reason when the binaries are missing (install the
 Debian package ``postgresql``: ``scripts/system-deps.sh`` does) or the server cannot start.
 ``db_url`` is parametrised over ``sqlite`` and ``postgresql``: a fresh, empty database per test.
+``elbow_free`` turns a work-cell file into the same cell with the elbow free (both of its IK branches), for
+scenes made in the cells before they kept the elbow on home's side.
 """
 
 from __future__ import annotations
@@ -17,13 +19,32 @@ import socket
 import subprocess
 import tempfile
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
+from app.config import WorkCell, load_workcell
+
 PG_START_TIMEOUT_S = 60
+#: The cells' elbow limit (on home's side) and the elbow free, as their files write them.
+ELBOW_KEPT = "q_min = [-6.2832, -6.2832, 0.0, -6.2832, -3.1416, -6.2832]"
+ELBOW_FREE = "q_min = [-6.2832, -6.2832, -3.1416, -6.2832, -3.1416, -6.2832]"
+
+
+@pytest.fixture(scope="session")
+def elbow_free(tmp_path_factory: pytest.TempPathFactory) -> Callable[[Path], WorkCell]:
+    """``elbow_free(path)``: the work cell of ``path`` with the elbow free."""
+
+    def make(path: Path) -> WorkCell:
+        text = path.read_text()
+        assert ELBOW_KEPT in text, f"{path} no longer keeps the elbow as {ELBOW_KEPT!r}"
+        out = tmp_path_factory.mktemp("cell") / "workcell.toml"
+        out.write_text(text.replace(ELBOW_KEPT, ELBOW_FREE))
+        return load_workcell(out)
+
+    return make
 
 
 @dataclass(frozen=True)

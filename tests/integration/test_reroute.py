@@ -11,11 +11,12 @@ either way.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-from app.config import Settings, WorkCell, load_workcell
+from app.config import Settings, WorkCell
 from app.control.headless import run_headless_trial
 from app.study.runner import participant_seeds
 
@@ -24,13 +25,8 @@ SHIPPED = Path(__file__).resolve().parents[2] / "app/assets/workcell.toml"
 
 
 @pytest.fixture(scope="module")
-def elbow_free(tmp_path_factory: pytest.TempPathFactory) -> WorkCell:
-    text = SHIPPED.read_text()
-    limits = "q_min = [-6.2832, -6.2832, 0.0, -6.2832, -3.1416, -6.2832]"
-    assert limits in text
-    path = tmp_path_factory.mktemp("cell") / "workcell.toml"
-    path.write_text(text.replace(limits, limits.replace(" 0.0,", " -3.1416,")))
-    return load_workcell(path)
+def cell(elbow_free: Callable[[Path], WorkCell]) -> WorkCell:
+    return elbow_free(SHIPPED)
 
 
 def _trial(cell: WorkCell, **settings: object) -> object:
@@ -46,12 +42,12 @@ def _trial(cell: WorkCell, **settings: object) -> object:
     )
 
 
-def test_a_robot_held_still_on_its_way_to_a_station_takes_the_block_to_another(elbow_free: WorkCell) -> None:
-    waits = _trial(elbow_free)
+def test_a_robot_held_still_on_its_way_to_a_station_takes_the_block_to_another(cell: WorkCell) -> None:
+    waits = _trial(cell)
     assert not [e for e in waits.events if e.kind == "rerouted"]
     assert waits.metrics.completed_tasks == 0  # held beside the person, on its way to C, all along
 
-    res = _trial(elbow_free, reroute_after_s=3.0)
+    res = _trial(cell, reroute_after_s=3.0)
     rerouted = [e for e in res.events if e.kind == "rerouted"]
     assert rerouted and rerouted[0].payload == {"goal": "pickup_approach"}
     assert rerouted[0].t > 3.0
