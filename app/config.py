@@ -524,9 +524,11 @@ class Settings(BaseSettings):
     station_choice: Literal["sequence", "forecast"] = Field(
         "sequence",
         description="which drop station of the round the robot serves next: 'sequence', the round's seeded "
-        "order; 'forecast', chosen as the robot leaves the conveyor with the block, the one farthest from "
-        "the person in the method's forecast (app.control.task; tuning seeds 1000-1009 x 300 s, example "
-        "cell: 47 and 49 tasks for proactive and reactive either way)",
+        "order; 'forecast', chosen as the robot leaves the conveyor with the block, the one whose poses "
+        "keep the arm farthest from the person's capsules that admit no contact (head and neck; every "
+        "capsule with SSM alone) in the method's forecast (app.control.engine; tuning seeds 1000-1009 x "
+        "300 s, shipped cell, proactive / reactive tasks per trial: 'forecast' 21.1 / 21.9, 'sequence' "
+        "21.1 / 20.9, the earlier any-joint chooser 20.8 / 21.2: no gain for proactive, so off)",
     )
     reroute_after_s: float | None = Field(
         None,

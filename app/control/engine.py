@@ -44,7 +44,7 @@ from app.control.stack import CellGeometry, PlanningStack, pfl_model
 from app.control.supervisor import FrameDecision, Supervisor, SupervisorConfig
 from app.control.supervisor_types import TickCommand
 from app.control.task import TaskExecutive
-from app.planning.collision import reach_fingertips
+from app.planning.collision import reach_fingertips, segment_distance
 from app.prediction.forecast import HumanForecast, Predictor
 from app.prediction.skeleton import JOINT_INDEX, HumanFrame
 from app.safety.governor import GovernorModel, SeparationModel, SpeedScaleLaw
@@ -299,11 +299,14 @@ class TrialEngine:
             goals=stack.goal_names(),
             chooser=self._choose_station if settings.station_choice == "forecast" else None,
         )
-        # where the robot releases each block (world, m), and its approach pose above it
+        # where the robot releases each block (world, m)
         self._stations = {st.name: np.asarray(st.xyz, dtype=np.float64) for st in stack.cell.drop_stations}
-        self._approach = {
-            name: np.stack([np.zeros(3), stack.cell.approach_offset(name)]) for name in self._stations
-        }
+        # the person's capsules that admit no contact (the station choice keeps the robot away from them)
+        self._no_contact = (
+            np.asarray(self.pfl.transient_mps, dtype=np.float64) <= 0.0
+            if self.pfl.enabled
+            else np.ones(len(self.pfl.regions), dtype=bool)
+        )
         self.anticipation: FetchAnticipation | None = None
         if method == "proactive" and settings.anticipate_fetch:
             self.anticipation = FetchAnticipation(
@@ -361,18 +364,35 @@ class TrialEngine:
         """The drop station for the block in the gripper (``Settings.station_choice="forecast"``): of the
         stations the round allows, the one farthest from the person over the method's latest forecast (the
         proactive one, or the reactive method's held pose): the least, over the forecast's steps, of the
-        distance from the station and its approach pose to the nearest joint less the step's margin. Ties
-        (and no forecast yet) keep the round's order."""
+        surface distance from the robot's capsules at the station and at its approach pose to the person's
+        capsules that admit no contact (skull, face and neck with power and force limiting, where the speed
+        governor holds a part at ``S_p`` whatever its speed; every capsule with SSM alone), less the step's
+        margin. Ties (and no forecast yet) keep the round's order."""
         forecast = self.last_forecast
         if forecast is None:
             return allowed[0]
-        joints = np.asarray(forecast.joints, dtype=np.float64)  # (K, J, 3)
+        collision = self.stack.collision
+        a, b, r = collision.human_capsules(np.asarray(forecast.joints, dtype=np.float64))  # (K, B*M, 3)
+        hard = np.tile(self._no_contact, a.shape[1] // self._no_contact.shape[0])
+        a, b, r = a[:, hard], b[:, hard], r[hard]
         margins = np.asarray(forecast.margins, dtype=np.float64)  # (K,)
+        roadmap = self.stack.roadmap
+
+        q_now = np.asarray(self.last_state.q, dtype=np.float64)
+
+        def pose(node: int) -> np.ndarray:  # the node's usable IK branch nearest the arm now
+            branches = np.asarray(roadmap.ik[node], dtype=np.float64)[np.asarray(roadmap.valid[node])]
+            wrapped = np.angle(np.exp(1j * (branches - q_now)))  # joint differences in [-pi, pi]
+            return branches[int(np.argmin(np.abs(wrapped).sum(axis=1)))]
 
         def clearance(name: str) -> float:
-            poses = self._stations[name] + self._approach[name]  # (2, 3): the station and its approach pose
-            d = np.linalg.norm(joints[:, :, None, :] - poses[None, None], axis=-1)  # (K, J, 2)
-            return float((d.min(axis=(1, 2)) - margins).min())
+            nodes = (roadmap.station_nodes[name], roadmap.station_nodes[f"{name}_approach"])
+            ra, rb, rr = collision.robot_capsules(np.stack([pose(n) for n in nodes]))  # (2, L, 3)
+            d = segment_distance(
+                ra[None, :, :, None], rb[None, :, :, None], a[:, None, None], b[:, None, None]
+            )  # (K, 2, L, Mh)
+            d = d - rr[None, None, :, None] - r[None, None, None, :]
+            return float((d.min(axis=(1, 2, 3)) - margins).min())
 
         return max(allowed, key=clearance)
 

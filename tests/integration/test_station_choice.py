@@ -44,3 +44,33 @@ def test_the_station_farthest_from_the_forecast_person_is_chosen() -> None:
     assert engine._choose_station(names) not in (names[0], far)
     engine.last_forecast = None
     assert engine._choose_station(names[::-1]) == names[-1]  # no forecast yet: the round's order
+
+
+def _person(engine: Any, *, head_at: np.ndarray, hands_at: np.ndarray) -> HumanForecast:
+    """A forecast person held still: head, neck and chest at ``head_at``, arms and hands at ``hands_at``,
+    the rest of the body far from the table."""
+    from app.prediction.skeleton import JOINT_INDEX
+
+    frame = engine.last_frame
+    joints = np.broadcast_to(np.array([2.5, 0.0, 0.5]), frame.joints.shape).copy()
+    for name in ("chest", "neck", "head"):
+        joints[JOINT_INDEX[name]] = head_at
+    for name in ("l_elbow", "l_wrist", "l_hand", "r_elbow", "r_wrist", "r_hand"):
+        joints[JOINT_INDEX[name]] = hands_at
+    return HumanForecast.hold(HumanFrame(frame.t, joints), margin_m=0.02)
+
+
+def test_with_power_and_force_limiting_the_choice_keeps_away_from_the_head_not_the_hands() -> None:
+    """The regions that admit no contact hold the robot at S_p: the chosen station is the one farthest
+    from the head and neck, even where the hands are (a contact there is allowed at the region's speed);
+    with SSM alone every region counts."""
+    names = sorted(_engine("reactive", "forecast")._stations)
+    for pfl, hands_win in ((True, True), (False, False)):
+        engine = engine_of("reactive", Settings(station_choice="forecast", pfl=pfl))
+        poses = engine._stations
+        head_at = poses[names[0]] + np.array([0.1, 0.0, 0.35])  # leaning over the first station
+        far = max(names, key=lambda n: float(np.linalg.norm(poses[n] - poses[names[0]])))
+        engine.last_forecast = _person(engine, head_at=head_at, hands_at=poses[far] + np.array([0, 0, 0.05]))
+        chosen = engine._choose_station(names)
+        assert chosen != names[0]
+        assert (chosen == far) is hands_win, (pfl, chosen, far)
